@@ -1,0 +1,191 @@
+"""Kinematic bodies: the head (or a static anchor) whose motion is prescribed, never simulated.
+
+The chain hangs from a point fixed in a kinematic body. The animation prescribes that body's
+pose and its derivatives; the chain never pushes back on it (one-way coupling, Hecker's
+"kinematic control"). All quantities are in the world frame (REP 103: SI units, Z up), and
+arrays carry a leading axis over the ``K`` kinematic bodies of a scene.
+
+What the chain needs of a head is the motion of its attachment point (Table 1, Eq. 1–3):
+
+    p   = R + r                      r = R_head @ a_local
+    ṗ   = Ṙ + ω × r
+    p̈   = R̈ + α × r + ω × (ω × r)
+
+plus the head's orientation and angular velocity, which the joint damping and bending stiffness
+of the first joint act against.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rotations import quat_rotate, quat_slerp
+
+__all__ = [
+    'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
+    'AnchorTrack',
+]
+
+
+@dataclass
+class KinematicState:
+    """Pose, velocity and acceleration of ``K`` kinematic bodies at one instant.
+
+    Attributes (world frame, SI units):
+        position: ``(K, 3)`` origin of the body frame, m.
+        orientation: ``(K, 4)`` unit quaternion ``(x, y, z, w)``, body to world.
+        linear_velocity: ``(K, 3)`` velocity of the origin, m/s.
+        angular_velocity: ``(K, 3)`` ω, rad/s.
+        linear_acceleration: ``(K, 3)`` acceleration of the origin, m/s².
+        angular_acceleration: ``(K, 3)`` α, rad/s².
+    """
+
+    position: np.ndarray
+    orientation: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
+    angular_acceleration: np.ndarray
+
+    @classmethod
+    def still(cls, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)):
+        """A body at rest; ``position`` ``(3,)`` or ``(K, 3)``."""
+        p = np.atleast_2d(np.asarray(position, dtype=float))
+        q = np.broadcast_to(np.asarray(orientation, dtype=float), (p.shape[0], 4)).copy()
+        z = np.zeros_like(p)
+        return cls(p, q, z, z.copy(), z.copy(), z.copy())
+
+    @property
+    def n_bodies(self):
+        return self.position.shape[0]
+
+    def is_finite(self):
+        return all(np.all(np.isfinite(a)) for a in (
+            self.position, self.orientation, self.linear_velocity, self.angular_velocity,
+            self.linear_acceleration, self.angular_acceleration))
+
+    def point_kinematics(self, body, r_local):
+        """Eq. 1–3 for points fixed in bodies: ``body`` ``(C,)`` indices, ``r_local`` ``(C, 3)``.
+
+        Returns ``AnchorKinematics`` of the ``C`` points.
+        """
+        q = self.orientation[body]
+        w = self.angular_velocity[body]
+        al = self.angular_acceleration[body]
+        r = quat_rotate(q, r_local)
+        w_x_r = np.cross(w, r)
+        return AnchorKinematics(
+            position=self.position[body] + r,
+            velocity=self.linear_velocity[body] + w_x_r,
+            acceleration=self.linear_acceleration[body] + np.cross(al, r) + np.cross(w, w_x_r),
+            orientation=q,
+            angular_velocity=w,
+        )
+
+
+@dataclass
+class AnchorKinematics:
+    """What the solver needs of each chain's anchor: ``C`` rows, one per chain (world frame).
+
+    ``position``/``velocity``/``acceleration`` are those of the attachment point (m, m/s, m/s²);
+    ``orientation`` and ``angular_velocity`` are the anchor body's (the first joint's parent).
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    orientation: np.ndarray
+    angular_velocity: np.ndarray
+
+
+class HeadMotion:
+    """A prescribed motion: ``state_at(t)`` returns the ``KinematicState`` at time ``t`` (s)."""
+
+    def state_at(self, t):  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class StillMotion(HeadMotion):
+    """Kinematic bodies that never move (a ceiling anchor, a still head)."""
+
+    def __init__(self, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)):
+        self._state = KinematicState.still(position, orientation)
+
+    def state_at(self, t):
+        return self._state
+
+
+class SwayYawMotion(HeadMotion):
+    """Side-to-side sway with a yaw oscillation, with exact derivatives.
+
+    ``position = p0 + (A sin 2πft, 0, 0)``; orientation = rotation about world Z by
+    ``yaw = Y sin 2πf_y t``. This is the moving head of ``../shared/reference/``.
+    """
+
+    def __init__(self, p0=(0.0, 0.0, 1.6), amplitude=0.05, frequency=1.5, yaw_amplitude=0.6,
+                 yaw_frequency=0.8):
+        self.p0 = np.asarray(p0, dtype=float)
+        self.A, self.f, self.Y, self.fy = amplitude, frequency, yaw_amplitude, yaw_frequency
+
+    def state_at(self, t):
+        w = 2.0 * np.pi * self.f
+        wy = 2.0 * np.pi * self.fy
+        x = self.A * np.sin(w * t)
+        yaw = self.Y * np.sin(wy * t)
+        yaw_d = self.Y * wy * np.cos(wy * t)
+        yaw_dd = -self.Y * wy * wy * np.sin(wy * t)
+        p = self.p0 + np.array([x, 0.0, 0.0])
+        return KinematicState(
+            position=p[None],
+            orientation=np.array([[0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)]]),
+            linear_velocity=np.array([[self.A * w * np.cos(w * t), 0.0, 0.0]]),
+            angular_velocity=np.array([[0.0, 0.0, yaw_d]]),
+            linear_acceleration=np.array([[-self.A * w * w * np.sin(w * t), 0.0, 0.0]]),
+            angular_acceleration=np.array([[0.0, 0.0, yaw_dd]]),
+        )
+
+
+def _quintic_coefficients(h, p0, v0, a0, p1, v1, a1):
+    """Monomial coefficients (in s = (t - t0)/h) of the quintic Hermite through both ends."""
+    dp = p1 - p0
+    hv0, hv1 = h * v0, h * v1
+    ha0, ha1 = h * h * a0, h * h * a1
+    return (
+        p0,
+        hv0,
+        0.5 * ha0,
+        10.0 * dp - 6.0 * hv0 - 4.0 * hv1 - 1.5 * ha0 + 0.5 * ha1,
+        -15.0 * dp + 8.0 * hv0 + 7.0 * hv1 + 1.5 * ha0 - ha1,
+        6.0 * dp - 3.0 * hv0 - 3.0 * hv1 - 0.5 * ha0 + 0.5 * ha1,
+    )
+
+
+class AnchorTrack:
+    """Anchor kinematics between two frames, for stepping at times the animation never gave.
+
+    The attachment point follows the quintic Hermite through its position, velocity and
+    acceleration at both frames, so the solver sees a C²-continuous anchor whatever the frame
+    rate (this is what makes the result independent of it). The anchor body's orientation is
+    slerped and its angular velocity interpolated linearly: they enter only damping and
+    stiffness of the first joint. Outside ``[t0, t1]`` the polynomial extrapolates (the
+    fixed-step accumulator strays at most one internal step outside).
+    """
+
+    def __init__(self, t0, a0, t1, a1):
+        self.t0 = float(t0)
+        self.h = max(float(t1) - float(t0), 1e-12)
+        self.a0, self.a1 = a0, a1
+        self.c = _quintic_coefficients(self.h, a0.position, a0.velocity, a0.acceleration,
+                                       a1.position, a1.velocity, a1.acceleration)
+
+    def at(self, t):
+        s = (t - self.t0) / self.h
+        c0, c1, c2, c3, c4, c5 = self.c
+        p = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
+        dp = (c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))) / self.h
+        ddp = (2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))) / (self.h * self.h)
+        sc = min(max(s, 0.0), 1.0)
+        return AnchorKinematics(
+            position=p, velocity=dp, acceleration=ddp,
+            orientation=quat_slerp(self.a0.orientation, self.a1.orientation, sc),
+            angular_velocity=(1.0 - sc) * self.a0.angular_velocity + sc * self.a1.angular_velocity,
+        )

@@ -1,0 +1,57 @@
+"""ament_python package setup for ponytail_ros.
+
+Installs the same way under `colcon build` (dependencies from package.xml) and with pip into a
+plain virtual environment (dependencies from the extras below: the ROS 2 Kilted PyPI wheels).
+"""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'ponytail_ros'
+
+# The ROS 2 Kilted wheels on PyPI. rclpy needs an RMW implementation and does not pull one.
+ROS_WHEELS = [
+    'ros-rclpy',
+    'ros-rmw-fastrtps-cpp',
+    'ros-geometry-msgs',
+    'ros-std-msgs',
+    'ros-visualization-msgs',
+    'ros-rosgraph-msgs',
+    'ros-diagnostic-msgs',
+]
+CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML']
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    # Under colcon the dependencies come from package.xml (rosdep); install_requires stays minimal
+    # so that a sourced workspace does not try to pull PyPI wheels over the system ROS install.
+    install_requires=['setuptools'],
+    extras_require={
+        'pypi': ROS_WHEELS + CORE,
+        'plot': ['matplotlib'],
+        'test': ['pytest', 'hypothesis', 'rosbags'],
+        'bench': ['mujoco'],
+    },
+    zip_safe=True,
+    maintainer='ponytail_ros developers',
+    maintainer_email='ponytail@example.com',
+    description='Physically simulated ponytails, tails, ropes and swords for animated characters.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'ponytail_demo = ponytail_ros.demo:main',
+            'ponytail_node = ponytail_ros.ros.node:main',
+            'ponytail_head_demo = ponytail_ros.ros.head_demo:main',
+            'ponytail_replay = ponytail_ros.recording.replay:main',
+            'ponytail_bench = ponytail_ros.bench.cli:main',
+        ],
+    },
+)
