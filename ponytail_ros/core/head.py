@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotations import quat_rotate, quat_slerp
+from .rotations import cross, quat_rotate, quat_slerp
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
@@ -72,11 +72,11 @@ class KinematicState:
         w = self.angular_velocity[body]
         al = self.angular_acceleration[body]
         r = quat_rotate(q, r_local)
-        w_x_r = np.cross(w, r)
+        w_x_r = cross(w, r)
         return AnchorKinematics(
             position=self.position[body] + r,
             velocity=self.linear_velocity[body] + w_x_r,
-            acceleration=self.linear_acceleration[body] + np.cross(al, r) + np.cross(w, w_x_r),
+            acceleration=self.linear_acceleration[body] + cross(al, r) + cross(w, w_x_r),
             orientation=q,
             angular_velocity=w,
         )

@@ -1,0 +1,358 @@
+"""Head pose, velocity and acceleration from timestamped pose samples.
+
+The head arrives as ``geometry_msgs/PoseStamped`` at 30–1000 Hz, irregular and jittery, but the
+solver needs the head's pose *and* its linear/angular velocity and acceleration (Eq. 1–3 of
+``head.py``) at the simulation tick time, which never coincides with a sample. ``HeadEstimator``
+keeps a bounded window of recent samples of one kinematic body and estimates all of them by a
+local weighted least-squares polynomial fit in time (a Savitzky–Golay filter for irregular
+stamps):
+
+* position: ``p(t) ≈ Σ c_k τ^k`` per axis;
+* orientation: each sample's rotation vector relative to a reference orientation, composed on the
+  left (world frame), ``q_i = exp(φ_i) ⊗ q_ref``, with ``q_ref`` the stored sample nearest the
+  evaluation time so that ``|φ|`` stays small; ``φ(t)`` is fitted like the position and
+
+      q = exp(φ) ⊗ q_ref,   ω = J_l(φ) φ̇,   α = J_l(φ) φ̈ + J̇_l(φ, φ̇) φ̇
+
+  with ``J_l`` the exact left Jacobian of SO(3), so nothing is lost to a small-angle
+  approximation.
+
+Units and frames: time in s, positions in m, quaternions scalar-last ``(x, y, z, w)`` body to
+world (as ``rotations.py``), velocities in m/s and rad/s, accelerations in m/s² and rad/s², and
+angular velocity/acceleration in the WORLD frame (as ``KinematicState``). The estimator does not
+know about frames beyond that: feed it poses all expressed in the simulation's world frame.
+
+Latency versus smoothness. Evaluating at the newest sample (``delay = 0``) means a one-sided fit,
+extrapolated between samples up to one sample period: its derivatives have the largest noise gain
+and model error. Evaluating ``delay`` seconds in the past puts samples on both sides of the
+evaluation time, which cuts both, at the price of a pure latency of ``delay`` (the whole returned
+state is the head's state at ``t - delay``). Widening ``window`` averages noise out (variance of
+the acceleration ∝ 1/(window⁵·rate)) but smooths real motion (bias ∝ window²·jerk-rate for a
+cubic). ``ponytail_ros/bench/head_estimation_bench.py`` measures the trade; the defaults
+(cubic, ``window = 0.1 s``, at least 6 samples, ``delay = 0``) are chosen from it — see that
+script's output for the table.
+
+Stale streams: between the newest sample and ``max_extrapolation`` after it the fit is
+extrapolated, for the first half at full speed, then time is smoothly braked (a C² time warp) so
+that velocity and acceleration decay to exactly zero at ``t_last + max_extrapolation``; later the
+head is held at that pose with zero derivatives ("stale head: the last pose is held"). Pose,
+velocity and acceleration stay continuous when the stream stops.
+
+ROS-free: numpy and the core only.
+"""
+import math
+
+import numpy as np
+
+from .head import KinematicState
+from .rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec
+
+__all__ = ['HeadEstimator', 'REJECT_REASONS']
+
+#: Every reason code ``HeadEstimator.add`` may return.
+REJECT_REASONS = (
+    'malformed',            # not convertible to float arrays of shape (3,) / (4,) and a scalar
+    'nonfinite',            # NaN or inf in the stamp, position or orientation
+    'zero_quaternion',      # |q| below 1e-9 (e.g. an uninitialised message)
+    'non_unit_quaternion',  # | |q| - 1 | above ``quat_tolerance``
+    'stamp_backwards',      # older than the newest accepted sample
+    'stamp_repeated',       # within ``min_interval`` of the newest accepted sample
+)
+
+
+def _cross(a, b):
+    """``a × b`` of 3-tuples of floats (``np.cross`` costs ~30 µs a call on (3,) arrays)."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _left_jacobian_rates(phi, phid, phidd):
+    """World angular velocity and acceleration of ``q(t) = exp(φ(t)) ⊗ q_ref``.
+
+    ``ω = J_l(φ) φ̇`` and ``α = J_l(φ) φ̈ + J̇_l φ̇``, with the left Jacobian of SO(3)
+    ``J_l = I + a [φ]× + b [φ]×²``, ``a = (1 - cos θ)/θ²``, ``b = (θ - sin θ)/θ³``, ``θ = |φ|``;
+    applied to ``φ̇`` its time derivative is (``[φ̇]× φ̇ = 0`` drops one term)
+
+        J̇_l φ̇ = (a'/θ)(φ·φ̇) φ×φ̇ + (b'/θ)(φ·φ̇) φ×(φ×φ̇) + b φ̇×(φ×φ̇).
+
+    Exact for any ``θ`` (Taylor series below θ = 0.1 avoid the cancellations). Arguments are
+    3-sequences of floats; returns two ``(3,)`` arrays.
+    """
+    phi, phid, phidd = tuple(phi), tuple(phid), tuple(phidd)
+    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    th = math.sqrt(th2)
+    if th < 0.1:
+        a = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+        b = 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0
+        da = -1.0 / 12.0 + th2 / 180.0 - th2 * th2 / 6720.0       # a'(θ)/θ
+        db = -1.0 / 60.0 + th2 / 1260.0 - th2 * th2 / 60480.0     # b'(θ)/θ
+    else:
+        s, c = math.sin(th), math.cos(th)
+        a = (1.0 - c) / th2
+        b = (th - s) / (th2 * th)
+        da = (th * s - 2.0 * (1.0 - c)) / (th2 * th2)
+        db = ((1.0 - c) / (th2 * th) - 3.0 * (th - s) / (th2 * th2)) / th
+
+    def jl(v):
+        pxv = _cross(phi, v)
+        ppxv = _cross(phi, pxv)
+        return [v[i] + a * pxv[i] + b * ppxv[i] for i in range(3)]
+
+    pxd = _cross(phi, phid)
+    ppxd = _cross(phi, pxd)
+    dxpxd = _cross(phid, pxd)
+    pd = phi[0] * phid[0] + phi[1] * phid[1] + phi[2] * phid[2]
+    omega = jl(phid)
+    alpha = jl(phidd)
+    for i in range(3):
+        alpha[i] += da * pd * pxd[i] + db * pd * ppxd[i] + b * dxpxd[i]
+    return np.array(omega), np.array(alpha)
+
+
+def _brake_warp(x):
+    """Time warp of the braking phase, ``x`` in [0, 1]: ``g(0)=0, g'(0)=1, g''(0)=0``,
+    ``g'(1)=g''(1)=0``, ``g(1)=1/2``. Returns ``(g, g', g'')``."""
+    x = min(max(x, 0.0), 1.0)
+    x2 = x * x
+    return x - x2 * x + 0.5 * x2 * x2, 1.0 - 3.0 * x2 + 2.0 * x2 * x, -6.0 * x + 6.0 * x2
+
+
+class HeadEstimator:
+    """Pose, velocity and acceleration of one kinematic body from timestamped pose samples.
+
+    Args:
+        window: s. Samples within ``window`` of the evaluation time enter the fit (with delay 0
+            that is the last ``window`` seconds). Default 0.1 s.
+        degree: degree of the polynomial in time (default 3: with a one-sided fit a quadratic's
+            acceleration lags by about half the window; see the benchmark).
+        delay: s, ≥ 0. ``state_at(t)`` returns the state at ``t - delay`` (latency for smoother
+            derivatives). Default 0.
+        max_extrapolation: s. How far past the newest sample the fit may be extrapolated; the
+            velocities are braked to zero over its second half, then the pose is held.
+            Default 0.1 s.
+        min_samples: the fit uses at least this many samples (the nearest ones, widening the
+            window at low rates) when available. Default ``degree + 3``. With fewer stored
+            samples the degree drops to ``n - 1`` (1 sample: that pose, zero derivatives;
+            2: linear).
+        max_samples: cap of the stored history (default 128, so that at 1000 Hz the whole
+            ``window`` of 100 samples enters the fit: with 64 the acceleration noise at 1000 Hz
+            is 2.5× larger, see the benchmark).
+        max_gap: s. A sample arriving more than this after the previous one drops the older
+            history (the motion across such a gap is unknown; fitting across it would invent
+            velocities). Default 0.5 s.
+        quat_tolerance: accepted ``| |q| - 1 |``; accepted quaternions are renormalised. Default
+            1e-3 (float32-quantised quaternions pass, garbage does not).
+        min_interval: s. A stamp within this of the newest sample is ``'stamp_repeated'``
+            (default 1 µs; two poses closer in time carry no usable velocity).
+
+    Weights: tricube in ``|t_i - t_eval| / (1.1 · max |t_j - t_eval|)``, which keeps every
+    selected sample's weight positive.
+    """
+
+    def __init__(self, window=0.1, degree=3, delay=0.0, max_extrapolation=0.1, min_samples=None,
+                 max_samples=128, max_gap=0.5, quat_tolerance=1e-3, min_interval=1e-6):
+        if window <= 0.0:
+            raise ValueError('window must be positive')
+        if degree < 0:
+            raise ValueError('degree must be >= 0')
+        if delay < 0.0:
+            raise ValueError('delay must be >= 0')
+        if max_extrapolation < 0.0:
+            raise ValueError('max_extrapolation must be >= 0')
+        self.window = float(window)
+        self.degree = int(degree)
+        self.delay = float(delay)
+        self.max_extrapolation = float(max_extrapolation)
+        self.min_samples = int(min_samples) if min_samples is not None else self.degree + 3
+        self.max_samples = int(max(max_samples, 2, self.min_samples))
+        self.quat_tolerance = float(quat_tolerance)
+        self.min_interval = float(min_interval)
+        self.max_gap = float(max_gap)
+        self._t = np.empty(self.max_samples)
+        self._p = np.empty((self.max_samples, 3))
+        self._q = np.empty((self.max_samples, 4))
+        self._n = 0
+        #: Count of rejected samples per reason code (diagnostics).
+        self.rejected = {r: 0 for r in REJECT_REASONS}
+
+    # -- history -------------------------------------------------------------------------------
+
+    def __len__(self):
+        return self._n
+
+    @property
+    def last_stamp(self):
+        """Stamp (s) of the newest accepted sample, ``None`` if there is none."""
+        return float(self._t[self._n - 1]) if self._n else None
+
+    @property
+    def last_pose(self):
+        """``(position (3,), orientation (4,))`` of the newest accepted sample, or ``None``."""
+        if not self._n:
+            return None
+        return self._p[self._n - 1].copy(), self._q[self._n - 1].copy()
+
+    @property
+    def sample_period(self):
+        """Median interval (s) of the stored samples, ``None`` with fewer than 2: a natural
+        ``delay`` is one or two of these."""
+        if self._n < 2:
+            return None
+        return float(np.median(np.diff(self._t[:self._n])))
+
+    def reset(self):
+        """Forget the history (after a teleport): the next accepted sample starts anew."""
+        self._n = 0
+
+    def is_stale(self, t, timeout):
+        """True when no sample is stored or the newest is more than ``timeout`` s before ``t``."""
+        return self._n == 0 or (t - self._t[self._n - 1]) > timeout
+
+    def _reject(self, reason):
+        self.rejected[reason] += 1
+        return reason
+
+    def _check_pose(self, position, orientation):
+        """``(p, q, None)`` validated and normalised, or ``(None, None, reason)``."""
+        try:
+            p = np.asarray(position, dtype=float).reshape(3)
+            q = np.asarray(orientation, dtype=float).reshape(4)
+        except (TypeError, ValueError):
+            return None, None, 'malformed'
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            return None, None, 'nonfinite'
+        norm = math.sqrt(float(q @ q))
+        if norm < 1e-9:
+            return None, None, 'zero_quaternion'
+        if abs(norm - 1.0) > self.quat_tolerance:
+            return None, None, 'non_unit_quaternion'
+        return p, q / norm, None
+
+    def add(self, t, position, orientation):
+        """Validate and store a sample; ``None`` if accepted, else a reason code.
+
+        ``t`` s, ``position`` ``(3,)`` m, ``orientation`` ``(4,)`` ``(x, y, z, w)`` body to
+        world. Never raises on bad data; the codes are in ``REJECT_REASONS``. The quaternion is
+        renormalised and flipped to the hemisphere of the previous sample (sign continuity).
+        A stream whose clock jumps back for good (a replay loop) keeps being rejected as
+        ``'stamp_backwards'``: call ``reset()``. A sample more than ``max_gap`` after the
+        previous one is accepted and starts a new history.
+        """
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            return self._reject('malformed')
+        p, q, reason = self._check_pose(position, orientation)
+        if reason is None and not math.isfinite(t):
+            reason = 'nonfinite'
+        if reason is not None:
+            return self._reject(reason)
+        n = self._n
+        if n:
+            dt = t - self._t[n - 1]
+            if abs(dt) <= self.min_interval:
+                return self._reject('stamp_repeated')
+            if dt < 0.0:
+                return self._reject('stamp_backwards')
+            if float(q @ self._q[n - 1]) < 0.0:
+                q = -q
+            if dt > self.max_gap:
+                n = 0
+        if n == self.max_samples:
+            self._t[:-1] = self._t[1:]
+            self._p[:-1] = self._p[1:]
+            self._q[:-1] = self._q[1:]
+            n -= 1
+        self._t[n], self._p[n], self._q[n] = t, p, q
+        self._n = n + 1
+        return None
+
+    def detect_teleport(self, position, orientation, max_distance, max_angle):
+        """True if the pose jumped from the newest accepted sample by more than ``max_distance``
+        (m) or ``max_angle`` (rad). False with no history or with an invalid pose (``add`` will
+        reject that one). The caller decides: typically ``reset()`` and then ``add``."""
+        if not self._n:
+            return False
+        p, q, reason = self._check_pose(position, orientation)
+        if reason is not None:
+            return False
+        if np.linalg.norm(p - self._p[self._n - 1]) > max_distance:
+            return True
+        d = min(abs(float(q @ self._q[self._n - 1])), 1.0)
+        return 2.0 * math.acos(d) > max_angle
+
+    # -- estimation ----------------------------------------------------------------------------
+
+    def state_at(self, t):
+        """The ``KinematicState`` (K = 1) of the body at ``t - delay`` (world frame, SI).
+
+        Within the history the fit interpolates; before the oldest sample it is evaluated at the
+        oldest sample; past the newest it extrapolates and brakes (see the module docstring).
+        Raises ``LookupError`` when no sample has been accepted yet (check ``last_stamp``).
+        """
+        n = self._n
+        if n == 0:
+            raise LookupError('HeadEstimator has no sample yet')
+        if n == 1:
+            return KinematicState.still(self._p[0], self._q[0])
+        te = float(t) - self.delay
+        t_last = self._t[n - 1]
+        # Time warp past the newest sample: full-speed extrapolation, then a C² brake.
+        rate, rate_d = 1.0, 0.0
+        s = te - t_last
+        if s > 0.0:
+            half = 0.5 * self.max_extrapolation
+            if s > half:
+                if half > 0.0:
+                    g, gd, gdd = _brake_warp((s - half) / half)
+                    s, rate, rate_d = half + half * g, gd, gdd / half
+                else:
+                    s, rate = 0.0, 0.0
+            te = t_last + s
+        te = max(te, self._t[0])
+
+        ts = self._t[:n]
+        dt = ts - te
+        adt = np.abs(dt)
+        sel = adt <= self.window
+        m = min(self.min_samples, n)
+        if np.count_nonzero(sel) < m:
+            sel = np.zeros(n, dtype=bool)
+            sel[np.argpartition(adt, m - 1)[:m]] = True
+        dt, adt = dt[sel], adt[sel]
+        ps, qs = self._p[:n][sel], self._q[:n][sel]
+        k = len(dt)
+        deg = min(self.degree, k - 1)
+
+        # Reference orientation: the selected sample nearest te; φ_i = log(q_i ⊗ q_ref⁻¹).
+        q_ref = qs[np.argmin(adt)]
+        phis = quat_to_rotvec(quat_multiply(qs, quat_conjugate(q_ref)))
+
+        h = max(float(adt.max()), 1e-9)
+        tau = dt / h
+        u = adt / (1.1 * h)
+        w = np.sqrt((1.0 - u * u * u) ** 3)                  # sqrt of tricube weights
+        V = tau[:, None] ** np.arange(deg + 1)                # (k, deg+1)
+        p_mean = ps.mean(axis=0)                              # centred: metres far from 0
+        Y = np.concatenate([ps - p_mean, phis], axis=1)       # (k, 6)
+        c, *_ = np.linalg.lstsq(V * w[:, None], Y * w[:, None], rcond=None)
+        val = c[0].copy()
+        val[:3] += p_mean
+        vel = c[1] / h if deg >= 1 else np.zeros(6)
+        acc = 2.0 * c[2] / (h * h) if deg >= 2 else np.zeros(6)
+
+        # Chain rule through the time warp (identity unless braking).
+        acc = acc * (rate * rate) + vel * rate_d
+        vel = vel * rate
+
+        phi = val[3:]
+        omega, alpha = _left_jacobian_rates(phi.tolist(), vel[3:].tolist(), acc[3:].tolist())
+        q = quat_multiply(quat_from_rotvec(phi), q_ref)
+        q /= np.linalg.norm(q)
+        return KinematicState(
+            position=val[None, :3],
+            orientation=q[None],
+            linear_velocity=vel[None, :3],
+            angular_velocity=omega[None],
+            linear_acceleration=acc[None, :3],
+            angular_acceleration=alpha[None],
+        )

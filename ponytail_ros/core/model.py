@@ -1,0 +1,96 @@
+"""The compiled model: a ``Scene`` flattened into arrays over all segments of all chains.
+
+Segments of every chain are concatenated: segment ``i`` belongs to chain ``chain_of[i]``; joint
+``i`` is the ball joint at segment ``i``'s proximal end, joining it to its parent (segment
+``i - 1``, or the chain's anchor when ``is_first[i]``). So there are as many joints as segments,
+and ``J M⁻¹ Jᵀ`` is block-tridiagonal over the whole concatenation, with zero coupling blocks
+between chains: many chains (a crowd) are solved in one banded factorisation.
+
+Tunable parameters (damping, stiffness, drag, gravity, wind) are arrays that can be changed
+between steps without rebuilding; a term whose coefficients are all zero is skipped entirely.
+"""
+import numpy as np
+
+from .rotations import IDENTITY_QUAT
+
+__all__ = ['Model']
+
+
+class Model:
+    """Arrays of a scene (SI units). Built once by ``Model(scene)``; structure is immutable."""
+
+    def __init__(self, scene):
+        self.scene = scene
+        chains = scene.chains
+        counts = np.array([c.n_segments for c in chains])
+        self.n = int(counts.sum())
+        self.n_chains = len(chains)
+        self.chain_start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.intp)
+        self.chain_end = self.chain_start + counts
+        self.chain_of = np.repeat(np.arange(self.n_chains), counts)
+        self.is_first = np.zeros(self.n, dtype=bool)
+        self.is_first[self.chain_start] = True
+        self.has_child = np.ones(self.n, dtype=bool)
+        self.has_child[self.chain_end - 1] = False
+        self.parent = np.where(self.is_first, -1, np.arange(self.n) - 1)
+        # Gather index into [anchor rows (C), segment rows (n)]: each joint's parent side.
+        self._parent_ext = np.where(self.is_first, self.chain_of, self.n_chains + self.parent)
+        self._child_mask = self.has_child[:-1, None].astype(float)
+
+        self.length = np.concatenate([c.lengths() for c in chains])
+        self.mass = np.concatenate([c.masses() for c in chains])
+        self.inv_mass = 1.0 / self.mass
+        self.inertia = np.concatenate([c.principal_inertia() for c in chains])  # (n, 3) body axes
+        self.inv_inertia = 1.0 / self.inertia
+        self.radius = np.concatenate([np.full(c.n_segments, c.radius) for c in chains])
+
+        self.attach = np.array([c.attach for c in chains], dtype=float)          # (C, 3) local
+        self.anchor_body = np.array([c.anchor_body for c in chains], dtype=np.intp)
+        self.rest_direction = np.array([
+            c.rest_direction if c.rest_direction is not None else (np.nan, np.nan, np.nan)
+            for c in chains], dtype=float)                                        # (C, 3) local
+        # Rest orientation of each segment relative to its parent (the anchor body for the first
+        # joint); straight chain: identity. The first joint's is set by reset() when the rest
+        # direction follows gravity.
+        self.q_rest = np.tile(IDENTITY_QUAT, (self.n, 1))
+
+        self.damping = np.zeros(self.n)
+        self.stiffness = np.zeros(self.n)
+        self.drag_linear = np.zeros(self.n)
+        self.drag_quadratic = np.zeros(self.n)
+        for c, s, e in zip(chains, self.chain_start, self.chain_end):
+            self.damping[s:e] = c.damping
+            self.stiffness[s:e] = c.stiffness
+            self.drag_linear[s:e] = c.drag_linear
+            self.drag_quadratic[s:e] = c.drag_quadratic
+        self.gravity = np.array(scene.gravity, dtype=float)
+        self.wind = np.array(scene.wind, dtype=float)
+        self.refresh_terms()
+
+    def parent_side(self, anchor_rows, segment_rows):
+        """Per joint, the parent's value: the chain anchor's for a first joint, else segment i-1's.
+
+        ``anchor_rows`` ``(C, k)``, ``segment_rows`` ``(n, k)`` → ``(n, k)``.
+        """
+        return np.concatenate([anchor_rows, segment_rows])[self._parent_ext]
+
+    def distal_side(self, joint_rows):
+        """Per segment, the value of the joint at its distal end (zero at a chain's tip)."""
+        out = np.zeros_like(joint_rows)
+        out[:-1] = joint_rows[1:] * self._child_mask
+        return out
+
+    def chain_slice(self, c):
+        return slice(int(self.chain_start[c]), int(self.chain_end[c]))
+
+    def refresh_terms(self):
+        """Recompute which force terms are on; call after changing a parameter array.
+
+        A switched-off term is then skipped in the step, so it costs nothing.
+        """
+        self.active_terms = {
+            'gravity': bool(np.any(self.gravity != 0.0)),
+            'damping': bool(np.any(self.damping != 0.0)),
+            'stiffness': bool(np.any(self.stiffness != 0.0)),
+            'drag': bool(np.any(self.drag_linear != 0.0) or np.any(self.drag_quadratic != 0.0)),
+        }

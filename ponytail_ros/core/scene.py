@@ -1,0 +1,250 @@
+"""Scene description: what is simulated, validated once when it is built.
+
+A scene is a set of chains, each hung from a point fixed in one of ``n_kinematic_bodies``
+kinematic bodies (heads or static anchors), plus world settings (gravity, wind) and the solver
+settings. Everything is SI (m, kg, s, rad), world frame Z up (REP 103).
+
+Segment frame: origin at the centre of mass, body +X along the segment from its proximal joint
+(towards the anchor) to its distal joint. A solid cylinder of length ``l``, radius ``r``, mass
+``m`` has principal moments ``(I_axial, I_perp, I_perp) = (m r²/2, m(3r² + l²)/12, same)``.
+
+Every field is checked by ``validate()``; an error names the field, the value and the allowed
+range (``SceneError``, a ``ValueError``).
+"""
+from dataclasses import dataclass, field, fields, replace
+import math
+
+import numpy as np
+
+__all__ = ['SceneError', 'ChainSpec', 'SolverSpec', 'Scene', 'cylinder_inertia', 'INTEGRATORS',
+           'LINEAR_SOLVERS', 'MAX_SEGMENTS']
+
+INTEGRATORS = ('rk4', 'symplectic_euler')
+LINEAR_SOLVERS = ('banded', 'dense')
+MAX_SEGMENTS = 4096
+
+
+class SceneError(ValueError):
+    """A scene field is out of its allowed range."""
+
+    def __init__(self, field_name, value, allowed):
+        self.field = field_name
+        self.value = value
+        self.allowed = allowed
+        super().__init__(f'{field_name} = {value!r} is not allowed: must be {allowed}')
+
+
+def cylinder_inertia(mass, length, radius):
+    """Principal moments ``(n, 3)`` of solid cylinders about their centre, axis along +X."""
+    mass, length, radius = np.broadcast_arrays(*(np.asarray(a, dtype=float)
+                                                  for a in (mass, length, radius)))
+    axial = 0.5 * mass * radius ** 2
+    perp = mass * (3.0 * radius ** 2 + length ** 2) / 12.0
+    return np.stack([axial, perp, perp], axis=-1)
+
+
+def _check_range(name, value, lo, hi, lo_open=False, hi_open=False):
+    ok = (math.isfinite(value) and (value > lo if lo_open else value >= lo)
+          and (value < hi if hi_open else value <= hi))
+    if not ok:
+        raise SceneError(name, value, f'in {"(" if lo_open else "["}{lo}, {hi}{")" if hi_open else "]"}')
+
+
+def _check_vector(name, value, n=3, max_abs=1e6):
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)) or np.any(np.abs(arr) > max_abs):
+        raise SceneError(name, value, f'{n} finite numbers, each within ±{max_abs:g}')
+    return arr
+
+
+@dataclass(frozen=True)
+class ChainSpec:
+    """One chain of ``n_segments`` rigid segments joined end to end by ball joints.
+
+    Attributes:
+        name: label (topic suffix in the node).
+        n_segments: number of segments N, 1 ≤ N ≤ 4096.
+        length: total length, m (split equally unless ``segment_lengths`` is given).
+        mass: total mass, kg (split in proportion to length unless ``segment_masses`` is given).
+        radius: segment radius, m (for the default solid-cylinder inertia and for collision).
+        segment_lengths, segment_masses: optional per-segment overrides, ``(N,)``.
+        inertia: optional principal moments ``(N, 3)`` about each centre, body axes
+            (axial X, then Y, Z), kg·m²; default: solid cylinder.
+        anchor_body: index of the kinematic body the chain hangs from.
+        attach: attachment point in the anchor body's frame, m.
+        rest_direction: direction of a straight chain at rest, in the anchor body's frame; used
+            by ``reset`` and as the bending stiffness' rest pose. ``None``: along gravity.
+        damping: joint damping c, N·m·s/rad: torque ``-c (ω_child - ω_parent)`` at every joint.
+        stiffness: bending stiffness k, N·m/rad, towards the straight rest pose at every joint.
+        drag_linear: linear air drag per metre of segment, N·s/m².
+        drag_quadratic: quadratic air drag per metre of segment, N·s²/m³.
+    """
+
+    name: str = 'ponytail'
+    n_segments: int = 10
+    length: float = 0.4
+    mass: float = 0.1
+    radius: float = 0.01
+    segment_lengths: tuple = None
+    segment_masses: tuple = None
+    inertia: tuple = None
+    anchor_body: int = 0
+    attach: tuple = (-0.10, 0.0, 0.05)
+    rest_direction: tuple = None
+    damping: float = 0.0
+    stiffness: float = 0.0
+    drag_linear: float = 0.0
+    drag_quadratic: float = 0.0
+
+    def validate(self, prefix='chain', n_kinematic_bodies=1):
+        p = prefix + '.'
+        if not isinstance(self.n_segments, (int, np.integer)) or isinstance(self.n_segments, bool) \
+                or not 1 <= self.n_segments <= MAX_SEGMENTS:
+            raise SceneError(p + 'n_segments', self.n_segments, f'an integer in [1, {MAX_SEGMENTS}]')
+        _check_range(p + 'length', self.length, 1e-4, 1e3)
+        _check_range(p + 'mass', self.mass, 1e-7, 1e4)
+        _check_range(p + 'radius', self.radius, 1e-6, 10.0)
+        n = self.n_segments
+        for name in ('segment_lengths', 'segment_masses'):
+            val = getattr(self, name)
+            if val is not None:
+                arr = np.asarray(val, dtype=float)
+                if arr.shape != (n,) or not np.all(np.isfinite(arr)) or np.any(arr <= 0.0):
+                    raise SceneError(p + name, val, f'{n} positive finite numbers (one per segment)')
+        if self.inertia is not None:
+            arr = np.asarray(self.inertia, dtype=float)
+            if arr.shape != (n, 3) or not np.all(np.isfinite(arr)) or np.any(arr <= 0.0):
+                raise SceneError(p + 'inertia', self.inertia,
+                                 f'an array of shape ({n}, 3) of positive principal moments, kg·m²')
+        if not isinstance(self.anchor_body, (int, np.integer)) or not \
+                0 <= self.anchor_body < n_kinematic_bodies:
+            raise SceneError(p + 'anchor_body', self.anchor_body,
+                             f'an integer in [0, {n_kinematic_bodies - 1}]')
+        _check_vector(p + 'attach', self.attach, max_abs=1e3)
+        if self.rest_direction is not None:
+            d = _check_vector(p + 'rest_direction', self.rest_direction)
+            if np.linalg.norm(d) < 1e-9:
+                raise SceneError(p + 'rest_direction', self.rest_direction, 'a non-zero vector')
+        _check_range(p + 'damping', self.damping, 0.0, 1e3)
+        _check_range(p + 'stiffness', self.stiffness, 0.0, 1e4)
+        _check_range(p + 'drag_linear', self.drag_linear, 0.0, 1e3)
+        _check_range(p + 'drag_quadratic', self.drag_quadratic, 0.0, 1e3)
+        return self
+
+    def lengths(self):
+        if self.segment_lengths is not None:
+            return np.asarray(self.segment_lengths, dtype=float)
+        return np.full(self.n_segments, self.length / self.n_segments)
+
+    def masses(self):
+        if self.segment_masses is not None:
+            return np.asarray(self.segment_masses, dtype=float)
+        lengths = self.lengths()
+        return self.mass * lengths / lengths.sum()
+
+    def principal_inertia(self):
+        if self.inertia is not None:
+            return np.asarray(self.inertia, dtype=float)
+        return cylinder_inertia(self.masses(), self.lengths(), self.radius)
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """How time is advanced.
+
+    Attributes:
+        integrator: ``'rk4'`` (classical Runge–Kutta, 4th order) or ``'symplectic_euler'``
+            (semi-implicit Euler, 1st order, cheapest).
+        dt: fixed internal step, s, in [1e-6, 0.1]. Frames of any length are advanced in
+            these steps (an accumulator), so results do not depend on the frame rate.
+        max_steps_per_call: cap on internal steps per ``advance``; time beyond it is dropped
+            and reported (a frame hitch must not cause a spiral of death).
+        linear_solver: ``'banded'`` (O(n) banded Cholesky of J M⁻¹ Jᵀ) or ``'dense'`` (O(n³)
+            cross-check).
+        projection: after each step, put positions and velocities back on the joint
+            constraints (removes drift; on by default).
+        baumgarte_stiffness, baumgarte_damping: optional constraint stabilisation inside the
+            acceleration solve, ``C̈ + 2ζ Ċ + κ C = 0`` with κ (1/s²) and 2ζ (1/s).
+        guard_max_speed: a segment faster than this (m/s) is a blow-up: reset and report.
+        guard_max_gap: a joint gap larger than this (m) after projection: reset and report.
+    """
+
+    integrator: str = 'rk4'
+    dt: float = 1.0 / 480.0
+    max_steps_per_call: int = 240
+    linear_solver: str = 'banded'
+    projection: bool = True
+    baumgarte_stiffness: float = 0.0
+    baumgarte_damping: float = 0.0
+    guard_max_speed: float = 200.0
+    guard_max_gap: float = 1e-3
+
+    def validate(self, prefix='solver'):
+        p = prefix + '.'
+        if self.integrator not in INTEGRATORS:
+            raise SceneError(p + 'integrator', self.integrator, f'one of {INTEGRATORS}')
+        _check_range(p + 'dt', self.dt, 1e-6, 0.1)
+        if not isinstance(self.max_steps_per_call, (int, np.integer)) or \
+                not 1 <= self.max_steps_per_call <= 1_000_000:
+            raise SceneError(p + 'max_steps_per_call', self.max_steps_per_call,
+                             'an integer in [1, 1000000]')
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise SceneError(p + 'linear_solver', self.linear_solver, f'one of {LINEAR_SOLVERS}')
+        _check_range(p + 'baumgarte_stiffness', self.baumgarte_stiffness, 0.0, 1e8)
+        _check_range(p + 'baumgarte_damping', self.baumgarte_damping, 0.0, 1e4)
+        _check_range(p + 'guard_max_speed', self.guard_max_speed, 1e-3, 1e6, lo_open=True)
+        _check_range(p + 'guard_max_gap', self.guard_max_gap, 1e-9, 10.0)
+        return self
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Chains, kinematic bodies, world settings and solver settings.
+
+    Attributes:
+        chains: the chains, each a ``ChainSpec``.
+        n_kinematic_bodies: how many heads/anchors the motion supplies each instant.
+        gravity: m/s², world frame.
+        wind: velocity of the air, m/s, world frame (drag acts on velocity relative to it).
+        solver: a ``SolverSpec``.
+    """
+
+    chains: tuple = (ChainSpec(),)
+    n_kinematic_bodies: int = 1
+    gravity: tuple = (0.0, 0.0, -9.81)
+    wind: tuple = (0.0, 0.0, 0.0)
+    solver: SolverSpec = field(default_factory=SolverSpec)
+
+    def __post_init__(self):
+        object.__setattr__(self, 'chains', tuple(self.chains))
+        self.validate()
+
+    def validate(self):
+        if not isinstance(self.n_kinematic_bodies, (int, np.integer)) or \
+                not 1 <= self.n_kinematic_bodies <= 1_000_000:
+            raise SceneError('n_kinematic_bodies', self.n_kinematic_bodies,
+                             'an integer in [1, 1000000]')
+        if not 1 <= len(self.chains) <= 1_000_000:
+            raise SceneError('chains', len(self.chains), 'between 1 and 1000000 chains')
+        for i, c in enumerate(self.chains):
+            if not isinstance(c, ChainSpec):
+                raise SceneError(f'chains[{i}]', c, 'a ChainSpec')
+            c.validate(f'chains[{i}]', self.n_kinematic_bodies)
+        _check_vector('gravity', self.gravity, max_abs=1e4)
+        _check_vector('wind', self.wind, max_abs=1e3)
+        if not isinstance(self.solver, SolverSpec):
+            raise SceneError('solver', self.solver, 'a SolverSpec')
+        self.solver.validate()
+        return self
+
+    @property
+    def n_segments(self):
+        return sum(c.n_segments for c in self.chains)
+
+    def replace(self, **changes):
+        """A validated copy with ``changes`` applied (dataclasses.replace)."""
+        return replace(self, **changes)
+
+
+def spec_field_names(cls):
+    return [f.name for f in fields(cls)]

@@ -1,0 +1,193 @@
+"""Constraint forces by Lagrange multipliers: Hecker's A f_c = b, for whole chains at once.
+
+Joint i holds segment i's proximal point on its parent's distal point (or on the anchor):
+
+    C_i = p_parent - p_child = 0                                  (Eq. 12–13)
+
+Differentiated twice (Eq. 14), with the point accelerations of Eq. 3 and the body accelerations
+of Eq. 10–11 (the unknown joint forces f_c included), this is a linear system in the joint
+forces. With ``r_p = -h`` and ``r_d = +h`` the segment's joint vectors (``h`` = half the
+segment, world frame) and ``G = [h]× I⁻¹ [h]×`` (I⁻¹ the world inverse inertia):
+
+    A_ii     = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}     (the second terms only if i has a parent)
+    A_i,i-1  = -(1/m_{i-1} 1 + G_{i-1})
+    b_i      = p̈_parent,free - p̈_child,free              (+ Baumgarte terms)
+
+where ``p̈_free`` is a joint point's acceleration under the applied forces alone (gravity,
+damping, ..., and the gyroscopic torque -ω × Iω). This ``A = J M⁻¹ Jᵀ`` is symmetric positive
+definite and block-tridiagonal with 3×3 blocks: ``solve_banded`` factorises it as a banded
+Cholesky (LAPACK ``pbsv``, half-bandwidth 5) in O(n); ``solve_dense`` is the O(n³) cross-check.
+
+Inertia: for axisymmetric segments (principal moments ``(I_a, I_p, I_p)``, the default solid
+cylinder) the world inverse inertia is ``I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ`` (e the segment
+axis) and ``G = (h hᵀ - |h|² 1)/I_p``: no rotation matrices are formed. Other inertias use
+``R diag(1/I) Rᵀ``.
+``f_c[i]`` is the force joint i applies to its child (``-f_c[i]`` acts on the parent; for the
+first joint that reaction is the one the kinematic head never feels).
+"""
+import numpy as np
+from scipy.linalg import lapack
+
+from .rotations import cross, quat_axis_x, quat_to_matrix, skew
+
+__all__ = ['Dynamics']
+
+_KD = 5  # half-bandwidth of a block-tridiagonal matrix with 3×3 blocks
+
+
+def _banded_indices(n):
+    """Flat indices into the ``(6, 3n)`` upper banded storage for the diagonal and coupling blocks.
+
+    LAPACK upper storage: ``ab[kd + i - j, j] = A[i, j]`` for ``j - kd <= i <= j``.
+    """
+    a, b = np.meshgrid(np.arange(3), np.arange(3), indexing='ij')
+    upper = (a <= b)
+    da, db = a[upper], b[upper]                          # 6 entries of the diagonal block
+    j = np.arange(n)[:, None]
+    diag_rows = _KD + da - db
+    diag_cols = 3 * j + db
+    diag_flat = (diag_rows * 3 * n + diag_cols).ravel()
+    # Coupling block A[i-1, i] = A[i, i-1]ᵀ: all 9 entries lie inside the band.
+    ca, cb = a.ravel(), b.ravel()
+    off_rows = 2 + ca - cb
+    off_cols = 3 * j + cb
+    off_flat = (off_rows * 3 * n + off_cols).ravel()
+    return (da, db, diag_flat), (ca, cb, off_flat)
+
+
+class Dynamics:
+    """Accelerations of all segments under applied and constraint forces, for one model."""
+
+    def __init__(self, model, linear_solver='banded', baumgarte=(0.0, 0.0)):
+        self.model = model
+        self.linear_solver = linear_solver
+        self.baumgarte_stiffness, self.baumgarte_damping = baumgarte
+        m = model
+        n = m.n
+        self._diag_idx, self._off_idx = _banded_indices(n)
+        # The first joint of every chain has no coupling to the previous segment.
+        self._couple = (~m.is_first)[1:, None, None].astype(float)
+        I = m.inertia
+        self.axisymmetric = bool(np.allclose(I[:, 1], I[:, 2], rtol=1e-12, atol=0.0))
+        self._inv_Ia, self._inv_Ip = 1.0 / I[:, 0], 1.0 / I[:, 1]
+        self._half = 0.5 * m.length
+        self.last_f_c = np.zeros((n, 3))
+
+    # -- mass properties in the world frame -------------------------------------------------
+    def mass_terms(self, q, w):
+        """Half-vectors ``h``, ``G = [h]× I⁻¹ [h]×``, ``I⁻¹·`` and the gyroscopic ω × Iω."""
+        m = self.model
+        if self.axisymmetric:
+            e = quat_axis_x(q)
+            h = self._half[:, None] * e
+            hh = np.sum(h * h, axis=1)
+            G = h[:, :, None] * h[:, None, :]
+            G[:, [0, 1, 2], [0, 1, 2]] -= hh[:, None]
+            G *= self._inv_Ip[:, None, None]
+            k = (self._inv_Ia - self._inv_Ip)[:, None]
+            inv_Ip = self._inv_Ip[:, None]
+
+            def inv_I(v):
+                return v * inv_Ip + (k * np.sum(e * v, axis=1, keepdims=True)) * e
+            # L = I_p ω + (I_a - I_p)(e·ω) e, so ω × L = (I_a - I_p)(e·ω) ω × e.
+            gyro = ((m.inertia[:, 0] - m.inertia[:, 1]) * np.sum(e * w, axis=1))[:, None] * cross(w, e)
+            return h, G, inv_I, gyro
+        R = quat_to_matrix(q)
+        h = self._half[:, None] * R[:, :, 0]
+        inv_I_world = (R * m.inv_inertia[:, None, :]) @ R.transpose(0, 2, 1)
+        S = skew(h)
+        G = S @ inv_I_world @ S
+
+        def inv_I(v):
+            return (inv_I_world @ v[:, :, None])[:, :, 0]
+        w_body = (w[:, None, :] @ R)[:, 0, :]                  # Rᵀ ω
+        L_ang = (R @ (m.inertia * w_body)[:, :, None])[:, :, 0]
+        return h, G, inv_I, cross(w, L_ang)
+
+    # -- the system A f_c = b -------------------------------------------------------------
+    def blocks(self, G):
+        """Diagonal blocks ``D`` ``(n,3,3)`` and coupling blocks ``L[i] = A[i, i-1]``."""
+        inv_m = self.model.inv_mass[:, None, None]
+        eye = np.eye(3)
+        K_pp = inv_m * eye - G          # K(r_p, r_p) = K(r_d, r_d) since r_d = -r_p
+        D = K_pp.copy()
+        D[1:] += K_pp[:-1] * self._couple
+        L = np.zeros_like(D)
+        L[1:] = -(inv_m[:-1] * eye + G[:-1]) * self._couple     # -K(r_d, r_p)
+        return D, L
+
+    def solve(self, D, L, b):
+        if self.linear_solver == 'banded':
+            return self.solve_banded(D, L, b)
+        return self.solve_dense(D, L, b)
+
+    def solve_banded(self, D, L, b):
+        n = self.model.n
+        ab = np.zeros((_KD + 1, 3 * n))
+        da, db, dflat = self._diag_idx
+        ab.flat[dflat] = D[:, da, db].ravel()
+        ca, cb, oflat = self._off_idx
+        # A[i-1, i][a, b] = L[i][b, a]; the row for i = 0 falls outside and stays zero.
+        ab.flat[oflat[9:]] = L[1:, cb, ca].ravel()
+        _, x, info = lapack.dpbsv(ab, b.reshape(-1), lower=0, overwrite_ab=1, overwrite_b=0)
+        if info != 0:
+            raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbsv info={info})')
+        return x.reshape(n, 3)
+
+    def assemble_dense(self, D, L):
+        n = self.model.n
+        A = np.zeros((n, 3, n, 3))
+        idx = np.arange(n)
+        A[idx, :, idx, :] = D
+        A[idx[1:], :, idx[1:] - 1, :] = L[1:]
+        A[idx[1:] - 1, :, idx[1:], :] = L[1:].transpose(0, 2, 1)
+        return A.reshape(3 * n, 3 * n)
+
+    def solve_dense(self, D, L, b):
+        return np.linalg.solve(self.assemble_dense(D, L), b.reshape(-1)).reshape(-1, 3)
+
+    def _apply_joint_forces(self, f_c, h, inv_I):
+        """Δa, Δα of every segment from joint forces ``f_c`` (+ at proximal, - at distal)."""
+        f_next = self.model.distal_side(f_c)
+        return ((f_c - f_next) * self.model.inv_mass[:, None],
+                inv_I(cross(f_c + f_next, h)))          # (-h) × f_c + h × (-f_next)
+
+    # -- accelerations --------------------------------------------------------------------
+    def accelerations(self, x, q, v, w, anchor, F, T):
+        """Linear and angular accelerations ``(n, 3)`` each, the constraints enforced.
+
+        ``anchor``: ``AnchorKinematics`` per chain (attachment point motion, world frame).
+        ``F``, ``T``: applied forces and torques (without the gyroscopic term), N and N·m.
+        """
+        m = self.model
+        h, G, inv_I, gyro = self.mass_terms(q, w)
+        D, L = self.blocks(G)
+        a_free = F * m.inv_mass[:, None]
+        al_free = inv_I(T - gyro)                      # Eq. 11 without f_c
+        # Joint-point accelerations under applied forces only (Eq. 3), r_d = h, r_p = -h.
+        w_x_h = cross(w, h)
+        tang = cross(al_free, h) + cross(w, w_x_h)
+        b = self.model.parent_side(anchor.acceleration, a_free + tang) - (a_free - tang)
+        if self.baumgarte_stiffness or self.baumgarte_damping:
+            gap, gap_rate = self.constraint_error(x, v, h, w_x_h, anchor)
+            b += self.baumgarte_damping * gap_rate + self.baumgarte_stiffness * gap
+        f_c = self.solve(D, L, b)
+        self.last_f_c = f_c
+        da, dal = self._apply_joint_forces(f_c, h, inv_I)
+        return a_free + da, al_free + dal
+
+    def constraint_error(self, x, v, h, w_x_h, anchor):
+        """Position and velocity error ``C``, ``Ċ`` of every joint (parent minus child)."""
+        return (self.model.parent_side(anchor.position, x + h) - (x - h),
+                self.model.parent_side(anchor.velocity, v + w_x_h) - (v - w_x_h))
+
+    def velocity_correction(self, x, q, v, w, anchor):
+        """Mass-weighted velocity change that closes every joint's velocity error (Ċ = 0).
+
+        Solves J M⁻¹ Jᵀ λ = Ċ for joint impulses λ (N·s): the physical response of the chain
+        to an impulse. Returns ``(Δv, Δω)``.
+        """
+        h, G, inv_I, _ = self.mass_terms(q, w)
+        D, L = self.blocks(G)
+        _, c_dot = self.constraint_error(x, v, h, cross(w, h), anchor)
+        return self._apply_joint_forces(self.solve(D, L, c_dot), h, inv_I)
