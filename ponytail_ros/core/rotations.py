@@ -18,14 +18,14 @@ IDENTITY_QUAT = np.array([0.0, 0.0, 0.0, 1.0])
 
 def quat_multiply(a, b):
     """Hamilton product ``a ⊗ b`` (apply ``b`` first, then ``a``)."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    c = np.empty(a.shape if a.shape == b.shape else np.broadcast_shapes(a.shape, b.shape))
+    c[..., 0] = aw * bx + ax * bw + ay * bz - az * by
+    c[..., 1] = aw * by - ax * bz + ay * bw + az * bx
+    c[..., 2] = aw * bz + ax * by - ay * bx + az * bw
+    c[..., 3] = aw * bw - ax * bx - ay * by - az * bz
+    return c
 
 
 def quat_conjugate(q):
@@ -61,7 +61,7 @@ def cross(a, b):
     """``a × b`` over the last axis; ~2.5× faster than ``np.cross`` on small arrays."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    c = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    c = np.empty(a.shape if a.shape == b.shape else np.broadcast_shapes(a.shape, b.shape))
     c[..., 0] = a1 * b2 - a2 * b1
     c[..., 1] = a2 * b0 - a0 * b2
     c[..., 2] = a0 * b1 - a1 * b0

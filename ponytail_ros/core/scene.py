@@ -170,7 +170,7 @@ class SolverSpec:
     """
 
     integrator: str = 'rk4'
-    dt: float = 1.0 / 480.0
+    dt: float = 1.0 / 240.0
     max_steps_per_call: int = 240
     linear_solver: str = 'banded'
     projection: bool = True

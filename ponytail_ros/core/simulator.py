@@ -188,8 +188,8 @@ class Simulator:
 
         ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``).
         """
-        return self._advance(t_target, lambda t: self.anchors(motion.state_at(t)),
-                             lambda t: motion.state_at(t))
+        return self._advance(t_target, _memo_last(lambda t: self.anchors(motion.state_at(t))),
+                             motion.state_at)
 
     def advance_frame(self, t_frame, head):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
@@ -200,7 +200,7 @@ class Simulator:
         t_prev, a_prev = self._last_anchor
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
-        report = self._advance(t_frame, track.at, lambda t: head)
+        report = self._advance(t_frame, _memo_last(track.at), lambda t: head)
         self._last_anchor = (float(t_frame), a_new)
         return report
 
@@ -302,3 +302,18 @@ class Simulator:
     def constraint_forces(self):
         """Joint forces f_c ``(n, 3)`` on each child at the last stage solved, N."""
         return self.dynamics.last_f_c
+
+
+def _memo_last(f, size=2):
+    """Cache ``f(t)`` for the last few ``t``: RK4 evaluates the anchor twice at t + h/2, and the
+    step's end again for the projection and the next step's start."""
+    cache = {}
+
+    def g(t):
+        v = cache.get(t)
+        if v is None:
+            if len(cache) >= size:
+                cache.pop(next(iter(cache)))
+            v = cache[t] = f(t)
+        return v
+    return g
