@@ -1,0 +1,304 @@
+"""Physical facts of the chain dynamics core (no ROS): closed forms, conservation, coupling."""
+import numpy as np
+import pytest
+
+from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator, SolverSpec,
+                               StillMotion, SwayYawMotion)
+from ponytail_ros.core.forces import applied_forces
+from ponytail_ros.core.rotations import quat_from_rotvec, quat_rotate
+
+G = 9.81
+ANCHOR = np.array([0.0, 0.0, 2.0])
+
+
+def chain_scene(n=5, length=0.5, mass=0.2, radius=0.01, damping=0.0, integrator='rk4',
+                dt=1e-3, **solver):
+    chain = ChainSpec(n_segments=n, length=length, mass=mass, radius=radius, attach=(0, 0, 0),
+                      damping=damping)
+    return Scene(chains=(chain,), solver=SolverSpec(integrator=integrator, dt=dt,
+                                                    max_steps_per_call=100_000, **solver))
+
+
+def released(scene, angle, axis=(0.0, 1.0, 0.0)):
+    """A chain hanging from a still anchor, then rotated rigidly by ``angle`` about ``axis``."""
+    sim = Simulator(scene, KinematicState.still(ANCHOR))
+    q_tilt = quat_from_rotvec(np.asarray(axis) * angle)
+    st = sim.state
+    st.q[:] = quat_multiply_left(q_tilt, st.q)
+    st.x[:] = ANCHOR + quat_rotate(np.broadcast_to(q_tilt, st.q.shape), st.x - ANCHOR)
+    sim.reset(KinematicState.still(ANCHOR), state=st)
+    return sim
+
+
+def quat_multiply_left(a, q):
+    from ponytail_ros.core.rotations import quat_multiply
+    return quat_multiply(np.broadcast_to(a, q.shape), q)
+
+
+def total_energy(sim):
+    ke, pe = sim.energy()
+    return float(ke.sum() + pe.sum())
+
+
+def test_single_segment_small_angle_period_is_compound_pendulum():
+    length, mass, radius = 0.3, 0.05, 0.01
+    scene = chain_scene(n=1, length=length, mass=mass, radius=radius)
+    sim = released(scene, np.radians(1.0))
+    motion = StillMotion(ANCHOR)
+    # Solid cylinder about its end: I = I_perp + m (l/2)²; T = 2π sqrt(I / (m g l/2)).
+    i_end = mass * (3 * radius ** 2 + length ** 2) / 12 + mass * (length / 2) ** 2
+    period = 2 * np.pi * np.sqrt(i_end / (mass * G * length / 2))
+    # Time the upward zero crossings of the tip's x over 5 periods (linear interpolation).
+    ts, xs = [], []
+    dt_sample = 1e-3
+    for k in range(1, int(5.2 * period / dt_sample)):
+        sim.advance_to(k * dt_sample, motion)
+        ts.append(k * dt_sample)
+        xs.append(sim.joint_positions()[1][0, 0])
+    ts, xs = np.array(ts), np.array(xs)
+    up = np.nonzero((xs[:-1] < 0) & (xs[1:] >= 0))[0]
+    crossings = ts[up] - xs[up] * (ts[up + 1] - ts[up]) / (xs[up + 1] - xs[up])
+    measured = np.mean(np.diff(crossings))
+    assert len(crossings) >= 4
+    assert abs(measured / period - 1) < 1e-3
+
+
+@pytest.mark.parametrize('integrator, dt, bound', [('rk4', 1e-3, 1e-4)])
+def test_energy_conserved_without_damping(integrator, dt, bound):
+    """5 segments released 45° from vertical, still anchor, 10 s."""
+    scene = chain_scene(n=5, integrator=integrator, dt=dt)
+    rest = total_energy(Simulator(scene, KinematicState.still(ANCHOR)))
+    sim = released(scene, np.radians(45.0))
+    e0 = total_energy(sim)
+    motion = StillMotion(ANCHOR)
+    drift = 0.0
+    for k in range(1, 101):
+        sim.advance_to(0.1 * k, motion)
+        drift = max(drift, abs(total_energy(sim) - e0))
+    # Relative to the energy released (E0 - E_rest), the part that can move around.
+    assert drift / (e0 - rest) < bound
+
+
+@pytest.mark.parametrize('integrator', ['rk4', 'symplectic_euler'])
+def test_energy_never_increases_with_damping(integrator):
+    scene = chain_scene(n=5, damping=2e-3, integrator=integrator, dt=1e-3)
+    sim = released(scene, np.radians(45.0))
+    motion = StillMotion(ANCHOR)
+    energies = [total_energy(sim)]
+    for k in range(1, 301):
+        sim.advance_to(0.01 * k, motion)
+        energies.append(total_energy(sim))
+    e = np.array(energies)
+    assert np.all(np.diff(e) <= 1e-12 * abs(e[0]))
+    assert e[-1] < e[0] - 1e-3 * abs(e[0] - e.min())  # it does dissipate
+
+
+def random_state(n_chains=3, n=7, seed=0, inertia_general=False):
+    rng = np.random.default_rng(seed)
+    chains = []
+    for c in range(n_chains):
+        k = n + c
+        masses = rng.uniform(0.01, 0.2, k)
+        inertia = None
+        if inertia_general:
+            inertia = tuple(tuple(row) for row in rng.uniform(1e-6, 1e-4, (k, 3)))
+        chains.append(ChainSpec(name=f'c{c}', n_segments=k, length=rng.uniform(0.2, 1.0),
+                                segment_masses=tuple(masses), inertia=inertia,
+                                attach=tuple(rng.uniform(-0.1, 0.1, 3)), anchor_body=c,
+                                damping=1e-3))
+    scene = Scene(chains=tuple(chains), n_kinematic_bodies=n_chains)
+    head = KinematicState(
+        position=rng.normal(size=(n_chains, 3)), orientation=np.tile([0, 0, 0, 1.0], (n_chains, 1)),
+        linear_velocity=rng.normal(size=(n_chains, 3)), angular_velocity=rng.normal(size=(n_chains, 3)),
+        linear_acceleration=rng.normal(size=(n_chains, 3)) * 5,
+        angular_acceleration=rng.normal(size=(n_chains, 3)))
+    sim = Simulator(scene, head)
+    st = sim.state
+    m = sim.model
+    st.q[:] = quat_from_rotvec(rng.normal(size=(m.n, 3)))
+    st.w[:] = rng.normal(size=(m.n, 3)) * 3
+    sim.reset(head, state=st)
+    return sim, head
+
+
+@pytest.mark.parametrize('general', [False, True])
+def test_dense_and_banded_solves_agree(general):
+    sim, head = random_state(inertia_general=general)
+    dyn, m, st = sim.dynamics, sim.model, sim.state
+    h, G_blocks, inv_I, gyro = dyn.mass_terms(st.q, st.w)
+    D, L = dyn.blocks(G_blocks)
+    rng = np.random.default_rng(1)
+    b = rng.normal(size=(m.n, 3))
+    f_band = dyn.solve_banded(D, L, b)
+    f_dense = dyn.solve_dense(D, L, b)
+    assert np.linalg.norm(f_band - f_dense) <= 1e-9 * np.linalg.norm(f_dense)
+    # And the dense matrix really is J M⁻¹ Jᵀ: symmetric positive definite.
+    A = dyn.assemble_dense(D, L)
+    assert np.allclose(A, A.T, atol=1e-12 * np.abs(A).max())
+    assert np.linalg.eigvalsh(A).min() > 0
+
+
+def test_axisymmetric_fast_path_matches_general_inertia():
+    sim, head = random_state(inertia_general=False)
+    dyn, st = sim.dynamics, sim.state
+    assert dyn.axisymmetric
+    fast = dyn.mass_terms(st.q, st.w)
+    dyn.axisymmetric = False
+    slow = dyn.mass_terms(st.q, st.w)
+    v = np.random.default_rng(2).normal(size=st.w.shape)
+    assert np.allclose(fast[0], slow[0]) and np.allclose(fast[1], slow[1], rtol=1e-10, atol=0)
+    assert np.allclose(fast[2](v), slow[2](v), rtol=1e-10) and np.allclose(fast[3], slow[3], rtol=1e-9)
+
+
+def test_constraint_accelerations_satisfy_the_joint_equation():
+    """C̈ = 0: every joint's two points accelerate together (Eq. 14), the anchor's as prescribed."""
+    sim, head = random_state(inertia_general=True)
+    m, st, dyn = sim.model, sim.state, sim.dynamics
+    anchor = sim.anchors(head)
+    F, T = applied_forces(m, st.x, st.q, st.v, st.w, anchor.orientation, anchor.angular_velocity)
+    a, alpha = dyn.accelerations(st.x, st.q, st.v, st.w, anchor, F, T)
+    h = dyn.mass_terms(st.q, st.w)[0]
+
+    def point_acc(r):
+        return a + np.cross(alpha, r) + np.cross(st.w, np.cross(st.w, r))
+    child = point_acc(-h)
+    parent = m.parent_side(anchor.acceleration, point_acc(h))
+    scale = np.abs(child).max()
+    assert np.abs(parent - child).max() < 1e-9 * scale
+
+
+def test_one_way_coupling_reaction_only_on_first_segment():
+    """The head's motion is exactly the prescribed one; the anchor's reaction acts on segment 1.
+
+    Newton for the whole chain: Σ m_i a_i = Σ F_applied + f_c[0]: the inner joint forces cancel
+    and the only constraint force from outside is the first joint's, on the first segment.
+    """
+    sim, head = random_state(n_chains=1, n=8)
+    before = {k: v.copy() for k, v in vars(head).items()}
+    m, st, dyn = sim.model, sim.state, sim.dynamics
+    anchor = sim.anchors(head)
+    F, T = applied_forces(m, st.x, st.q, st.v, st.w, anchor.orientation, anchor.angular_velocity)
+    a, _ = dyn.accelerations(st.x, st.q, st.v, st.w, anchor, F, T)
+    f_c = sim.constraint_forces
+    lhs = (m.mass[:, None] * a).sum(axis=0) - F.sum(axis=0)
+    assert np.allclose(lhs, f_c[0], rtol=1e-9, atol=1e-12)
+    # The simulator never writes to the head's state, and the first joint sits on the anchor.
+    motion = SwayYawMotion()
+    sim2 = Simulator(chain_scene(n=6, dt=1 / 240), motion)
+    for k in range(1, 50):
+        sim2.advance_to(k / 120, motion)
+        prox, _ = sim2.joint_positions()
+        expected = sim2.anchors(motion.state_at(sim2.t)).position[0]
+        assert np.linalg.norm(prox[0] - expected) < 1e-12
+    for k, v in vars(head).items():
+        assert np.array_equal(v, before[k])
+
+
+def test_rope_settles_straight_down():
+    scene = chain_scene(n=10, length=1.0, damping=5e-3, dt=1 / 480)
+    sim = released(scene, np.radians(60.0), axis=(1.0, 1.0, 0.0) / np.sqrt(2))
+    sim.advance_to(30.0, StillMotion(ANCHOR))
+    prox, dist = sim.joint_positions()
+    direction = (dist - prox) / np.linalg.norm(dist - prox, axis=1, keepdims=True)
+    assert np.all(direction[:, 2] < -0.999)            # every segment within 2.6° of vertical
+    assert np.linalg.norm(dist[-1, :2] - ANCHOR[:2]) < 0.01
+
+
+def test_rope_released_horizontally_swings_through_vertical():
+    scene = chain_scene(n=10, length=1.0, dt=1 / 480)
+    sim = released(scene, np.radians(-90.0))         # down rotated -90° about +Y: along +X
+    motion = StillMotion(ANCHOR)
+    tip_x = []
+    for k in range(1, 200):
+        sim.advance_to(k * 0.005, motion)
+        tip_x.append(sim.joint_positions()[1][-1, 0])
+    tip_x = np.array(tip_x)
+    assert tip_x[0] > 0.9 and tip_x.min() < -0.2     # it crossed below the anchor to the far side
+
+
+def test_joint_gap_stays_closed_ten_minutes_on_moving_head():
+    """20 segments, moving head, frames at 120 Hz, default settings, 10 simulated minutes."""
+    scene = Scene(chains=(ChainSpec(n_segments=20),))
+    motion = SwayYawMotion()
+    sim = Simulator(scene, motion)
+    worst = 0.0
+    for k in range(1, 120 * 600 + 1):
+        t = k / 120
+        report = sim.advance_frame(t, motion.state_at(t))
+        assert report.reset_reason is None
+        worst = max(worst, report.max_gap)
+    assert worst < 1e-6
+    assert sim.state.is_finite()
+
+
+def test_impulse_moves_the_whole_chain_and_keeps_joints_closed():
+    scene = chain_scene(n=6)
+    sim = Simulator(scene, KinematicState.still(ANCHOR))
+    sim.apply_impulse(5, (0.01, 0.0, 0.0))
+    assert sim.joint_gaps().max() < 1e-12
+    # Velocity-level constraint holds after the kick: every joint's two sides move together.
+    m, st = sim.model, sim.state
+    h = sim.dynamics.mass_terms(st.q, st.w)[0]
+    v_child = st.v - np.cross(st.w, h)
+    v_parent = m.parent_side(np.zeros((1, 3)), st.v + np.cross(st.w, h))
+    assert np.abs(v_parent - v_child).max() < 1e-12
+    assert np.all(st.v[:, 0] > 0)                     # the kick reached every segment
+    # Momentum: the anchor absorbs the rest, so the chain gets less than the impulse.
+    assert 0 < (m.mass * st.v[:, 0]).sum() < 0.01
+
+
+def test_set_parameters_validates_and_keeps_running_values():
+    sim = Simulator(chain_scene(n=3, damping=1e-3), KinematicState.still(ANCHOR))
+    with pytest.raises(SceneError) as err:
+        sim.set_parameters(damping=2e-3, stiffness=-1.0)
+    assert 'stiffness' in str(err.value) and '-1.0' in str(err.value)
+    assert np.all(sim.model.damping == 1e-3)          # all-or-nothing
+    sim.set_parameters(damping=0.0, wind=(1.0, 0, 0))
+    assert not sim.model.active_terms['damping'] and np.all(sim.model.wind == (1, 0, 0))
+
+
+def test_accumulator_is_frame_rate_independent_and_caps_work():
+    motion = SwayYawMotion()
+    a = Simulator(chain_scene(n=4, dt=1 / 240), motion)
+    b = Simulator(chain_scene(n=4, dt=1 / 240), motion)
+    a.advance_to(1.0, motion)
+    for k in range(1, 74):                            # irregular frame times
+        b.advance_to(min(1.0, k * 0.0137), motion)
+    assert a.t == b.t and np.array_equal(a.state.x, b.state.x)
+    capped = Simulator(Scene(chains=(ChainSpec(n_segments=3),),
+                             solver=SolverSpec(dt=0.01, max_steps_per_call=10)), motion)
+    report = capped.advance_to(0.5, motion)
+    assert report.steps == 10 and report.dropped_time == pytest.approx(0.4)
+    assert capped.t == pytest.approx(0.5) and capped.joint_gaps().max() < 1e-9
+
+
+def test_frame_rate_independence_on_the_moving_reference_head():
+    """Head states only at 30, 60 or 144 Hz frames: tip trajectories agree within 1 mm over 3 s.
+
+    Internal step 1/1440 s divides every frame period, so all runs share one step grid; each
+    is compared with the run driven exactly at every stage, at its own frame times.
+    """
+    from ponytail_ros.core.reference import reference_scene, load_reference, default_reference_dir
+    path = default_reference_dir() / 'ponytail_N10_moving_hanging.json'
+    if not path.exists():
+        pytest.skip(f'reference data not found at {path} (needs ../shared beside the project)')
+    scene, motion = reference_scene(load_reference(path), SolverSpec(dt=1 / 1440))
+    exact = Simulator(scene, motion)
+    exact_tip = {}
+    for k in range(1, 3 * 1440 + 1):
+        exact.advance_to(k / 1440, motion)
+        exact_tip[k] = exact.joint_positions()[1][-1].copy()
+    tips = {}
+    for rate in (30, 60, 144):
+        sim = Simulator(scene, motion)
+        errors = []
+        for f in range(1, 3 * rate + 1):
+            sim.advance_frame(f / rate, motion.state_at(f / rate))
+            tip = sim.joint_positions()[1][-1]
+            errors.append(np.linalg.norm(tip - exact_tip[f * 1440 // rate]))
+            tips[(rate, f * 1440 // rate)] = tip.copy()
+        assert max(errors) < 0.5e-3, rate
+    common = [k for k in exact_tip if all((r, k) in tips for r in (30, 60, 144))]
+    assert len(common) == 18
+    for k in common:
+        assert np.linalg.norm(tips[(30, k)] - tips[(144, k)]) < 1e-3
