@@ -23,8 +23,8 @@ from .head import AnchorTrack, HeadMotion, KinematicState
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
-from .rotations import (cross, quat_conjugate, quat_from_two_vectors, quat_multiply, quat_rotate,
-                        quat_to_matrix)
+from .rotations import (cross, quat_conjugate, quat_from_two_vectors, quat_integrate,
+                        quat_multiply, quat_rotate, quat_to_matrix)
 from .scene import SceneError, _check_range, _check_vector
 from .solver import Dynamics
 from .stabilization import project_positions, project_velocities
@@ -122,6 +122,7 @@ class Simulator:
         self.state = state.copy()
         m.q_rest[m.is_first] = quat_multiply(quat_conjugate(q_anchor), self.state.q[m.is_first])
         self._last_anchor = (self.t, anchor)
+        self._anchor_at = lambda t: anchor          # until a motion or frame says otherwise
         self.dynamics.last_f_c = np.zeros((m.n, 3))
 
     # -- parameters -----------------------------------------------------------------------
@@ -188,8 +189,9 @@ class Simulator:
 
         ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``).
         """
-        return self._advance(t_target, _memo_last(lambda t: self.anchors(motion.state_at(t))),
-                             motion.state_at)
+        anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
+        self._anchor_at = anchor_at
+        return self._advance(t_target, anchor_at, motion.state_at)
 
     def advance_frame(self, t_frame, head):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
@@ -201,6 +203,7 @@ class Simulator:
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         report = self._advance(t_frame, _memo_last(track.at), lambda t: head)
+        self._anchor_at = track.at
         self._last_anchor = (float(t_frame), a_new)
         return report
 
@@ -267,6 +270,24 @@ class Simulator:
         return None
 
     # -- observation ----------------------------------------------------------------------
+    def state_at(self, t):
+        """The chain at time ``t`` (s), up to one step past the last internal step (not stored).
+
+        The accumulator leaves the chain up to ``dt`` behind the requested time; reporting that
+        state as "now" would lag by ``v·dt``. Instead every segment's orientation is carried
+        forward by its ω over the remainder τ = t - self.t (q ← exp(ωτ) q, error O(α τ²)) and
+        positions and velocities are rebuilt from the anchor at ``t`` (joints exactly closed).
+        """
+        tau = float(t) - self.t
+        if tau <= 0.0:
+            return self.state.copy()
+        m, st = self.model, self.state
+        anchor = self._anchor_at(float(t))
+        q = quat_integrate(st.q, st.w, tau)
+        h = half_vectors(m.length, q)
+        return ChainState(project_positions(m, anchor.position, h), q,
+                          project_velocities(m, anchor.velocity, st.w, h), st.w.copy())
+
     def joint_gaps(self, anchor=None):
         """Distance ``(n,)`` between the two sides of every joint, m."""
         m = self.model
@@ -277,14 +298,18 @@ class Simulator:
                           np.roll(dist, 1, axis=0))
         return np.linalg.norm(parent - prox, axis=1)
 
-    def joint_positions(self):
-        """World positions of every segment's proximal and distal joint, ``(n, 3)`` each."""
-        return joint_points(self.model, self.state)
+    def joint_positions(self, t=None):
+        """World positions of every segment's proximal and distal joint, ``(n, 3)`` each.
 
-    def segment_poses(self):
+        ``t``: report the chain at that time (``state_at``) rather than at the last step.
+        """
+        return joint_points(self.model, self.state if t is None else self.state_at(t))
+
+    def segment_poses(self, t=None):
         """Per segment: origin at the proximal joint and orientation (+X along the segment)."""
-        prox, _ = joint_points(self.model, self.state)
-        return prox, self.state.q.copy()
+        state = self.state if t is None else self.state_at(t)
+        prox, _ = joint_points(self.model, state)
+        return prox, state.q.copy()
 
     def energy(self):
         """Kinetic and gravitational potential energy of every chain, ``(C,)`` each, J."""
