@@ -7,6 +7,8 @@ Terms:
     gravity      F = m g at the centre of mass.
     damping      at joint i, τ = -c (ω_i - ω_parent) on the child, the opposite on the parent.
                  For the first joint the parent is the kinematic anchor: its share goes nowhere.
+                 Evaluated here only when ``solver.implicit_damping`` is off; otherwise the
+                 simulator applies it implicitly after each step (``Dynamics.implicit_damping``).
     stiffness    at joint i, τ = -k R_i φ on the child (the opposite on the parent), φ the
                  rotation vector of the child's deviation from its rest orientation relative
                  to the parent, expressed in the child frame.
@@ -39,7 +41,7 @@ def applied_forces(model, x, q, v, w, anchor_q, anchor_w, external=None):
     T = np.zeros((n, 3))
     if terms['gravity']:
         F += model.mass[:, None] * model.gravity
-    if terms['damping']:
+    if terms['damping'] and not model.implicit_damping:
         w_rel = w - model.parent_side(anchor_w, w)
         _add_joint_torques(model, -model.damping[:, None] * w_rel, T)
     if terms['stiffness']:

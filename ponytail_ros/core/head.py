@@ -49,7 +49,7 @@ class KinematicState:
     @classmethod
     def still(cls, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)):
         """A body at rest; ``position`` ``(3,)`` or ``(K, 3)``."""
-        p = np.atleast_2d(np.asarray(position, dtype=float))
+        p = np.atleast_2d(np.array(position, dtype=float))         # a copy, never a view
         q = np.broadcast_to(np.asarray(orientation, dtype=float), (p.shape[0], 4)).copy()
         z = np.zeros_like(p)
         return cls(p, q, z, z.copy(), z.copy(), z.copy())

@@ -65,6 +65,8 @@ class Model:
             self.drag_quadratic[s:e] = c.drag_quadratic
         self.gravity = np.array(scene.gravity, dtype=float)
         self.wind = np.array(scene.wind, dtype=float)
+        self.dt = scene.solver.dt
+        self.damping_method = scene.solver.damping_method
         self.refresh_terms()
 
     def parent_side(self, anchor_rows, segment_rows):
@@ -88,6 +90,12 @@ class Model:
 
         A switched-off term is then skipped in the step, so it costs nothing.
         """
+        # Joint damping rates reach λ_max ≤ max_i 2 (c_i + c_{i+1}) / I_min,i (Gershgorin on
+        # I⁻¹ C); explicit integration is kept while dt · λ_max ≤ 2.
+        c_sum = self.damping + self.distal_side(self.damping[:, None])[:, 0]
+        self.damping_rate = float(np.max(2.0 * c_sum / self.inertia.min(axis=1)))
+        self.implicit_damping = (self.damping_method == 'implicit' or (
+            self.damping_method == 'auto' and self.dt * self.damping_rate > 2.0))
         self.active_terms = {
             'gravity': bool(np.any(self.gravity != 0.0)),
             'damping': bool(np.any(self.damping != 0.0)),

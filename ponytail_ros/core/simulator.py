@@ -199,6 +199,7 @@ class Simulator:
         Between the previous frame and this one the anchor follows the quintic Hermite through
         both frames' attachment-point position, velocity and acceleration (``AnchorTrack``).
         """
+        _check_head(head)
         t_prev, a_prev = self._last_anchor
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
@@ -220,14 +221,20 @@ class Simulator:
         m, st = self.model, self.state
         x, q, v, w = st.x, st.q, st.v, st.w
         project = self.scene.solver.projection
+        implicit_damping = m.implicit_damping and m.active_terms['damping']
         accel = self._accel_fn(anchor_at)
         try:
             for _ in range(max(n_steps, 0)):
                 t = self._t_base + self._n_steps * self.dt
                 x, q, v, w = self._step(accel, t, self.dt, x, q, v, w)
                 self._n_steps += 1
+                t1 = self._t_base + self._n_steps * self.dt
+                if implicit_damping:
+                    a1 = anchor_at(t1)
+                    w = self.dynamics.implicit_damping(q, w, a1.angular_velocity, self.dt)
+                    dv, dw = self.dynamics.velocity_correction(x, q, v, w, a1)
+                    v, w = v + dv, w + dw
                 if project:
-                    t1 = self._t_base + self._n_steps * self.dt
                     a1 = anchor_at(t1)
                     h = half_vectors(m.length, q)
                     x = project_positions(m, a1.position, h)
@@ -342,3 +349,11 @@ def _memo_last(f, size=2):
             v = cache[t] = f(t)
         return v
     return g
+
+
+def _check_head(head):
+    """Refuse a non-finite head state, naming the field: it must never reach the chain."""
+    for name in ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                 'linear_acceleration', 'angular_acceleration'):
+        if not np.all(np.isfinite(getattr(head, name))):
+            raise SceneError(f'head.{name}', getattr(head, name).tolist(), 'finite numbers')

@@ -1,0 +1,132 @@
+"""Applied force terms against closed-form equilibria, scene validation, stabilisation options."""
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator, SolverSpec,
+                               StillMotion, SwayYawMotion)
+from ponytail_ros.core import forces
+
+ANCHOR = np.array([0.0, 0.0, 1.0])
+G = 9.81
+
+
+def settle(chain, seconds=20.0, dt=1 / 480, **scene_kw):
+    scene = Scene(chains=(chain,), solver=SolverSpec(dt=dt, max_steps_per_call=1_000_000), **scene_kw)
+    sim = Simulator(scene, KinematicState.still(ANCHOR))
+    sim.advance_to(seconds, StillMotion(ANCHOR))
+    return sim
+
+
+def test_bending_stiffness_holds_a_segment_at_its_static_angle():
+    """Rest pose horizontal (+X); gravity pulls it down by θ with k θ = m g (l/2) cos θ."""
+    m, l, k = 0.05, 0.3, 0.1
+    sim = settle(ChainSpec(n_segments=1, length=l, mass=m, attach=(0, 0, 0), rest_direction=(1, 0, 0),
+                           stiffness=k, damping=5e-3))
+    prox, dist = sim.joint_positions()
+    d = dist[0] - prox[0]
+    theta = np.arctan2(-d[2], d[0])
+    expected = brentq(lambda th: k * th - m * G * l / 2 * np.cos(th), 0.0, np.pi / 2)
+    assert theta == pytest.approx(expected, abs=1e-4)
+
+
+@pytest.mark.parametrize('c1, c2', [(0.05, 0.0), (0.0, 0.05), (0.03, 0.02)])
+def test_wind_holds_a_segment_at_its_drag_angle(c1, c2):
+    """Still segment in wind u along +X: drag f = (c1 + c2|u|) u per metre at the centre.
+
+    Torque balance about the joint: tan θ = (c1 + c2 |u|) u l / (m g).
+    """
+    m, l, u = 0.05, 0.3, 2.0
+    sim = settle(ChainSpec(n_segments=1, length=l, mass=m, attach=(0, 0, 0), damping=5e-3,
+                           drag_linear=c1, drag_quadratic=c2), wind=(u, 0.0, 0.0))
+    prox, dist = sim.joint_positions()
+    d = dist[0] - prox[0]
+    theta = np.arctan2(d[0], -d[2])
+    assert theta == pytest.approx(np.arctan((c1 + c2 * u) * u * l / (m * G)), abs=1e-4)
+
+
+def test_switched_off_terms_are_never_evaluated(monkeypatch):
+    """A scene without stiffness or drag never runs their code (so they cost nothing)."""
+    def fail(*args, **kwargs):
+        raise AssertionError('a switched-off term was evaluated')
+    monkeypatch.setattr(forces, 'quat_to_rotvec', fail)     # stiffness only
+    monkeypatch.setattr(forces, 'quat_axis_x', fail)        # drag only
+    sim = Simulator(Scene(chains=(ChainSpec(n_segments=4, damping=1e-3),)), SwayYawMotion())
+    sim.advance_to(0.1, SwayYawMotion())
+    sim.set_parameters(stiffness=0.01)
+    with pytest.raises(AssertionError, match='switched-off'):
+        sim.advance_to(0.2, SwayYawMotion())
+
+
+def test_baumgarte_without_projection_bounds_the_drift():
+    """Symplectic Euler with no projection drifts apart; Baumgarte terms hold the joints."""
+    motion = SwayYawMotion()
+
+    def worst_gap(**solver):
+        scene = Scene(chains=(ChainSpec(n_segments=10, damping=2e-4),),
+                      solver=SolverSpec(integrator='symplectic_euler', dt=1 / 240, projection=False,
+                                        guard_max_gap=10.0, **solver))
+        sim = Simulator(scene, motion)
+        worst = 0.0
+        for k in range(1, 1201):
+            report = sim.advance_to(k / 120, motion)
+            assert report.reset_reason is None
+            worst = max(worst, report.max_gap)
+        return worst
+    free = worst_gap()
+    stabilised = worst_gap(baumgarte_stiffness=1e4, baumgarte_damping=200.0)
+    assert free > 0.1                     # drift is real without stabilisation
+    assert stabilised < free / 30
+
+
+@pytest.mark.parametrize('field, value, fragment', [
+    ('n_segments', 0, '[1, 4096]'),
+    ('n_segments', 2.5, 'integer'),
+    ('length', -1.0, '[0.0001, 1000.0]'),
+    ('mass', float('nan'), 'mass = nan'),
+    ('radius', 0.0, 'radius'),
+    ('damping', -0.1, '[0.0, 1000.0]'),
+    ('attach', (1, 2), '3 finite numbers'),
+    ('rest_direction', (0, 0, 0), 'non-zero'),
+    ('segment_lengths', (0.1, -0.1), 'positive'),
+    ('anchor_body', 3, '[0, 0]'),
+])
+def test_chain_fields_are_validated_with_name_value_and_range(field, value, fragment):
+    with pytest.raises(SceneError) as err:
+        Scene(chains=(ChainSpec(n_segments=2, **{field: value}),))
+    assert err.value.field == f'chains[0].{field}'
+    assert fragment in str(err.value)
+
+
+@pytest.mark.parametrize('field, value, fragment', [
+    ('integrator', 'euler', "one of ('rk4', 'symplectic_euler')"),
+    ('dt', 0.5, '[1e-06, 0.1]'),
+    ('max_steps_per_call', 0, '[1, 1000000]'),
+    ('linear_solver', 'lu', 'banded'),
+])
+def test_solver_fields_are_validated(field, value, fragment):
+    with pytest.raises(SceneError) as err:
+        Scene(solver=SolverSpec(**{field: value}))
+    assert err.value.field == f'solver.{field}' and fragment in str(err.value)
+
+
+def test_scene_fields_are_validated():
+    with pytest.raises(SceneError, match='gravity'):
+        Scene(gravity=(0, 0, float('inf')))
+    with pytest.raises(SceneError, match='chains'):
+        Scene(chains=())
+
+
+@pytest.mark.parametrize('field', ['position', 'orientation', 'linear_acceleration',
+                                   'angular_velocity'])
+def test_non_finite_head_frame_is_refused_and_the_chain_untouched(field):
+    sim = Simulator(Scene(chains=(ChainSpec(n_segments=5),)), KinematicState.still(ANCHOR))
+    sim.advance_frame(0.05, KinematicState.still(ANCHOR))
+    before = sim.state.copy()
+    bad = KinematicState.still(ANCHOR)
+    getattr(bad, field)[0, 0] = np.nan
+    with pytest.raises(SceneError, match=f'head.{field}'):
+        sim.advance_frame(0.1, bad)
+    assert np.array_equal(sim.state.x, before.x) and sim.t == pytest.approx(0.05, abs=1 / 240)
+    sim.advance_frame(0.2, KinematicState.still(ANCHOR))
+    assert sim.state.is_finite() and sim.joint_gaps().max() < 1e-12
