@@ -93,7 +93,7 @@ def test_baumgarte_without_projection_bounds_the_drift():
 ])
 def test_chain_fields_are_validated_with_name_value_and_range(field, value, fragment):
     with pytest.raises(SceneError) as err:
-        Scene(chains=(ChainSpec(n_segments=2, **{field: value}),))
+        Scene(chains=(ChainSpec(**{'n_segments': 2, field: value}),))
     assert err.value.field == f'chains[0].{field}'
     assert fragment in str(err.value)
 
