@@ -1,0 +1,119 @@
+"""``ponytail_head_demo``: publishes a scripted head pose for the ponytail node.
+
+Run: ``ponytail_head_demo [--ros-args -p rate:=60.0 -p motion:=script -r __ns:=/alice]``.
+Node name ``head_demo``; publishes ``head_pose`` (``geometry_msgs/PoseStamped``, reliable,
+depth 10: a reliable publisher connects to the node's best-effort subscription) stamped with the
+node clock (``use_sim_time`` works).
+
+Parameters:
+    rate (Hz, 1–2000, default 100): publish rate.
+    frame_id (default 'world'): header.frame_id.
+    motion: 'script' (``head_script.HeadScript``: idle sway, nod, shake, turn, run with bob,
+        sharp stop; loops every 24 s), 'sway' (``SwayYawMotion``) or 'still'.
+    origin (3 doubles, m, default [0, 0, 1.6]): where the head starts (moves the whole motion).
+    time_scale (0.01–100, default 1): play speed of the motion.
+    best_effort (default False): publish best effort instead of reliable.
+The motion itself is ROS-free (``ponytail_ros/ros/head_script.py``).
+"""
+import sys
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from geometry_msgs.msg import PoseStamped
+
+import numpy as np
+
+from ponytail_ros.core.head import StillMotion, SwayYawMotion
+from .head_script import HeadScript
+
+__all__ = ['HeadDemoNode', 'make_motion', 'main']
+
+MOTIONS = ('script', 'sway', 'still')
+
+
+def make_motion(kind, origin=(0.0, 0.0, 1.6), time_scale=1.0):
+    """The ``HeadMotion`` of a ``motion`` parameter value."""
+    origin = np.asarray(origin, dtype=float)
+    if kind == 'script':
+        return HeadScript(origin=origin, time_scale=time_scale)
+    if kind == 'sway':
+        m = SwayYawMotion(p0=origin)
+        if time_scale != 1.0:
+            m.f *= time_scale
+            m.fy *= time_scale
+        return m
+    if kind == 'still':
+        return StillMotion(origin)
+    raise ValueError(f'motion must be one of {MOTIONS}, not {kind!r}')
+
+
+class HeadDemoNode(Node):
+    """Publishes ``head_pose`` from a scripted motion at ``rate``."""
+
+    def __init__(self, node_name='head_demo', *, context=None, **kwargs):
+        super().__init__(node_name, context=context, **kwargs)
+
+        def rng(lo, hi, text):
+            return ParameterDescriptor(description=text, floating_point_range=[
+                FloatingPointRange(from_value=lo, to_value=hi, step=0.0)], read_only=True)
+        rate = self.declare_parameter('rate', 100.0, rng(1.0, 2000.0, 'Publish rate, Hz.')).value
+        self._frame = self.declare_parameter('frame_id', 'world', ParameterDescriptor(
+            description='header.frame_id', read_only=True)).value
+        kind = self.declare_parameter('motion', 'script', ParameterDescriptor(
+            description='script, sway or still', additional_constraints='one of: ' +
+            ', '.join(MOTIONS), read_only=True)).value
+        origin = self.declare_parameter('origin', [0.0, 0.0, 1.6], ParameterDescriptor(
+            description='Start position of the head, m', read_only=True)).value
+        scale = self.declare_parameter('time_scale', 1.0,
+                                       rng(0.01, 100.0, 'Play speed.')).value
+        best_effort = self.declare_parameter('best_effort', False, ParameterDescriptor(
+            description='Publish best effort instead of reliable', read_only=True)).value
+        self.motion = make_motion(kind, list(origin), scale)
+        qos = QoSProfile(depth=10, reliability=(ReliabilityPolicy.BEST_EFFORT if best_effort
+                                                else ReliabilityPolicy.RELIABLE))
+        self._pub = self.create_publisher(PoseStamped, 'head_pose', qos)
+        self._t0 = None
+        self._msg = PoseStamped()
+        self._msg.header.frame_id = self._frame
+        self.create_timer(1.0 / rate, self._on_timer)
+        self.get_logger().info(f'Publishing {kind} head motion on {self._pub.topic_name} at '
+                               f'{rate:g} Hz in frame {self._frame!r}')
+
+    def _on_timer(self):
+        now = self.get_clock().now()
+        if now.nanoseconds == 0:
+            return
+        t = now.nanoseconds * 1e-9
+        if self._t0 is None:
+            self._t0 = t
+        state = self.motion.state_at(t - self._t0)
+        p, q = state.position[0].tolist(), state.orientation[0].tolist()
+        msg = self._msg
+        msg.header.stamp = now.to_msg()
+        pos, ori = msg.pose.position, msg.pose.orientation
+        pos.x, pos.y, pos.z = p
+        ori.x, ori.y, ori.z, ori.w = q
+        self._pub.publish(msg)
+
+
+def main(args=None):
+    """Entry point of ``ponytail_head_demo``; returns the exit code."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = None
+    try:
+        node = HeadDemoNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

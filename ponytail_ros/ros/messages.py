@@ -1,0 +1,137 @@
+"""Segment poses to ROS messages: ``geometry_msgs/PoseArray`` and ``visualization_msgs`` markers.
+
+One ``ChainMessages`` per chain keeps its message objects and refills them each tick (building
+rclpy messages is the expensive part of publishing: allocation plus per-field type checks).
+
+Conventions: a segment's pose has its origin at the proximal joint (towards the head) and its
+local +X along the segment, so the distal joint is ``origin + R · (length, 0, 0)``. Markers:
+
+* ``capsules``: one ``CYLINDER`` per segment (id 1..n; a cylinder's axis is its local Z, so its
+  orientation is the segment's composed with +90° about Y) plus one ``SPHERE_LIST`` (id 0) with
+  a sphere of the segment's diameter at every joint and at the tip;
+* ``line``: a ``LINE_STRIP`` through the joints (id 1, width = the radius) plus the same
+  ``SPHERE_LIST`` (id 0).
+
+The marker namespace is the chain's name. When the set of markers changes (style, segment
+count) a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
+"""
+import math
+
+from geometry_msgs.msg import Point, Pose, PoseArray
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker
+
+import numpy as np
+
+from ponytail_ros.core.rotations import quat_axis_x, quat_multiply
+
+__all__ = ['ChainMessages', 'delete_all_marker', 'Q_Z_TO_X']
+
+#: Rotation by +90° about Y: takes a cylinder's axis (local Z) to local X.
+Q_Z_TO_X = np.array([0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)])
+
+
+def delete_all_marker(frame_id, stamp):
+    m = Marker()
+    m.header.frame_id = frame_id
+    m.header.stamp = stamp
+    m.action = Marker.DELETEALL
+    return m
+
+
+def _set_pose(pose, p, q):
+    pos, ori = pose.position, pose.orientation
+    pos.x, pos.y, pos.z = p
+    ori.x, ori.y, ori.z, ori.w = q
+
+
+class ChainMessages:
+    """Reusable messages of one chain (``name``, segment ``lengths`` ``(n,)``, ``radius`` m)."""
+
+    def __init__(self, name, lengths, radius):
+        self.name = name
+        self.lengths = np.asarray(lengths, dtype=float)
+        self.radius = float(radius)
+        self.n = len(self.lengths)
+        self.pose_array = PoseArray()
+        self.pose_array.poses = [Pose() for _ in range(self.n)]
+        self._style = None
+        self._markers = []
+
+    def fill_poses(self, origins, quats, frame_id, stamp):
+        """Fill and return the ``PoseArray`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
+        msg = self.pose_array
+        msg.header.frame_id = frame_id
+        msg.header.stamp = stamp
+        for pose, p, q in zip(msg.poses, origins.tolist(), quats.tolist()):
+            _set_pose(pose, p, q)
+        return msg
+
+    def _build_markers(self, style, color):
+        r = self.radius
+        spheres = Marker()
+        spheres.ns = self.name
+        spheres.id = 0
+        spheres.type = Marker.SPHERE_LIST
+        spheres.action = Marker.ADD
+        spheres.pose.orientation.w = 1.0
+        spheres.scale.x = spheres.scale.y = spheres.scale.z = 2.0 * r
+        spheres.points = [Point() for _ in range(self.n + 1)]
+        markers = [spheres]
+        if style == 'capsules':
+            for i in range(self.n):
+                c = Marker()
+                c.ns = self.name
+                c.id = i + 1
+                c.type = Marker.CYLINDER
+                c.action = Marker.ADD
+                c.scale.x = c.scale.y = 2.0 * r
+                c.scale.z = float(self.lengths[i])
+                markers.append(c)
+        elif style == 'line':
+            line = Marker()
+            line.ns = self.name
+            line.id = 1
+            line.type = Marker.LINE_STRIP
+            line.action = Marker.ADD
+            line.pose.orientation.w = 1.0
+            line.scale.x = r
+            line.points = [Point() for _ in range(self.n + 1)]
+            markers.append(line)
+        self._markers = markers
+        self._style = style
+        self.set_color(color)
+
+    def set_color(self, color):
+        rgba = ColorRGBA(r=float(color[0]), g=float(color[1]), b=float(color[2]),
+                         a=float(color[3]))
+        for m in self._markers:
+            m.color = rgba
+
+    def markers(self, origins, quats, style, color, frame_id, stamp):
+        """Markers of the chain (a list; empty for style 'off'), and whether the set of marker
+        ids changed since the last call (then send a DELETEALL first)."""
+        if style == 'off':
+            changed = self._style not in (None, 'off')
+            self._style = 'off'
+            self._markers = []
+            return [], changed
+        changed = style != self._style
+        if changed:
+            self._build_markers(style, color)
+        axes = quat_axis_x(quats) * self.lengths[:, None]
+        joints = np.concatenate([origins, origins[-1:] + axes[-1:]]).tolist()
+        for m in self._markers:
+            m.header.frame_id = frame_id
+            m.header.stamp = stamp
+        for pt, j in zip(self._markers[0].points, joints):
+            pt.x, pt.y, pt.z = j
+        if style == 'capsules':
+            centres = (origins + 0.5 * axes).tolist()
+            q_cyl = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape)).tolist()
+            for m, p, q in zip(self._markers[1:], centres, q_cyl):
+                _set_pose(m.pose, p, q)
+        else:
+            for pt, j in zip(self._markers[1].points, joints):
+                pt.x, pt.y, pt.z = j
+        return self._markers, changed

@@ -1,0 +1,312 @@
+"""The ponytail node's parameters: one table, from which the node declares them (description,
+range, read-only flag) and builds the ``Scene`` and the input settings.
+
+Naming: global parameters are plain (``rate``, ``gravity``), groups use a dot (``solver.dt``,
+``head.window``, ``markers.style``), and every chain's parameters are prefixed with its name
+(``chains: [left, right]`` → ``left.n_segments``, ``right.attach``, ...). In a params file the
+dots are nested YAML keys.
+
+Live or not (``ParamDef.live``):
+
+* live, applied at the next tick: damping, stiffness, drag, gravity, wind (through
+  ``Simulator.set_parameters``, the chain keeps moving), the input handling settings, ``rate``,
+  ``frame_id``, the marker settings;
+* live by rebuild: the structural ones (segment count, length, mass, radius, attachment, rest
+  direction, every ``solver.*``): the simulator is rebuilt from the new scene at rest at the
+  current head pose on the next tick (a reset with reason ``'rebuild'``);
+* read-only (fixed at start-up): ``chains`` (it decides the topics), ``stamp_source``,
+  ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``.
+
+This module does not import rclpy (the descriptors are built by the node).
+"""
+from dataclasses import dataclass
+import math
+import re
+
+import numpy as np
+
+from ponytail_ros.core.scene import (ChainSpec, INTEGRATORS, LINEAR_SOLVERS, MAX_SEGMENTS, Scene,
+                                     SceneError, SolverSpec)
+from .runner import RunnerSettings
+
+__all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'ParameterError', 'chain_param_name',
+           'check_values', 'build_scene', 'build_runner_settings', 'MARKER_STYLES',
+           'STAMP_SOURCES', 'RESERVED_NAMES', 'DEFAULT_COLORS']
+
+MARKER_STYLES = ('capsules', 'line', 'off')
+STAMP_SOURCES = ('header', 'receive')
+#: Group prefixes a chain may not be named after.
+RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains')
+_CHAIN_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+
+#: Marker colours cycled over the chains when ``<chain>.color`` is not set.
+DEFAULT_COLORS = ((0.55, 0.33, 0.16, 1.0), (0.85, 0.65, 0.30, 1.0), (0.20, 0.20, 0.22, 1.0),
+                  (0.70, 0.25, 0.20, 1.0))
+
+
+@dataclass(frozen=True)
+class ParamDef:
+    """One parameter.
+
+    ``kind``: 'double', 'int', 'bool', 'string', 'double3' (3 doubles), 'double4', 'strings'.
+    ``lo``/``hi``: range (each element for arrays); ``choices``: allowed strings.
+    ``live``: changeable at run time (False → read_only). ``rebuild``: a change rebuilds the
+    simulator (structural).
+    """
+
+    name: str
+    default: object
+    kind: str
+    description: str
+    lo: float = None
+    hi: float = None
+    choices: tuple = None
+    live: bool = True
+    rebuild: bool = False
+
+    def constraints(self):
+        """Human-readable constraint text (``ParameterDescriptor.additional_constraints``)."""
+        parts = []
+        if self.choices:
+            parts.append('one of: ' + ', '.join(self.choices))
+        if self.kind in ('double3', 'double4') and self.lo is not None:
+            n = 3 if self.kind == 'double3' else 4
+            parts.append(f'{n} numbers, each in [{self.lo:g}, {self.hi:g}]')
+        if not self.live:
+            parts.append('read-only: set at start-up')
+        elif self.rebuild:
+            parts.append('changing it rebuilds the chains at rest at the current head pose')
+        return '; '.join(parts)
+
+
+_SOLVER = SolverSpec()
+_CHAIN = ChainSpec()
+
+GLOBAL_PARAMS = (
+    ParamDef('rate', 120.0, 'double', 'Simulation/publish rate of the timer, Hz. Each tick '
+             'advances by the clock\'s elapsed time, not the nominal period.', 1.0, 1000.0),
+    ParamDef('frame_id', '', 'string', 'frame_id of the outputs; empty: the head pose\'s '
+             'frame (the simulation runs in the head pose\'s frame either way).'),
+    ParamDef('chains', ['ponytail'], 'strings', 'Names of the chains (each configured by '
+             '<name>.* parameters). One chain publishes segment_poses, several publish '
+             'segment_poses/<name>.', live=False),
+    ParamDef('interpolation_delay', 0.01, 'double', 'The chain follows the head as it was '
+             'this long before the tick, s: samples on both sides of the evaluation time give '
+             'smoother head velocity/acceleration at the cost of this latency. About one input '
+             'period is a good value.', 0.0, 0.5),
+    ParamDef('stale_timeout', 0.25, 'double', 'No head pose accepted for this long (s): the '
+             'head is stale (last pose held, warning in diagnostics); a pose in a new frame is '
+             'then adopted.', 0.01, 60.0),
+    ParamDef('teleport_distance', 0.5, 'double', 'A head pose farther than this (m) from the '
+             'previous one is a teleport: the chain is reset at rest at the new pose.',
+             1e-3, 1e3),
+    ParamDef('teleport_angle', 1.0, 'double', 'A head pose rotated more than this (rad) from '
+             'the previous one is a teleport.', 1e-3, math.pi),
+    ParamDef('gravity', [0.0, 0.0, -9.81], 'double3', 'Gravity in the head pose\'s frame, '
+             'm/s^2.', -1e4, 1e4),
+    ParamDef('wind', [0.0, 0.0, 0.0], 'double3', 'Air velocity in the head pose\'s frame, m/s '
+             '(drag acts on the velocity relative to it).', -1e3, 1e3),
+    ParamDef('stamp_source', 'header', 'string', 'Time of a head pose: header (its '
+             'header.stamp; a zero stamp falls back to the receive time) or receive (the node '
+             'clock on arrival: use when the publisher\'s clock differs).',
+             choices=STAMP_SOURCES, live=False),
+    ParamDef('input_queue_size', 256, 'int', 'Head poses buffered between ticks; beyond it the '
+             'oldest are dropped (queue_overflow): bounded work per tick.', 1, 100000,
+             live=False),
+    ParamDef('diagnostics_period', 1.0, 'double', 'Period of /diagnostics, s (steady clock).',
+             0.05, 60.0, live=False),
+    ParamDef('markers.style', 'capsules', 'string', 'segment_markers: capsules (cylinder + '
+             'sphere per segment), line (line strip + spheres) or off.', choices=MARKER_STYLES),
+    ParamDef('markers.rate', 30.0, 'double', 'Maximum rate of segment_markers, Hz (capped by '
+             'rate).', 0.1, 1000.0),
+    # Head estimation (HeadEstimator).
+    ParamDef('head.window', 0.1, 'double', 'Head estimation: samples within this of the '
+             'evaluation time enter the local polynomial fit, s (widened to the nearest '
+             'head.degree + 3 samples at low rates).', 0.005, 2.0),
+    ParamDef('head.degree', 3, 'int', 'Head estimation: degree of the polynomial in time.',
+             1, 5),
+    ParamDef('head.max_extrapolation', 0.1, 'double', 'Head estimation: how far past the newest '
+             'sample the head motion is extrapolated (braking to a stop), s; later the last pose '
+             'is held.', 0.0, 2.0),
+    ParamDef('head.max_gap', 0.5, 'double', 'Head estimation: a gap between samples longer '
+             'than this starts a new history, s.', 0.01, 60.0),
+    ParamDef('head.quat_tolerance', 1e-3, 'double', 'Accepted | |q| - 1 | of a head pose '
+             'quaternion (renormalised); beyond it the pose is dropped (non_unit_quaternion).',
+             1e-9, 0.5),
+    ParamDef('head.max_samples', 128, 'int', 'Head estimation: stored samples (covers '
+             'head.window at the input rate: 128 at 1 kHz).', 8, 100000, live=False),
+    # Solver (SolverSpec): structural, a change rebuilds.
+    ParamDef('solver.integrator', _SOLVER.integrator, 'string', 'Integrator.',
+             choices=INTEGRATORS, rebuild=True),
+    ParamDef('solver.dt', _SOLVER.dt, 'double', 'Fixed internal step, s.', 1e-6, 0.1,
+             rebuild=True),
+    ParamDef('solver.max_steps_per_call', 60, 'int', 'Most internal steps per tick (bounded '
+             'work); time beyond is dropped and reported. Must cover one tick: '
+             'max_steps_per_call * dt >= 1/rate.', 1, 1000000, rebuild=True),
+    ParamDef('solver.linear_solver', _SOLVER.linear_solver, 'string', 'Joint force solve: '
+             'banded O(n) or dense O(n^3).', choices=LINEAR_SOLVERS, rebuild=True),
+    ParamDef('solver.projection', _SOLVER.projection, 'bool', 'Project positions and '
+             'velocities back on the joints after each step.', rebuild=True),
+    ParamDef('solver.baumgarte_stiffness', _SOLVER.baumgarte_stiffness, 'double',
+             'Baumgarte stabilisation stiffness, 1/s^2.', 0.0, 1e8, rebuild=True),
+    ParamDef('solver.baumgarte_damping', _SOLVER.baumgarte_damping, 'double',
+             'Baumgarte stabilisation damping, 1/s.', 0.0, 1e4, rebuild=True),
+    ParamDef('solver.guard_max_speed', _SOLVER.guard_max_speed, 'double', 'A segment faster '
+             'than this (m/s) is a blow-up: the chain is reset.', 1e-3, 1e6, rebuild=True),
+    ParamDef('solver.guard_max_gap', _SOLVER.guard_max_gap, 'double', 'A joint gap larger '
+             'than this (m) is a blow-up: the chain is reset.', 1e-9, 10.0, rebuild=True),
+)
+
+CHAIN_PARAMS = (
+    ParamDef('n_segments', _CHAIN.n_segments, 'int', 'Number of rigid segments.', 1,
+             MAX_SEGMENTS, rebuild=True),
+    ParamDef('length', _CHAIN.length, 'double', 'Total length, m (split equally).', 1e-4, 1e3,
+             rebuild=True),
+    ParamDef('mass', _CHAIN.mass, 'double', 'Total mass, kg (split by length).', 1e-7, 1e4,
+             rebuild=True),
+    ParamDef('radius', _CHAIN.radius, 'double', 'Segment radius, m (inertia of a solid '
+             'cylinder; marker size).', 1e-6, 10.0, rebuild=True),
+    ParamDef('attach', list(_CHAIN.attach), 'double3', 'Attachment point in the head frame, '
+             'm.', -1e3, 1e3, rebuild=True),
+    ParamDef('rest_direction', [0.0, 0.0, 0.0], 'double3', 'Direction of the straight chain '
+             'at rest in the head frame; [0, 0, 0]: along gravity.', -1e6, 1e6, rebuild=True),
+    ParamDef('damping', _CHAIN.damping, 'double', 'Joint damping, N m s/rad (live).', 0.0, 1e3),
+    ParamDef('stiffness', _CHAIN.stiffness, 'double', 'Bending stiffness towards the rest '
+             'pose, N m/rad (live).', 0.0, 1e4),
+    ParamDef('drag_linear', _CHAIN.drag_linear, 'double', 'Linear air drag per metre, '
+             'N s/m^2 (live).', 0.0, 1e3),
+    ParamDef('drag_quadratic', _CHAIN.drag_quadratic, 'double', 'Quadratic air drag per '
+             'metre, N s^2/m^3 (live).', 0.0, 1e3),
+    ParamDef('color', [0.55, 0.33, 0.16, 1.0], 'double4', 'Marker colour r, g, b, a.', 0.0,
+             1.0),
+)
+
+_GLOBAL = {p.name: p for p in GLOBAL_PARAMS}
+_CHAIN_DEFS = {p.name: p for p in CHAIN_PARAMS}
+
+
+class ParameterError(ValueError):
+    """A parameter value is rejected; the message names the parameter(s)."""
+
+    def __init__(self, names, message):
+        self.names = tuple(names) if isinstance(names, (list, tuple)) else (names,)
+        super().__init__(message)
+
+
+def chain_param_name(chain, field):
+    return f'{chain}.{field}'
+
+
+def definition(name, chains):
+    """The ``ParamDef`` of a full parameter name, or None if it is not one of ours."""
+    if name in _GLOBAL:
+        return _GLOBAL[name]
+    chain, _, field = name.partition('.')
+    if chain in chains and field in _CHAIN_DEFS:
+        return _CHAIN_DEFS[field]
+    return None
+
+
+def check_chain_names(names):
+    if not names:
+        raise ParameterError('chains', 'chains: at least one chain name is needed')
+    for n in names:
+        if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
+            raise ParameterError('chains', f'chains: {n!r} is not a valid chain name (letters, '
+                                 f'digits, underscores, starting with a letter; not one of '
+                                 f'{", ".join(RESERVED_NAMES)})')
+    if len(set(names)) != len(names):
+        raise ParameterError('chains', f'chains: duplicate names in {list(names)}')
+
+
+def _check_value(name, pdef, value):
+    """Type/shape/choice/range check of one value (rclpy checks only scalar ranges)."""
+    if pdef.kind in ('double3', 'double4'):
+        n = 3 if pdef.kind == 'double3' else 4
+        arr = np.asarray(list(value), dtype=float) if value is not None else np.zeros(0)
+        if arr.shape != (n,) or not np.all(np.isfinite(arr)) or \
+                (pdef.lo is not None and (np.any(arr < pdef.lo) or np.any(arr > pdef.hi))):
+            raise ParameterError(name, f'{name} = {list(np.atleast_1d(arr))} is not allowed: '
+                                       f'must be {pdef.constraints()}')
+    elif pdef.choices is not None and value not in pdef.choices:
+        raise ParameterError(name, f'{name} = {value!r} is not allowed: must be one of '
+                                   f'{", ".join(pdef.choices)}')
+    elif pdef.kind in ('double', 'int') and pdef.lo is not None:
+        if not (math.isfinite(value) and pdef.lo <= value <= pdef.hi):
+            raise ParameterError(name, f'{name} = {value!r} is out of range '
+                                       f'[{pdef.lo:g}, {pdef.hi:g}]')
+
+
+def _scene_error_name(err, chains):
+    """Map a ``SceneError`` field (``chains[0].length``, ``solver.dt``) to a parameter name."""
+    f = err.field
+    m = re.match(r'^chains\[(\d+)\]\.(.*)$', f)
+    if m:
+        return chain_param_name(chains[int(m.group(1))], m.group(2))
+    return f
+
+
+def build_scene(values, chains):
+    """The ``Scene`` of a full set of parameter ``values`` (dict name → value); raises
+    ``ParameterError`` naming the offending parameter(s)."""
+    specs = []
+    for c in chains:
+        v = {f: values[chain_param_name(c, f)] for f in _CHAIN_DEFS}
+        rest = tuple(float(x) for x in v['rest_direction'])
+        specs.append(ChainSpec(
+            name=c, n_segments=int(v['n_segments']), length=float(v['length']),
+            mass=float(v['mass']), radius=float(v['radius']),
+            attach=tuple(float(x) for x in v['attach']),
+            rest_direction=None if not any(rest) else rest,
+            damping=float(v['damping']), stiffness=float(v['stiffness']),
+            drag_linear=float(v['drag_linear']), drag_quadratic=float(v['drag_quadratic'])))
+    solver = SolverSpec(
+        integrator=values['solver.integrator'], dt=float(values['solver.dt']),
+        max_steps_per_call=int(values['solver.max_steps_per_call']),
+        linear_solver=values['solver.linear_solver'],
+        projection=bool(values['solver.projection']),
+        baumgarte_stiffness=float(values['solver.baumgarte_stiffness']),
+        baumgarte_damping=float(values['solver.baumgarte_damping']),
+        guard_max_speed=float(values['solver.guard_max_speed']),
+        guard_max_gap=float(values['solver.guard_max_gap']))
+    try:
+        return Scene(chains=tuple(specs), n_kinematic_bodies=1,
+                     gravity=tuple(float(x) for x in values['gravity']),
+                     wind=tuple(float(x) for x in values['wind']), solver=solver)
+    except SceneError as err:
+        name = _scene_error_name(err, chains)
+        raise ParameterError(name, f'{name} = {err.value!r} is not allowed: must be '
+                                   f'{err.allowed}') from err
+
+
+def build_runner_settings(values):
+    return RunnerSettings(
+        interpolation_delay=float(values['interpolation_delay']),
+        teleport_distance=float(values['teleport_distance']),
+        teleport_angle=float(values['teleport_angle']),
+        stale_timeout=float(values['stale_timeout']),
+        max_queue=int(values['input_queue_size']),
+        window=float(values['head.window']), degree=int(values['head.degree']),
+        max_extrapolation=float(values['head.max_extrapolation']),
+        max_gap=float(values['head.max_gap']),
+        quat_tolerance=float(values['head.quat_tolerance']),
+        max_samples=int(values['head.max_samples']))
+
+
+def check_values(values, chains, changed=None):
+    """Check a full set of ``values``: every value (or those in ``changed``), then the scene and
+    the cross-parameter consistency. Returns the ``Scene``; raises ``ParameterError``."""
+    names = values.keys() if changed is None else changed
+    for name in names:
+        pdef = definition(name, chains)
+        if pdef is not None:
+            _check_value(name, pdef, values[name])
+    scene = build_scene(values, chains)
+    dt, steps, rate = (values['solver.dt'], values['solver.max_steps_per_call'], values['rate'])
+    if steps * dt < 1.0 / rate * (1.0 - 1e-9):
+        raise ParameterError(
+            ('solver.max_steps_per_call', 'solver.dt', 'rate'),
+            f'inconsistent: solver.max_steps_per_call * solver.dt = {steps} * {dt:g} s = '
+            f'{steps * dt:g} s is shorter than one tick (1/rate = {1.0 / rate:g} s): every tick '
+            f'would drop time')
+    return scene

@@ -1,0 +1,372 @@
+"""What the ponytail node does on each timer tick, without ROS: head pose samples in, chain out.
+
+``ChainRunner`` owns the ``HeadEstimator`` (the head's velocity and acceleration from the pose
+samples) and the ``Simulator``. The node only converts messages: its subscription callback calls
+``push`` (O(1): the sample is queued), its timer callback calls ``tick(t)`` with the clock's time
+and publishes what comes back. Keeping this ROS-free makes it testable and benchmarkable in
+simulated time.
+
+Per tick, at node clock time ``t``:
+
+1. the queued samples (at most ``max_queue``; a flood overflows the queue, oldest first, and is
+   counted as ``'queue_overflow'``) are checked in arrival order: frame, teleport, then
+   ``HeadEstimator.add`` (NaN/inf, zero or non-unit quaternion, stamps backwards or repeated);
+   every dropped sample is counted per reason in ``dropped``;
+2. pending parameter changes are applied: tunable ones with ``Simulator.set_parameters``,
+   structural ones by rebuilding the simulator at rest at the current head pose;
+3. the head state is estimated at ``t_head = t - delay`` (``interpolation_delay``) and the chain
+   advanced to it: ``sim.advance_frame(t_head, estimator.state_at(t_head))``. The elapsed time
+   is whatever the clock says (late timers, skipped sim-time periods); at most
+   ``solver.max_steps_per_call`` internal steps are taken, the rest is dropped and counted.
+
+Decisions (documented for the node):
+
+* Stale: no sample accepted during the last ``stale_timeout`` s of clock time (measured on the
+  node clock, not by the stamps, so that it works whatever the stamps' time base).
+* Frame: the frame of the first accepted pose is latched. A pose in another frame is dropped
+  (``'frame_changed'``) while the latched stream is live; once the head is stale a pose in a new
+  frame is adopted and the chain is reset at rest there (reset reason ``'frame_changed'``):
+  interleaved rogue publishers cannot poison the chain, a real switch recovers after
+  ``stale_timeout``.
+* Teleport: a pose farther than ``teleport_distance`` m or ``teleport_angle`` rad from the
+  previous accepted one restarts the head history and resets the chain at rest at the new pose.
+* Stale head: the estimator extrapolates for ``head.max_extrapolation``, braking to a stop, then
+  holds the last pose; the chain keeps swinging and settles.
+* Clock going backwards (a restarted ``/clock``, a looped bag): everything restarts as if new
+  (reset reason ``'clock_backwards'``). A stream whose stamps went back for good (a publisher
+  restarted with another time base) is re-adopted once the head is stale: the head history
+  restarts, the chain carries on (counted in ``history_restarts``; before that, the samples are
+  dropped as ``'stamp_backwards'``).
+* A change of ``interpolation_delay`` is slewed at ±50 % of the elapsed time, so the simulated
+  head time never runs backwards and never jumps.
+"""
+from collections import Counter, deque
+from dataclasses import dataclass, fields, replace
+import math
+
+import numpy as np
+
+from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
+from ponytail_ros.core.scene import ChainSpec, Scene
+from ponytail_ros.core.simulator import Simulator, StepReport
+
+__all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
+           'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change']
+
+#: Why a head pose sample may be dropped (counted per reason).
+DROP_REASONS = tuple(REJECT_REASONS) + ('frame_changed', 'queue_overflow')
+#: Why the chain may be put back at rest.
+RESET_REASONS = ('teleport', 'frame_changed', 'clock_backwards', 'rebuild', 'guard')
+
+TUNABLE_CHAIN_FIELDS = ('damping', 'stiffness', 'drag_linear', 'drag_quadratic')
+TUNABLE_SCENE_FIELDS = ('gravity', 'wind')
+
+#: Slew rate of the effective interpolation delay (s of delay change per s of clock time).
+DELAY_SLEW = 0.5
+
+
+@dataclass
+class RunnerSettings:
+    """Input handling settings (all may change between ticks except ``max_queue`` and
+    ``max_samples``).
+
+    Attributes:
+        interpolation_delay: s; the chain is simulated at ``t - interpolation_delay``.
+        teleport_distance: m; a jump of the head pose beyond this resets the chain.
+        teleport_angle: rad; a rotation of the head pose beyond this resets the chain.
+        stale_timeout: s; no accepted sample for this long → the head is stale.
+        max_queue: samples queued between ticks (bounded work per tick).
+        window, degree, max_extrapolation, max_gap, quat_tolerance, max_samples: of the
+            ``HeadEstimator``.
+    """
+
+    interpolation_delay: float = 0.0
+    teleport_distance: float = 0.5
+    teleport_angle: float = 1.0
+    stale_timeout: float = 0.25
+    max_queue: int = 256
+    window: float = 0.1
+    degree: int = 3
+    max_extrapolation: float = 0.1
+    max_gap: float = 0.5
+    quat_tolerance: float = 1e-3
+    max_samples: int = 128
+
+    def estimator(self):
+        return HeadEstimator(window=self.window, degree=self.degree, delay=0.0,
+                             max_extrapolation=self.max_extrapolation, max_gap=self.max_gap,
+                             quat_tolerance=self.quat_tolerance, max_samples=self.max_samples)
+
+
+@dataclass
+class TickOutput:
+    """What one tick produced (arrays are fresh copies).
+
+    Attributes:
+        t: tick time (node clock), s.
+        t_head: head time the chain was advanced to, ``t - delay``, s.
+        frame_id: the head pose's frame (the simulation's world frame).
+        origins: ``(n, 3)`` proximal joint of every segment, all chains concatenated.
+        orientations: ``(n, 4)`` ``(x, y, z, w)``, local +X along the segment.
+        report: the simulator's ``StepReport`` for this tick (steps, dropped time, max gap,
+            guard reset reason).
+        reset_reason: why the chain was put at rest this tick (``RESET_REASONS``) or None.
+        head_stale: no sample accepted during the ``stale_timeout`` s before ``t``.
+        newest_stamp: stamp of the newest accepted sample, s.
+        accepted: samples accepted this tick.
+    """
+
+    t: float
+    t_head: float
+    frame_id: str
+    origins: np.ndarray
+    orientations: np.ndarray
+    report: StepReport
+    reset_reason: str
+    head_stale: bool
+    newest_stamp: float
+    accepted: int
+
+
+def structural_change(old, new):
+    """True if ``new`` differs from ``old`` (``Scene``s) in more than the tunable parameters."""
+    if len(old.chains) != len(new.chains):
+        return True
+    strip_c = {f: 0.0 for f in TUNABLE_CHAIN_FIELDS}
+    if any(replace(a, **strip_c) != replace(b, **strip_c) for a, b in zip(old.chains, new.chains)):
+        return True
+    return (old.n_kinematic_bodies != new.n_kinematic_bodies or old.solver != new.solver)
+
+
+class ChainRunner:
+    """Head samples → estimator → simulator, one ``tick`` at a time (see the module docstring).
+
+    Args:
+        scene: a validated ``Scene`` (one kinematic body: the head).
+        settings: ``RunnerSettings``.
+    """
+
+    def __init__(self, scene, settings=None):
+        self.scene = scene
+        self.settings = settings or RunnerSettings()
+        self.estimator = self.settings.estimator()
+        self.sim = None
+        self.frame_id = None
+        self._queue = deque(maxlen=max(1, int(self.settings.max_queue)))
+        self._pending_scene = None
+        self._pending_reset = None
+        self._delay = None
+        self._last_tick = None
+        self._t_frame = None
+        self._newest_stamp = None
+        self._last_accept_tick = None
+        #: Dropped samples per reason (``DROP_REASONS``), since start.
+        self.dropped = Counter({r: 0 for r in DROP_REASONS})
+        #: Chain resets per reason (``RESET_REASONS``), since start.
+        self.resets = Counter({r: 0 for r in RESET_REASONS})
+        self.accepted_total = 0
+        #: Head histories restarted because the stamps went back for good (chain kept).
+        self.history_restarts = 0
+        self.dropped_time_total = 0.0
+        self.ticks = 0
+        self.last_reset = None
+        #: Called as ``on_drop(reason, t_stamp)`` for every dropped sample (logging).
+        self.on_drop = None
+
+    # -- configuration ---------------------------------------------------------------------
+    def set_scene(self, scene):
+        """Use ``scene`` (validated) from the next tick: tunable differences are applied with
+        ``Simulator.set_parameters``, anything else rebuilds the simulator at rest."""
+        self._pending_scene = scene
+
+    def update_settings(self, **changes):
+        """Change settings live (not ``max_queue``/``max_samples``: fixed at construction)."""
+        for k in ('max_queue', 'max_samples'):
+            if k in changes and changes[k] != getattr(self.settings, k):
+                raise ValueError(f'{k} cannot change while running')
+        self.settings = replace(self.settings, **changes)
+        e, s = self.estimator, self.settings
+        e.window, e.degree, e.min_samples = float(s.window), int(s.degree), int(s.degree) + 3
+        e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
+        e.quat_tolerance = float(s.quat_tolerance)
+
+    @property
+    def delay(self):
+        """Effective interpolation delay (slewed towards the setting), s."""
+        return self.settings.interpolation_delay if self._delay is None else self._delay
+
+    @property
+    def has_head(self):
+        return len(self.estimator) > 0
+
+    @property
+    def newest_stamp(self):
+        return self._newest_stamp
+
+    def head_stale(self, t):
+        """No sample accepted during the last ``stale_timeout`` s of clock time before ``t``."""
+        return (self._last_accept_tick is None
+                or t - self._last_accept_tick > self.settings.stale_timeout)
+
+    def head_age(self, t):
+        """``t`` minus the newest accepted stamp (s), None without samples."""
+        return None if self._newest_stamp is None else t - self._newest_stamp
+
+    # -- input ---------------------------------------------------------------------------------
+    def push(self, t, position, orientation, frame_id=''):
+        """Queue a head pose sample (stamp ``t`` s, position ``(3,)``, quaternion ``(4,)``
+        x, y, z, w, frame). Checked at the next tick; O(1)."""
+        if len(self._queue) == self._queue.maxlen:
+            self._drop('queue_overflow', self._queue[0][0])
+        self._queue.append((t, position, orientation, frame_id))
+
+    def _drop(self, reason, t):
+        self.dropped[reason] += 1
+        if self.on_drop is not None:
+            self.on_drop(reason, t)
+
+    def _restart(self, reason):
+        """Forget the head (history, frame) and the chain; the next sample starts anew."""
+        self.estimator.reset()
+        self.sim = None
+        self.frame_id = None
+        self._newest_stamp = None
+        self._last_accept_tick = None
+        self._pending_reset = None
+        self.resets[reason] += 1
+        self.last_reset = reason
+
+    def _drain(self, t_tick):
+        est, s = self.estimator, self.settings
+        accepted = 0
+        quiet = (self._last_accept_tick is None
+                 or t_tick - self._last_accept_tick > s.stale_timeout)
+        while self._queue:
+            t, p, q, frame = self._queue.popleft()
+            valid = _valid_sample(t, p, q, s.quat_tolerance)
+            restart = None
+            if self.frame_id is not None and frame != self.frame_id:
+                if not (quiet and valid):
+                    self._drop('frame_changed', t)
+                    continue
+                restart = 'frame_changed'
+            elif valid and est.detect_teleport(p, q, s.teleport_distance, s.teleport_angle):
+                restart = 'teleport'
+            elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
+                # The stream restarted with an earlier time base (a publisher restarted, a bag
+                # replayed without sim time): adopt it, keep the chain.
+                restart = 'stream_restart'
+            if restart is not None:
+                est.reset()
+                if restart == 'stream_restart':
+                    self.history_restarts += 1
+                else:
+                    self._pending_reset = restart
+            reason = est.add(t, p, q)
+            if reason is not None:
+                self._drop(reason, t)
+                continue
+            accepted += 1
+            quiet = False
+            self._last_accept_tick = t_tick
+            if self.frame_id is None or restart == 'frame_changed':
+                self.frame_id = frame
+            self._newest_stamp = est.last_stamp
+        self.accepted_total += accepted
+        return accepted
+
+    # -- the tick ------------------------------------------------------------------------------
+    def tick(self, t):
+        """Advance to node clock time ``t`` (s); ``TickOutput``, or None while no head pose has
+        been accepted yet."""
+        t = float(t)
+        if self._last_tick is not None and t < self._last_tick:
+            self._restart('clock_backwards')
+            self._delay = None
+        elapsed = 0.0 if self._last_tick is None else t - self._last_tick
+        self._last_tick = t
+        accepted = self._drain(t)
+        if not self.has_head:
+            return None
+        self.ticks += 1
+
+        target = self.settings.interpolation_delay
+        if self._delay is None or self.sim is None:
+            self._delay = target
+        else:
+            step = DELAY_SLEW * elapsed
+            self._delay += min(max(target - self._delay, -step), step)
+        t_head = t - self._delay
+        head = self.estimator.state_at(t_head)
+
+        report = StepReport()
+        reset_reason = None
+        scene = self._pending_scene
+        self._pending_scene = None
+        if self.sim is None or (scene is not None and structural_change(self.scene, scene)):
+            if scene is not None:
+                self.scene = scene
+                if self.sim is not None:
+                    reset_reason = 'rebuild'
+            self.sim = Simulator(self.scene, head=head, t0=t_head)
+            self._t_frame = t_head
+            self._pending_reset = None
+        else:
+            if scene is not None:
+                self._apply_tunables(scene)
+            if self._pending_reset is not None:
+                reset_reason = self._pending_reset
+                self.sim.reset(head, t_head)
+                self._t_frame = t_head
+            elif t_head > self._t_frame:
+                report = self.sim.advance_frame(t_head, head)
+                self._t_frame = t_head
+                if report.reset_reason is not None:
+                    reset_reason = 'guard'
+        self._pending_reset = None
+        if reset_reason is not None:
+            self.resets[reset_reason] += 1
+            self.last_reset = (reset_reason if reset_reason != 'guard'
+                               else f'guard: {report.reset_reason}')
+        if report.max_gap == 0.0 and reset_reason is not None:
+            report.max_gap = float(np.max(self.sim.joint_gaps()))
+        self.dropped_time_total += report.dropped_time
+        origins, quats = self.sim.segment_poses()
+        return TickOutput(
+            t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
+            orientations=quats, report=report, reset_reason=reset_reason,
+            head_stale=self.head_stale(t),
+            newest_stamp=self._newest_stamp, accepted=accepted)
+
+    def _apply_tunables(self, scene):
+        old = self.scene
+        if tuple(scene.gravity) != tuple(old.gravity) or tuple(scene.wind) != tuple(old.wind):
+            self.sim.set_parameters(gravity=scene.gravity, wind=scene.wind)
+        for i, (a, b) in enumerate(zip(old.chains, scene.chains)):
+            changed = {f: getattr(b, f) for f in TUNABLE_CHAIN_FIELDS
+                       if getattr(a, f) != getattr(b, f)}
+            if changed:
+                self.sim.set_parameters(chain=i, **changed)
+        self.scene = scene
+
+
+def _valid_sample(t, p, q, quat_tolerance):
+    """Would ``HeadEstimator.add`` accept the values (ignoring the stamp order)?"""
+    try:
+        t = float(t)
+        p = np.asarray(p, dtype=float).reshape(3)
+        q = np.asarray(q, dtype=float).reshape(4)
+    except (TypeError, ValueError):
+        return False
+    if not (math.isfinite(t) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        return False
+    return abs(math.sqrt(float(q @ q)) - 1.0) <= quat_tolerance
+
+
+def chain_spec_fields():
+    """Names of ``ChainSpec`` fields (for parameter tables)."""
+    return [f.name for f in fields(ChainSpec)]
+
+
+def default_scene():
+    return Scene()
