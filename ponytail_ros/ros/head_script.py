@@ -12,9 +12,9 @@ facing +X (REP 103 body axes: X forward, Y left, Z up):
     6.5 – 9   shake: yaw ±0.6 rad at 2 Hz
     9 – 10    turn left by 90°
     10.5 – 13.4  run 6 m along +Y at up to 3 m/s with a 3 cm bob at 2.8 Hz and a forward lean,
-              ending in a sharp stop (3 m/s to 0 in 0.15 s, about 3 g)
+              ending in a sharp stop at 12.9 s (3 m/s to 0 in 0.15 s, about 3 g), then stand
     14.5 – 16 turn by 180°
-    16.5 – 19.4  run back, sharp stop
+    16.5 – 19.4  run back, sharp stop at 18.9 s
     20.5 – 21.5  turn by 90° (facing +X again), then idle until the loop closes at 24 s
 
 Every component is windowed by C² smooth ramps, so the pose is C² everywhere (also across the

@@ -223,11 +223,15 @@ def _check_value(name, pdef, value):
     """Type/shape/choice/range check of one value (rclpy checks only scalar ranges)."""
     if pdef.kind in ('double3', 'double4'):
         n = 3 if pdef.kind == 'double3' else 4
-        arr = np.asarray(list(value), dtype=float) if value is not None else np.zeros(0)
+        try:
+            arr = np.asarray(list(value), dtype=float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
         if arr.shape != (n,) or not np.all(np.isfinite(arr)) or \
                 (pdef.lo is not None and (np.any(arr < pdef.lo) or np.any(arr > pdef.hi))):
-            raise ParameterError(name, f'{name} = {list(np.atleast_1d(arr))} is not allowed: '
-                                       f'must be {pdef.constraints()}')
+            shown = [float(x) for x in arr.ravel()] if arr.size else value
+            raise ParameterError(name, f'{name} = {shown} is not allowed: must be {n} finite '
+                                       f'numbers, each in [{pdef.lo:g}, {pdef.hi:g}]')
     elif pdef.choices is not None and value not in pdef.choices:
         raise ParameterError(name, f'{name} = {value!r} is not allowed: must be one of '
                                    f'{", ".join(pdef.choices)}')
