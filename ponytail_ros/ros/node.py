@@ -256,7 +256,14 @@ class PonytailNode(Node):
         if last is not None and now - last < period:
             return
         self._log_times[key] = now
-        getattr(self.get_logger(), level)(text)
+        # One call site per severity: rclpy refuses a severity change at one call site.
+        logger = self.get_logger()
+        if level == 'info':
+            logger.info(text)
+        elif level == 'error':
+            logger.error(text)
+        else:
+            logger.warning(text)
 
     # -- the tick --------------------------------------------------------------------------
     def _make_chain_messages(self, scene):

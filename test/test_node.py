@@ -1,0 +1,472 @@
+"""The ponytail node in-process: head publisher, node and test subscriber in one
+``SingleThreadedExecutor`` on a fresh rclpy context per test (``ros_context`` in conftest.py),
+talking over DDS on this test run's own domain."""
+import math
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from builtin_interfaces.msg import Time  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
+
+from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate  # noqa: E402
+from ponytail_ros.ros.head_demo import HeadDemoNode  # noqa: E402
+from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+ATTACH = [-0.09, 0.0, 0.06]
+CHAIN = {'n_segments': 6, 'length': 0.3, 'mass': 0.1, 'radius': 0.03, 'attach': ATTACH,
+         'damping': 5e-5, 'drag_linear': 0.05}
+Q_TILT = quat_from_rotvec(np.array([0.2, -0.1, 0.8]))
+P_HEAD = np.array([1.0, -2.0, 1.5])
+
+
+def overrides(chains=('ponytail',), **values):
+    params = {'diagnostics_period': 0.2, 'chains': list(chains)}
+    for c in chains:
+        params.update({f'{c}.{k}': v for k, v in CHAIN.items()})
+    params.update({k.replace('__', '.'): v for k, v in values.items()})
+    return [Parameter(k, value=v) for k, v in params.items()]
+
+
+def stamp(t):
+    sec = math.floor(t)
+    return Time(sec=int(sec), nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
+
+
+def t_of(header):
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+def pose_msg(t, p=P_HEAD, q=Q_TILT, frame='world'):
+    m = PoseStamped()
+    m.header.frame_id = frame
+    m.header.stamp = stamp(t) if isinstance(t, float) else t
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(x) for x in p)
+    (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
+     m.pose.orientation.w) = (float(x) for x in q)
+    return m
+
+
+def attach_point(p, q, attach=ATTACH):
+    return np.asarray(p) + quat_rotate(np.asarray(q, dtype=float), np.asarray(attach))
+
+
+def arrays(msg):
+    o = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
+    q = np.array([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+                  for p in msg.poses])
+    return o, q
+
+
+def check_geometry(msg, n, length):
+    """N poses, finite, neighbouring segments meet: distal = origin + R (l, 0, 0)."""
+    assert len(msg.poses) == n
+    o, q = arrays(msg)
+    assert np.all(np.isfinite(o)) and np.all(np.isfinite(q))
+    distal = o + quat_axis_x(q) * (length / n)
+    assert np.max(np.linalg.norm(distal[:-1] - o[1:], axis=1)) < 1e-6
+    return o, q
+
+
+def diag_values(msg):
+    return {kv.key: kv.value for kv in msg.status[0].values}
+
+
+class Harness:
+    """The node under test, a tester node (publishers, subscribers) and one executor."""
+
+    def __init__(self, ctx, params=(), topics=('segment_poses',), namespace=None,
+                 head_qos=10):
+        self.ctx = ctx
+        kw = {'namespace': namespace} if namespace else {}
+        self.node = PonytailNode(context=ctx, parameter_overrides=list(params), **kw)
+        self.tester = rclpy.create_node('tester', context=ctx)
+        self.head_pub = self.tester.create_publisher(PoseStamped, 'head_pose', head_qos)
+        self.poses = {tp: [] for tp in topics}
+        for tp in topics:
+            self.tester.create_subscription(PoseArray, tp, self.poses[tp].append, 100)
+        self.markers, self.diags = [], []
+        self.tester.create_subscription(MarkerArray, 'segment_markers', self.markers.append, 100)
+        self.tester.create_subscription(DiagnosticArray, '/diagnostics', self.diags.append, 100)
+        self.executor = SingleThreadedExecutor(context=ctx)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.tester)
+        self.extra = []
+        self.head = None          # callable t -> (p, q, frame) published at 100 Hz when set
+        self.tester.create_timer(0.01, self._publish_head)
+
+    def now(self):
+        return self.tester.get_clock().now().nanoseconds * 1e-9
+
+    def _publish_head(self):
+        if self.head is not None:
+            t = self.now()
+            p, q, frame = self.head(t)
+            self.head_pub.publish(pose_msg(t, p, q, frame))
+
+    def add(self, node):
+        self.executor.add_node(node)
+        self.extra.append(node)
+        return node
+
+    def spin_for(self, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def spin_until(self, pred, timeout=5.0):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return True
+            self.executor.spin_once(timeout_sec=0.005)
+        return pred()
+
+    def last_diag(self, since=0):
+        """Values of the newest /diagnostics message received after ``since`` messages."""
+        assert self.spin_until(lambda: len(self.diags) > since, 3.0)
+        return diag_values(self.diags[-1])
+
+    def fresh_diag(self):
+        n = len(self.diags)
+        assert self.spin_until(lambda: len(self.diags) > n + 1, 3.0)
+        return diag_values(self.diags[-1])
+
+    def close(self):
+        self.executor.shutdown()
+        for n in self.extra:
+            n.destroy_node()
+        self.node.destroy_node()
+        self.tester.destroy_node()
+
+
+@pytest.fixture
+def harness(ros_context):
+    made = []
+
+    def make(*args, **kwargs):
+        h = Harness(ros_context, *args, **kwargs)
+        made.append(h)
+        return h
+    yield make
+    for h in made:
+        h.close()
+
+
+def still(p=P_HEAD, q=Q_TILT, frame='world'):
+    return lambda t: (p, q, frame)
+
+
+# -- geometry and following ------------------------------------------------------------------
+
+def test_head_demo_drives_the_chain_which_follows_the_head(harness, ros_context):
+    # Enough steps per tick to catch up after any stall of a loaded test machine.
+    h = harness(overrides(interpolation_delay=0.01, solver__max_steps_per_call=2400))
+    origin = [0.5, -0.3, 1.6]
+    demo = h.add(HeadDemoNode(context=ros_context, parameter_overrides=[
+        Parameter('motion', value='sway'), Parameter('origin', value=origin),
+        Parameter('rate', value=100.0)]))
+    heads = []
+    h.tester.create_subscription(PoseStamped, 'head_pose',
+                                 lambda m: heads.append(t_of(m.header)), 100)
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 60, 8.0)
+    heads = np.array(heads)
+    errors, stamps = [], []
+    for msg in got[10:]:
+        o, q = check_geometry(msg, 6, 0.3)
+        assert msg.header.frame_id == 'world'
+        stamps.append(t_of(msg.header))
+        t_head = t_of(msg.header) - 0.01
+        # Judge only instants the head stream covered (a stall of the machine leaves gaps).
+        if np.sum(np.abs(heads - t_head) < 0.015) < 2:
+            continue
+        s = demo.motion.state_at(t_head - demo._t0)
+        errors.append(np.linalg.norm(o[0] - attach_point(s.position[0], s.orientation[0])))
+    assert np.all(np.diff(stamps) > 0)
+    # Segment 1 starts at the attachment point of the head as it was interpolation_delay ago
+    # (the sway moves 0.5 m/s: the < 4 ms internal-step lag and estimation stay below 5 mm).
+    assert len(errors) > 20 and max(errors) < 5e-3
+    assert h.node.runner.resets['guard'] == 0
+
+
+def test_still_head_segment_one_exactly_at_attachment_and_best_effort_publisher(harness):
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    h = harness(overrides(frame_id='head_out'), head_qos=qos)
+    h.head = still()
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 20, 5.0)
+    o, q = check_geometry(got[-1], 6, 0.3)
+    assert np.linalg.norm(o[0] - attach_point(P_HEAD, Q_TILT)) < 1e-6
+    assert got[-1].header.frame_id == 'head_out'          # the frame_id parameter overrides
+
+
+def test_two_chains_own_topics_parameters_and_markers(harness):
+    h = harness(overrides(chains=('left', 'right'), left__attach=[0.0, 0.08, 0.0],
+                          right__attach=[0.0, -0.08, 0.0], right__n_segments=4,
+                          markers__rate=1000.0),
+                topics=('segment_poses/left', 'segment_poses/right'))
+    h.head = still()
+    left, right = h.poses['segment_poses/left'], h.poses['segment_poses/right']
+    assert h.spin_until(lambda: len(left) >= 10 and len(right) >= 10 and h.markers, 5.0)
+    lo, _ = check_geometry(left[-1], 6, 0.3)
+    ro, _ = check_geometry(right[-1], 4, 0.3)
+    assert np.linalg.norm(lo[0] - attach_point(P_HEAD, Q_TILT, [0.0, 0.08, 0.0])) < 1e-6
+    assert np.linalg.norm(ro[0] - attach_point(P_HEAD, Q_TILT, [0.0, -0.08, 0.0])) < 1e-6
+    # Capsules: per chain a sphere list (id 0) and one cylinder per segment; first a DELETEALL.
+    first = h.markers[0].markers
+    assert first[0].action == Marker.DELETEALL
+    last = h.markers[-1].markers
+    by_ns = {}
+    for m in last:
+        by_ns.setdefault(m.ns, []).append(m)
+    assert len(by_ns['left']) == 1 + 6 and len(by_ns['right']) == 1 + 4
+    cyl = [m for m in by_ns['left'] if m.type == Marker.CYLINDER]
+    assert all(m.header.frame_id == 'world' for m in last)
+    assert cyl[0].scale.z == pytest.approx(0.05)
+    # Switch to line strips live: DELETEALL, then sphere list + line strip per chain.
+    n = len(h.markers)
+    ok = h.node.set_parameters([Parameter('markers.style', value='line')])[0]
+    assert ok.successful
+
+    def line_style():
+        return {m.type for m in h.markers[-1].markers} == {Marker.SPHERE_LIST, Marker.LINE_STRIP}
+    assert h.spin_until(line_style, 3.0)
+    switched = [m for arr in h.markers[n:] for m in arr.markers]
+    assert any(m.action == Marker.DELETEALL for m in switched)
+    assert len(h.markers[-1].markers) == 4
+
+
+# -- bad input -------------------------------------------------------------------------------
+
+def test_every_bad_input_is_dropped_counted_and_harmless(harness):
+    h = harness(overrides(stale_timeout=2.0))
+    h.head = still()
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 5, 5.0)
+    r = h.node.runner
+    h.head = None            # pause the good stream so that "newest" stays the newest
+    h.spin_for(0.05)
+    newest = r.newest_stamp
+    bad = {
+        'nonfinite': [pose_msg(h.now(), p=(math.nan, 0.0, 1.0)),
+                      pose_msg(h.now(), q=(0.0, math.inf, 0.0, 1.0))],
+        'zero_quaternion': [pose_msg(h.now(), q=(0.0, 0.0, 0.0, 0.0))],
+        'non_unit_quaternion': [pose_msg(h.now(), q=(0.0, 0.0, 0.0, 1.3))],
+        'stamp_backwards': [pose_msg(newest - 0.5)],
+        'stamp_repeated': [pose_msg(stamp(newest))],
+        'frame_changed': [pose_msg(h.now(), frame='odom')],
+    }
+    for msgs in bad.values():
+        for m in msgs:
+            h.head_pub.publish(m)
+        h.spin_for(0.02)
+    # A near-unit quaternion is normalised and accepted, not dropped.
+    h.head_pub.publish(pose_msg(h.now(), q=Q_TILT * (1.0 + 5e-4)))
+    h.head = still()
+    expected = {k: len(v) for k, v in bad.items()}
+    assert h.spin_until(lambda: all(r.dropped[k] == n for k, n in expected.items()), 3.0), \
+        dict(r.dropped)
+    assert sum(r.dropped.values()) == sum(expected.values())
+    d = h.fresh_diag()
+    for k, n in expected.items():
+        assert d[f'dropped inputs: {k}'] == str(n)
+    assert d['resets'] == '0' and d['head'] == 'ok'
+    n = len(got)
+    assert h.spin_until(lambda: len(got) >= n + 10, 3.0)      # still publishing
+    for msg in got:
+        o, q = check_geometry(msg, 6, 0.3)
+        assert np.linalg.norm(o[0] - attach_point(P_HEAD, Q_TILT)) < 1e-6
+        assert msg.header.frame_id == 'world'
+
+
+def test_flood_of_head_poses_bounded_work_per_tick(harness):
+    h = harness(overrides(input_queue_size=1))
+    h.head = still()
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 3, 5.0)
+    r = h.node.runner
+    t = h.now()
+    for burst in range(10):
+        # A burst: the subscription keeps the newest 5 (sensor-data QoS), the node's queue 1.
+        for k in range(200):
+            h.head_pub.publish(pose_msg(t + 1e-5 * k + 0.01 * burst))
+        h.spin_for(0.01)
+    assert h.spin_until(lambda: r.dropped['queue_overflow'] > 0, 3.0)
+    n = len(got)
+    h.spin_for(0.2)
+    assert len(got) > n
+    check_geometry(got[-1], 6, 0.3)
+    assert r.resets['guard'] == 0
+
+
+def test_frame_change_dropped_while_live_then_adopted_with_reset(harness):
+    h = harness(overrides(stale_timeout=0.2))
+    h.head = still(frame='world')
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 5, 5.0)
+    h.head_pub.publish(pose_msg(h.now() + 0.002, frame='map'))
+    r = h.node.runner
+    assert h.spin_until(lambda: r.dropped['frame_changed'] == 1, 2.0)
+    h.head = still(frame='map')           # the publisher switched for good
+    assert h.spin_until(lambda: got[-1].header.frame_id == 'map', 3.0)
+    assert r.resets['frame_changed'] == 1
+    assert r.dropped['frame_changed'] >= 1
+
+
+def test_stale_head_keeps_publishing_then_teleport_resets(harness):
+    h = harness(overrides(stale_timeout=0.15, teleport_distance=0.5))
+    h.head = lambda t: (P_HEAD + [0.05 * math.sin(8.0 * t), 0.0, 0.0], Q_TILT, 'world')
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 30, 5.0)
+    h.head = None                                   # the head stops publishing
+    d = h.fresh_diag()
+    d = h.fresh_diag()
+    assert d['head'] == 'stale'
+    n = len(got)
+    assert h.spin_until(lambda: len(got) > n + 10, 2.0)
+    o1, _ = check_geometry(got[-1], 6, 0.3)
+    o0, _ = check_geometry(got[-5], 6, 0.3)
+    assert np.linalg.norm(o1[0] - o0[0]) < 1e-9     # the head is held ...
+    assert h.node.runner.resets['guard'] == 0
+    # ... until it reappears 3 m away: a teleport, the chain reset at rest at the new pose.
+    p_new = P_HEAD + [3.0, 0.0, 0.0]
+    h.head = still(p=p_new)
+    r = h.node.runner
+    assert h.spin_until(lambda: r.resets['teleport'] == 1, 3.0)
+    n = len(got)
+    assert h.spin_until(lambda: len(got) > n + 2, 2.0)
+    o, q = check_geometry(got[-1], 6, 0.3)
+    assert np.linalg.norm(o[0] - attach_point(p_new, Q_TILT)) < 1e-6
+    assert h.fresh_diag()['resets: teleport'] == '1'
+
+
+# -- parameters ------------------------------------------------------------------------------
+
+def test_parameters_rejected_with_reason_and_running_value_stays(harness):
+    h = harness(overrides())
+    h.head = still()
+    assert h.spin_until(lambda: len(h.poses['segment_poses']) >= 3, 5.0)
+    client = AsyncParameterClient(h.tester, 'ponytail')
+    assert client.wait_for_services(timeout_sec=3.0)
+
+    def set_remote(**kw):
+        fut = client.set_parameters([Parameter(k.replace('__', '.'), value=v)
+                                     for k, v in kw.items()])
+        assert h.spin_until(fut.done, 3.0)
+        return fut.result().results[0]
+
+    cases = [
+        ({'rate': 5000.0}, 'rate'),
+        ({'ponytail__attach': [0.1, 0.2]}, 'ponytail.attach'),
+        ({'ponytail__length': -1.0}, 'ponytail.length'),
+        ({'solver__integrator': 'euler'}, 'solver.integrator'),
+        ({'solver__max_steps_per_call': 1}, 'solver.max_steps_per_call'),
+        ({'chains': ['a', 'b']}, 'chains'),                 # read-only
+        ({'gravity': [0.0, 0.0, math.nan]}, 'gravity'),
+    ]
+    before = {p: h.node.get_parameter(p).value for p in (
+        'rate', 'ponytail.attach', 'ponytail.length', 'solver.integrator',
+        'solver.max_steps_per_call', 'chains', 'gravity')}
+    for kw, name in cases:
+        res = set_remote(**kw)
+        assert not res.successful, kw
+        assert name in res.reason, res.reason
+    for p, v in before.items():
+        now = h.node.get_parameter(p).value
+        assert list(now) == list(v) if isinstance(v, (list, tuple)) or hasattr(v, 'tolist') \
+            else now == v
+    assert h.node.runner.scene.chains[0].length == pytest.approx(0.3)
+    # An int for a double is accepted (no ".0" needed).
+    assert set_remote(ponytail__drag_quadratic=1).successful
+    assert h.node.get_parameter('ponytail.drag_quadratic').value == 1.0
+
+
+def test_live_tuning_applies_on_next_tick_and_structural_change_rebuilds(harness):
+    h = harness(overrides())
+    h.head = still()
+    got = h.poses['segment_poses']
+    assert h.spin_until(lambda: len(got) >= 3, 5.0)
+    node = h.node
+    sim = node.runner.sim
+    res = node.set_parameters([Parameter('ponytail.damping', value=8e-5),
+                               Parameter('ponytail.stiffness', value=0.01),
+                               Parameter('ponytail.drag_linear', value=0.3),
+                               Parameter('wind', value=[2.0, 0.0, 0.0]),
+                               Parameter('gravity', value=[0.0, 0.0, -3.0])])
+    assert all(r.successful for r in res)
+    n = len(got)
+    assert h.spin_until(lambda: len(got) > n + 2, 2.0)
+    m = node.runner.sim.model
+    assert node.runner.sim is sim                           # tuned, not rebuilt
+    assert np.all(m.damping == 8e-5) and np.all(m.stiffness == 0.01)
+    assert np.all(m.drag_linear == 0.3)
+    assert list(m.wind) == [2.0, 0.0, 0.0] and list(m.gravity) == [0.0, 0.0, -3.0]
+    # Wind blows the chain towards +X.
+    assert h.spin_until(lambda: arrays(got[-1])[0][-1][0] > arrays(got[n])[0][-1][0] + 0.01, 3.0)
+    # Structural: more segments, the chain is rebuilt at rest at the current head pose.
+    assert node.set_parameters([Parameter('ponytail.n_segments', value=9)])[0].successful
+    assert h.spin_until(lambda: len(got[-1].poses) == 9, 2.0)
+    check_geometry(got[-1], 9, 0.3)
+    assert node.runner.resets['rebuild'] == 1
+    # Rate: live.
+    assert node.set_parameters([Parameter('rate', value=50.0)])[0].successful
+    assert node._timer.timer_period_ns == 20_000_000
+
+
+# -- time ------------------------------------------------------------------------------------
+
+def test_use_sim_time_driven_by_clock(harness):
+    h = harness(overrides(use_sim_time=True))
+    clock_pub = h.tester.create_publisher(Clock, '/clock', 10)
+    got = h.poses['segment_poses']
+    r = h.node.runner
+    h.spin_for(0.2)
+    assert got == []                       # no /clock yet: no tick
+    sent = []
+    t = 1000.0
+
+    def step(dt, head=True):
+        nonlocal t
+        t = round(t + dt, 6)
+        clock_pub.publish(Clock(clock=stamp(t)))
+        sent.append(t)
+        if head:
+            h.head_pub.publish(pose_msg(t))
+        h.spin_for(0.01)
+    for _ in range(60):
+        step(0.01)
+    assert h.spin_until(lambda: len(got) >= 20, 2.0)
+    stamps = [t_of(m.header) for m in got]
+    assert set(np.round(stamps, 6)) <= set(sent)        # every tick at a /clock time
+    assert np.all(np.diff(stamps) > 0)
+    check_geometry(got[-1], 6, 0.3)
+    # /clock stops: so do the ticks.
+    h.spin_for(0.1)
+    n = len(got)
+    h.spin_for(0.2)
+    assert len(got) == n
+    # A jump of 2 s: caught up to solver.max_steps_per_call (0.25 s), the rest dropped.
+    step(2.0)
+    for _ in range(3):
+        step(0.01)
+    assert r.dropped_time_total == pytest.approx(2.0 - 60 / 240, abs=0.02)
+    # /clock restarts earlier (a looped bag): everything restarts, no stale history.
+    t = 10.0
+    for _ in range(20):
+        step(0.01)
+    assert r.resets['clock_backwards'] == 1
+    assert h.spin_until(lambda: t_of(got[-1].header) < 100.0, 2.0)
+    check_geometry(got[-1], 6, 0.3)
