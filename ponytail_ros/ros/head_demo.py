@@ -101,13 +101,22 @@ class HeadDemoNode(Node):
 
 def main(args=None):
     """Entry point of ``ponytail_head_demo``; returns the exit code."""
-    rclpy.init(args=sys.argv if args is None else args)
+    try:
+        rclpy.init(args=sys.argv if args is None else args)
+    except Exception as err:          # malformed --ros-args, unreadable params file
+        print(f'ponytail_head_demo: cannot start: {err}', file=sys.stderr)
+        return 2
     node = None
     try:
         node = HeadDemoNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # Ctrl-C/SIGTERM shut the context down from the signal handler, possibly in the middle
+        # of a callback (a publish then fails): that is a clean shutdown, not an error.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()

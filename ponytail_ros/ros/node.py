@@ -431,7 +431,11 @@ class PonytailNode(Node):
 
 def main(args=None):
     """Entry point of ``ponytail_node``; returns the exit code."""
-    rclpy.init(args=sys.argv if args is None else args)
+    try:
+        rclpy.init(args=sys.argv if args is None else args)
+    except Exception as err:          # malformed --ros-args, unreadable params file
+        print(f'ponytail_node: cannot start: {err}', file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:
@@ -442,6 +446,11 @@ def main(args=None):
     except (ParameterError, ParameterException) as err:
         print(f'ponytail_node: invalid parameters: {err}', file=sys.stderr)
         code = 2
+    except Exception:
+        # Ctrl-C/SIGTERM shut the context down from the signal handler, possibly in the middle
+        # of a callback (a publish then fails): that is a clean shutdown, not an error.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
