@@ -68,7 +68,9 @@ def test_nothing_before_the_first_pose_then_chain_hangs_from_the_attachment():
 
 def test_follows_a_moving_head_with_the_declared_delay():
     motion = SwayYawMotion()
-    r = ChainRunner(scene(), RunnerSettings(interpolation_delay=0.01))
+    r = ChainRunner(scene(), RunnerSettings(interpolation_delay=0.01,
+                                            interpolation_delay_periods=0.0,
+                                            latency_compensation=False))
     outs = drive(r, motion, 0.0, 3.0, rate=100.0)
     worst = 0.0
     for o in outs[20:]:
@@ -210,8 +212,27 @@ def test_clock_backwards_restarts_and_stream_restart_is_adopted():
     assert not outs[-1].head_stale
 
 
+def test_delay_in_input_periods_and_latency_compensation_keeps_the_root_on_the_head():
+    motion = SwayYawMotion()
+    for rate in (30.0, 100.0):
+        r = ChainRunner(scene(), RunnerSettings(interpolation_delay=0.002,
+                                                interpolation_delay_periods=1.5))
+        outs = drive(r, motion, 0.0, 2.0, rate=rate)
+        assert r.delay == pytest.approx(1.5 / rate, rel=0.1)
+        errors = []
+        for o in outs[len(outs) // 2:]:
+            check_chain(o, np.full(8, 0.3 / 8))
+            s = motion.state_at(o.t)       # the head now, not t_head
+            errors.append(np.linalg.norm(o.origins[0] - attach_point(s.position[0],
+                                                                     s.orientation[0])))
+        # The root follows the current head up to the extrapolation error (the sway moves
+        # 0.5 m/s: uncompensated, 1.5 periods at 30 Hz would leave it 25 mm behind).
+        assert max(errors) < (6e-3 if rate == 30.0 else 3e-3)
+
+
 def test_delay_change_is_slewed_so_head_time_never_runs_backwards():
-    r = ChainRunner(scene(), RunnerSettings(interpolation_delay=0.0))
+    r = ChainRunner(scene(), RunnerSettings(interpolation_delay=0.0,
+                                            interpolation_delay_periods=0.0))
     outs = drive(r, SwayYawMotion(), 0.0, 0.5)
     r.update_settings(interpolation_delay=0.1)
     drive(r, SwayYawMotion(), 0.5, 1.0, out=outs)

@@ -155,8 +155,8 @@ class PonytailNode(Node):
         self._last_marker_t = None
         self._send_delete_all = False
         self._published = 0
-        #: Optional ``hook(output, wall_start, wall_end)`` called after every published tick
-        #: (benchmarks, tests).
+        #: Optional ``hook(output, wall_start, wall_poses_published, wall_end)`` (perf_counter
+        #: times) called after every published tick (benchmarks, tests).
         self.tick_hook = None
         self.add_pre_set_parameters_callback(self._pre_set_parameters)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -224,7 +224,8 @@ class PonytailNode(Node):
         settings = build_runner_settings(self._values)
         self.runner.update_settings(
             **{k: getattr(settings, k) for k in (
-                'interpolation_delay', 'teleport_distance', 'teleport_angle', 'stale_timeout',
+                'interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
+                'teleport_distance', 'teleport_angle', 'stale_timeout',
                 'window', 'degree', 'max_extrapolation', 'max_gap', 'quat_tolerance')})
         if 'rate' in changed:
             self._timer.timer_period_ns = int(round(1e9 / self._values['rate']))
@@ -300,6 +301,7 @@ class PonytailNode(Node):
             sl = model.chain_slice(c)
             pub.publish(cm.fill_poses(out.origins[sl], out.orientations[sl], frame, stamp))
         self._published += 1
+        wall_published = time.perf_counter()
         self._maybe_publish_markers(out, frame, stamp)
 
         rep = out.report
@@ -326,7 +328,7 @@ class PonytailNode(Node):
                                 f'Dropped {rep.dropped_time:.3f} s of simulation time '
                                 f'(solver.max_steps_per_call reached)')
         if self.tick_hook is not None:
-            self.tick_hook(out, wall0, time.perf_counter())
+            self.tick_hook(out, wall0, wall_published, time.perf_counter())
 
     def _maybe_publish_markers(self, out, frame, stamp):
         style = self._values['markers.style']

@@ -90,10 +90,16 @@ GLOBAL_PARAMS = (
     ParamDef('chains', ['ponytail'], 'strings', 'Names of the chains (each configured by '
              '<name>.* parameters). One chain publishes segment_poses, several publish '
              'segment_poses/<name>.', live=False),
-    ParamDef('interpolation_delay', 0.01, 'double', 'The chain follows the head as it was '
-             'this long before the tick, s: samples on both sides of the evaluation time give '
-             'smoother head velocity/acceleration at the cost of this latency. About one input '
-             'period is a good value.', 0.0, 0.5),
+    ParamDef('interpolation_delay', 0.0, 'double', 'Minimum delay, s: the chain is driven by '
+             'the head as it was delay = max(interpolation_delay, interpolation_delay_periods x '
+             'input period) before the tick; samples on both sides of that time give smooth '
+             'head velocity/acceleration at the cost of this latency.', 0.0, 0.5),
+    ParamDef('interpolation_delay_periods', 1.5, 'double', 'The delay is at least this many '
+             'input periods (median interval of the recent head poses): 1.5 ms at 1 kHz, 50 ms '
+             'at 30 Hz. 0: use interpolation_delay alone.', 0.0, 10.0),
+    ParamDef('latency_compensation', True, 'bool', 'Translate each output chain by its '
+             'attachment point\'s displacement over the delay (extrapolated head), so that its '
+             'root stays on the current head; the swing itself still lags by the delay.'),
     ParamDef('stale_timeout', 0.25, 'double', 'No head pose accepted for this long (s): the '
              'head is stale (last pose held, warning in diagnostics); a pose in a new frame is '
              'then adopted.', 0.01, 60.0),
@@ -286,6 +292,8 @@ def build_scene(values, chains):
 def build_runner_settings(values):
     return RunnerSettings(
         interpolation_delay=float(values['interpolation_delay']),
+        interpolation_delay_periods=float(values['interpolation_delay_periods']),
+        latency_compensation=bool(values['latency_compensation']),
         teleport_distance=float(values['teleport_distance']),
         teleport_angle=float(values['teleport_angle']),
         stale_timeout=float(values['stale_timeout']),

@@ -14,10 +14,22 @@ Per tick, at node clock time ``t``:
    every dropped sample is counted per reason in ``dropped``;
 2. pending parameter changes are applied: tunable ones with ``Simulator.set_parameters``,
    structural ones by rebuilding the simulator at rest at the current head pose;
-3. the head state is estimated at ``t_head = t - delay`` (``interpolation_delay``) and the chain
-   advanced to it: ``sim.advance_frame(t_head, estimator.state_at(t_head))``. The elapsed time
-   is whatever the clock says (late timers, skipped sim-time periods); at most
-   ``solver.max_steps_per_call`` internal steps are taken, the rest is dropped and counted.
+3. the head state is estimated at ``t_head = t - delay`` and the chain advanced to it:
+   ``sim.advance_frame(t_head, estimator.state_at(t_head))``. The elapsed time is whatever the
+   clock says (late timers, skipped sim-time periods); at most ``solver.max_steps_per_call``
+   internal steps are taken, the rest is dropped and counted;
+4. latency compensation (``latency_compensation``, on by default): every chain of the output is
+   translated rigidly so that its root lies on the attachment point of the head estimated at
+   ``t`` (extrapolating the newest samples), i.e. by the displacement of the attachment point
+   over the delay (plus the < 1 internal step the chain lags behind ``t_head``): the root stays
+   on the current head while the dynamics are driven by the delayed, smoother estimate. Segment
+   geometry is unchanged (joints stay closed); the swing itself still lags by ``delay``.
+
+Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input period)`` where
+the input period is the median interval of the stored head samples: about one and a half input
+periods puts samples on both sides of the evaluation time, which is what makes the velocity and
+acceleration estimates smooth (see ``ponytail_ros/bench/node_bench.py``, trade part); at 1 kHz
+that is 1.5 ms, at 30 Hz 50 ms.
 
 Decisions (documented for the node):
 
@@ -37,8 +49,8 @@ Decisions (documented for the node):
   restarted with another time base) is re-adopted once the head is stale: the head history
   restarts, the chain carries on (counted in ``history_restarts``; before that, the samples are
   dropped as ``'stamp_backwards'``).
-* A change of ``interpolation_delay`` is slewed at ±50 % of the elapsed time, so the simulated
-  head time never runs backwards and never jumps.
+* A change of the delay (a setting, or the input rate) is slewed at ±50 % of the elapsed time,
+  so the simulated head time never runs backwards and never jumps.
 """
 from collections import Counter, deque
 from dataclasses import dataclass, fields, replace
@@ -71,7 +83,11 @@ class RunnerSettings:
     ``max_samples``).
 
     Attributes:
-        interpolation_delay: s; the chain is simulated at ``t - interpolation_delay``.
+        interpolation_delay: s; minimum delay: the chain is simulated at ``t - delay``.
+        interpolation_delay_periods: the delay is at least this many input periods.
+        max_delay: s; cap of the delay.
+        latency_compensation: translate the output chains by their attachment point's
+            displacement from ``t - delay`` to ``t``.
         teleport_distance: m; a jump of the head pose beyond this resets the chain.
         teleport_angle: rad; a rotation of the head pose beyond this resets the chain.
         stale_timeout: s; no accepted sample for this long → the head is stale.
@@ -81,6 +97,9 @@ class RunnerSettings:
     """
 
     interpolation_delay: float = 0.0
+    interpolation_delay_periods: float = 1.5
+    max_delay: float = 0.5
+    latency_compensation: bool = True
     teleport_distance: float = 0.5
     teleport_angle: float = 1.0
     stale_timeout: float = 0.25
@@ -106,7 +125,8 @@ class TickOutput:
         t: tick time (node clock), s.
         t_head: head time the chain was advanced to, ``t - delay``, s.
         frame_id: the head pose's frame (the simulation's world frame).
-        origins: ``(n, 3)`` proximal joint of every segment, all chains concatenated.
+        origins: ``(n, 3)`` proximal joint of every segment, all chains concatenated (latency
+            compensated if on).
         orientations: ``(n, 4)`` ``(x, y, z, w)``, local +X along the segment.
         report: the simulator's ``StepReport`` for this tick (steps, dropped time, max gap,
             guard reset reason).
@@ -192,8 +212,17 @@ class ChainRunner:
 
     @property
     def delay(self):
-        """Effective interpolation delay (slewed towards the setting), s."""
-        return self.settings.interpolation_delay if self._delay is None else self._delay
+        """Effective interpolation delay (slewed towards its target), s."""
+        return self.target_delay() if self._delay is None else self._delay
+
+    def target_delay(self):
+        """``max(interpolation_delay, interpolation_delay_periods × input period)``, capped."""
+        s = self.settings
+        d = s.interpolation_delay
+        period = self.estimator.sample_period
+        if period is not None and s.interpolation_delay_periods > 0.0:
+            d = max(d, s.interpolation_delay_periods * period)
+        return min(d, s.max_delay)
 
     @property
     def has_head(self):
@@ -290,7 +319,7 @@ class ChainRunner:
             return None
         self.ticks += 1
 
-        target = self.settings.interpolation_delay
+        target = self.target_delay()
         if self._delay is None or self.sim is None:
             self._delay = target
         else:
@@ -318,7 +347,10 @@ class ChainRunner:
                 reset_reason = self._pending_reset
                 self.sim.reset(head, t_head)
                 self._t_frame = t_head
-            elif t_head > self._t_frame:
+            elif t_head - self._t_frame >= self.sim.dt:
+                # Frames closer than one internal step are merged into the next: the core's
+                # anchor track between two frames extrapolates up to a step beyond them, which
+                # explodes for a vanishing frame interval.
                 report = self.sim.advance_frame(t_head, head)
                 self._t_frame = t_head
                 if report.reset_reason is not None:
@@ -332,6 +364,12 @@ class ChainRunner:
             report.max_gap = float(np.max(self.sim.joint_gaps()))
         self.dropped_time_total += report.dropped_time
         origins, quats = self.sim.segment_poses()
+        if self.settings.latency_compensation:
+            # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
+            # moved onto the attachment point of the head estimated at t.
+            m = self.sim.model
+            now = self.sim.anchors(head if t_head == t else self.estimator.state_at(t))
+            origins += (now.position - origins[m.chain_start])[m.chain_of]
         return TickOutput(
             t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
             orientations=quats, report=report, reset_reason=reset_reason,
