@@ -214,6 +214,21 @@ def test_still_head_segment_one_exactly_at_attachment_and_best_effort_publisher(
     assert got[-1].header.frame_id == 'head_out'          # the frame_id parameter overrides
 
 
+def test_zero_stamps_fall_back_to_the_receive_time(harness):
+    h = harness(overrides())
+    h.head = still()
+    got = h.poses['segment_poses']
+    h.head = None
+
+    def publish_unstamped():
+        h.head_pub.publish(pose_msg(Time(sec=0, nanosec=0)))
+    h.tester.create_timer(0.01, publish_unstamped)
+    assert h.spin_until(lambda: len(got) >= 10, 5.0)
+    assert sum(h.node.runner.dropped.values()) == 0
+    o, _ = check_geometry(got[-1], 6, 0.3)
+    assert np.linalg.norm(o[0] - attach_point(P_HEAD, Q_TILT)) < 1e-6
+
+
 def test_two_chains_own_topics_parameters_and_markers(harness):
     h = harness(overrides(chains=('left', 'right'), left__attach=[0.0, 0.08, 0.0],
                           right__attach=[0.0, -0.08, 0.0], right__n_segments=4,
@@ -390,6 +405,12 @@ def test_parameters_rejected_with_reason_and_running_value_stays(harness):
         assert list(now) == list(v) if isinstance(v, (list, tuple)) or hasattr(v, 'tolist') \
             else now == v
     assert h.node.runner.scene.chains[0].length == pytest.approx(0.3)
+    # Descriptions and ranges are declared.
+    d = h.node.describe_parameter('ponytail.length')
+    assert d.description and d.floating_point_range[0].from_value == pytest.approx(1e-4)
+    d = h.node.describe_parameter('solver.max_steps_per_call')
+    assert d.integer_range[0].from_value == 1 and not d.read_only
+    assert h.node.describe_parameter('chains').read_only
     # An int for a double is accepted (no ".0" needed).
     assert set_remote(ponytail__drag_quadratic=1).successful
     assert h.node.get_parameter('ponytail.drag_quadratic').value == 1.0
