@@ -25,8 +25,8 @@ import re
 
 import numpy as np
 
-from ponytail_ros.core.scene import (ChainSpec, INTEGRATORS, LINEAR_SOLVERS, MAX_SEGMENTS, Scene,
-                                     SceneError, SolverSpec)
+from ponytail_ros.core.scene import (ChainSpec, DAMPING_METHODS, INTEGRATORS, LINEAR_SOLVERS,
+                                     MAX_SEGMENTS, Scene, SceneError, SolverSpec)
 from .runner import RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'ParameterError', 'chain_param_name',
@@ -157,6 +157,10 @@ GLOBAL_PARAMS = (
              'Baumgarte stabilisation stiffness, 1/s^2.', 0.0, 1e8, rebuild=True),
     ParamDef('solver.baumgarte_damping', _SOLVER.baumgarte_damping, 'double',
              'Baumgarte stabilisation damping, 1/s.', 0.0, 1e4, rebuild=True),
+    ParamDef('solver.damping_method', _SOLVER.damping_method, 'string', 'Joint damping '
+             'integration: explicit (accurate, unstable for strong damping of thin segments), '
+             'implicit (always stable) or auto (explicit while stable).', choices=DAMPING_METHODS,
+             rebuild=True),
     ParamDef('solver.guard_max_speed', _SOLVER.guard_max_speed, 'double', 'A segment faster '
              'than this (m/s) is a blow-up: the chain is reset.', 1e-3, 1e6, rebuild=True),
     ParamDef('solver.guard_max_gap', _SOLVER.guard_max_gap, 'double', 'A joint gap larger '
@@ -277,6 +281,7 @@ def build_scene(values, chains):
         projection=bool(values['solver.projection']),
         baumgarte_stiffness=float(values['solver.baumgarte_stiffness']),
         baumgarte_damping=float(values['solver.baumgarte_damping']),
+        damping_method=values['solver.damping_method'],
         guard_max_speed=float(values['solver.guard_max_speed']),
         guard_max_gap=float(values['solver.guard_max_gap']))
     try:

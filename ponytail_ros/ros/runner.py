@@ -54,6 +54,7 @@ Decisions (documented for the node):
 """
 from collections import Counter, deque
 from dataclasses import dataclass, fields, replace
+import inspect
 import math
 
 import numpy as np
@@ -75,6 +76,10 @@ TUNABLE_SCENE_FIELDS = ('gravity', 'wind')
 
 #: Slew rate of the effective interpolation delay (s of delay change per s of clock time).
 DELAY_SLEW = 0.5
+
+# ``advance_frame(..., head_prev=)`` (both ends of a frame's anchor track from one estimate)
+# where the core offers it.
+_HEAD_PREV = 'head_prev' in inspect.signature(Simulator.advance_frame).parameters
 
 
 @dataclass
@@ -351,7 +356,14 @@ class ChainRunner:
                 # Frames closer than one internal step are merged into the next: the core's
                 # anchor track between two frames extrapolates up to a step beyond them, which
                 # explodes for a vanishing frame interval.
-                report = self.sim.advance_frame(t_head, head)
+                if _HEAD_PREV:
+                    # Both ends of the frame from this tick's estimate: the refit estimate
+                    # disagrees slightly with the previous tick's, and bridging that within
+                    # one frame would be an acceleration spike.
+                    report = self.sim.advance_frame(
+                        t_head, head, head_prev=self.estimator.state_at(self._t_frame))
+                else:
+                    report = self.sim.advance_frame(t_head, head)
                 self._t_frame = t_head
                 if report.reset_reason is not None:
                     reset_reason = 'guard'
@@ -363,7 +375,8 @@ class ChainRunner:
         if report.max_gap == 0.0 and reset_reason is not None:
             report.max_gap = float(np.max(self.sim.joint_gaps()))
         self.dropped_time_total += report.dropped_time
-        origins, quats = self.sim.segment_poses()
+        # The chain at the frame time itself (not up to one internal step behind it).
+        origins, quats = self.sim.segment_poses(self._t_frame)
         if self.settings.latency_compensation:
             # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
             # moved onto the attachment point of the head estimated at t.
