@@ -2,6 +2,7 @@
 ``SingleThreadedExecutor`` on a fresh rclpy context per test (``ros_context`` in conftest.py),
 talking over DDS on this test run's own domain."""
 import math
+import os
 import time
 
 import numpy as np
@@ -24,6 +25,10 @@ from ponytail_ros.ros.head_demo import HeadDemoNode  # noqa: E402
 from ponytail_ros.ros.node import PonytailNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
+
+#: Waits (spin_until) are stretched by this factor: they only matter when a loaded machine is
+#: slow, and a passing test never waits for them to expire.
+TIMEOUT_SCALE = float(os.environ.get('PONYTAIL_TEST_TIMEOUT_SCALE', '4'))
 
 ATTACH = [-0.09, 0.0, 0.06]
 CHAIN = {'n_segments': 6, 'length': 0.3, 'mass': 0.1, 'radius': 0.03, 'attach': ATTACH,
@@ -127,7 +132,7 @@ class Harness:
             self.executor.spin_once(timeout_sec=0.005)
 
     def spin_until(self, pred, timeout=5.0):
-        end = time.monotonic() + timeout
+        end = time.monotonic() + timeout * TIMEOUT_SCALE
         while time.monotonic() < end:
             if pred():
                 return True
@@ -183,23 +188,31 @@ def test_head_demo_drives_the_chain_which_follows_the_head(harness, ros_context)
     h.tester.create_subscription(PoseStamped, 'head_pose',
                                  lambda m: heads.append(t_of(m.header)), 100)
     got = h.poses['segment_poses']
-    assert h.spin_until(lambda: len(got) >= 60, 8.0)
-    heads = np.array(heads)
     errors, stamps = [], []
-    for msg in got[10:]:
-        o, q = check_geometry(msg, 6, 0.3)
-        assert msg.header.frame_id == 'world'
-        stamps.append(t_of(msg.header))
-        t_head = t_of(msg.header) - 0.01
-        # Judge only instants the head stream covered (a stall of the machine leaves gaps).
-        if np.sum(np.abs(heads - t_head) < 0.015) < 2:
-            continue
-        s = demo.motion.state_at(t_head - demo._t0)
-        errors.append(np.linalg.norm(o[0] - attach_point(s.position[0], s.orientation[0])))
+
+    def evaluate():
+        # Judge only instants the head stream covered on both sides (a stall of a loaded
+        # machine leaves gaps the estimator has to bridge).
+        while len(stamps) < len(got):
+            msg = got[len(stamps)]
+            o, q = check_geometry(msg, 6, 0.3)
+            assert msg.header.frame_id == 'world'
+            stamps.append(t_of(msg.header))
+            t_head = stamps[-1] - 0.01
+            hs = np.array(heads)
+            before, after = hs[hs <= t_head], hs[hs > t_head]
+            if len(stamps) < 10 or not len(before) or not len(after) or \
+                    t_head - before.max() > 0.012 or after.min() - t_head > 0.012:
+                continue
+            s = demo.motion.state_at(t_head - demo._t0)
+            errors.append(np.linalg.norm(o[0] - attach_point(s.position[0],
+                                                              s.orientation[0])))
+        return len(errors) >= 30
+    assert h.spin_until(evaluate, 10.0)
     assert np.all(np.diff(stamps) > 0)
     # Segment 1 starts at the attachment point of the head as it was interpolation_delay ago
     # (the sway moves 0.5 m/s: the < 4 ms internal-step lag and estimation stay below 5 mm).
-    assert len(errors) > 20 and max(errors) < 5e-3
+    assert max(errors) < 5e-3
     assert h.node.runner.resets['guard'] == 0
 
 
@@ -481,10 +494,12 @@ def test_use_sim_time_driven_by_clock(harness):
     h.spin_for(0.2)
     assert len(got) == n
     # A jump of 2 s: caught up to solver.max_steps_per_call (0.25 s), the rest dropped.
+    assert h.spin_until(lambda: abs(r._last_tick - t) < 0.0095, 2.0)
     step(2.0)
     for _ in range(3):
         step(0.01)
-    assert r.dropped_time_total == pytest.approx(2.0 - 60 / 240, abs=0.02)
+    assert h.spin_until(lambda: r.dropped_time_total > 1.0, 2.0)
+    assert r.dropped_time_total == pytest.approx(2.0 - 60 / 240, abs=0.03)
     # /clock restarts earlier (a looped bag): everything restarts, no stale history.
     t = 10.0
     for _ in range(20):
