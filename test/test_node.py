@@ -334,6 +334,7 @@ def test_flood_of_head_poses_bounded_work_per_tick(harness):
             h.head_pub.publish(pose_msg(t + 1e-5 * k + 0.01 * burst))
         h.spin_for(0.01)
     assert h.spin_until(lambda: r.dropped['queue_overflow'] > 0, 3.0)
+    assert int(h.fresh_diag()['dropped inputs: queue_overflow']) > 0
     n = len(got)
     h.spin_for(0.2)
     assert len(got) > n
@@ -352,7 +353,9 @@ def test_frame_change_dropped_while_live_then_adopted_with_reset(harness):
     h.head = still(frame='map')           # the publisher switched for good
     assert h.spin_until(lambda: got[-1].header.frame_id == 'map', 3.0)
     assert r.resets['frame_changed'] == 1
-    assert r.dropped['frame_changed'] >= 1
+    d = h.fresh_diag()
+    assert int(d['dropped inputs: frame_changed']) >= 1 and d['resets: frame_changed'] == '1'
+    assert d['head frame'] == 'map'
 
 
 def test_stale_head_keeps_publishing_then_teleport_resets(harness):
