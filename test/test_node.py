@@ -328,11 +328,15 @@ def test_flood_of_head_poses_bounded_work_per_tick(harness):
     assert h.spin_until(lambda: len(got) >= 3, 5.0)
     r = h.node.runner
     t = h.now()
-    for burst in range(10):
-        # A burst: the subscription keeps the newest 5 (sensor-data QoS), the node's queue 1.
+    for burst in range(5):
+        # A burst between two ticks (the timer held, so that a loaded machine cannot interleave
+        # ticks): the subscription keeps the newest 5 (sensor-data QoS), the node's queue 1.
+        h.node._timer.cancel()
         for k in range(200):
             h.head_pub.publish(pose_msg(t + 1e-5 * k + 0.01 * burst))
-        h.spin_for(0.01)
+        h.spin_for(0.05)
+        h.node._timer.reset()
+        h.spin_for(0.02)
     assert h.spin_until(lambda: r.dropped['queue_overflow'] > 0, 3.0)
     assert int(h.fresh_diag()['dropped inputs: queue_overflow']) > 0
     n = len(got)
