@@ -18,7 +18,7 @@ Q_ID = (0.0, 0.0, 0.0, 1.0)
 
 def scene(**chain):
     spec = dict(name='ponytail', n_segments=8, length=0.3, mass=0.1, radius=0.03,
-                attach=tuple(ATTACH), damping=5e-5, drag_linear=0.02)
+                attach=tuple(ATTACH), damping=1e-3, drag_linear=0.02)
     spec.update(chain)
     return Scene(chains=(ChainSpec(**spec),))
 
@@ -245,12 +245,12 @@ def test_tunable_change_keeps_the_chain_structural_change_rebuilds():
     r = ChainRunner(scene())
     drive(r, SwayYawMotion(), 0.0, 0.3)
     sim = r.sim
-    tuned = scene(damping=1e-4, drag_linear=0.1).replace(gravity=(0.0, 0.0, -5.0))
+    tuned = scene(damping=2e-3, drag_linear=0.1).replace(gravity=(0.0, 0.0, -5.0))
     assert not structural_change(r.scene, tuned)
     r.set_scene(tuned)
     out = r.tick(0.31)
     assert r.sim is sim and out.reset_reason is None
-    assert np.all(sim.model.damping == 1e-4) and np.all(sim.model.gravity == (0.0, 0.0, -5.0))
+    assert np.all(sim.model.damping == 2e-3) and np.all(sim.model.gravity == (0.0, 0.0, -5.0))
     bigger = scene(n_segments=12)
     assert structural_change(r.scene, bigger)
     r.set_scene(bigger)

@@ -47,7 +47,7 @@ from ponytail_ros.ros.head_script import HeadScript
 from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
 
 CHAIN = dict(n_segments=20, length=0.4, mass=0.12, radius=0.03, attach=(-0.09, 0.0, 0.06),
-             damping=5e-5, drag_linear=0.05)
+             damping=1e-3, drag_linear=0.05)
 
 
 def _pct(a, q):
