@@ -14,7 +14,7 @@ wall clock, at ``--input-rate``) and subscribes to the first chain's ``segment_p
   - ``received``: the arrival of that tick's ``PoseArray`` in the helper process.
   Both use the system clock of this machine. This is the transport + waiting-for-the-tick +
   computing latency. On top of it the chain's swing is driven by the head as it was ``delay``
-  ago (node defaults: 1.5 input periods, 6 ms at 250 Hz; the root itself is latency compensated):
+  ago (node defaults: 2 input periods, 8 ms at 250 Hz; the root itself is latency compensated):
   a modelling latency, whose trade against smoothness is the ``trade`` part.
 
 ``trade`` part (ROS-free, simulated time, ``ChainRunner`` exactly as in the node): the head

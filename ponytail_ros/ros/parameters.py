@@ -94,8 +94,8 @@ GLOBAL_PARAMS = (
              'the head as it was delay = max(interpolation_delay, interpolation_delay_periods x '
              'input period) before the tick; samples on both sides of that time give smooth '
              'head velocity/acceleration at the cost of this latency.', 0.0, 0.5),
-    ParamDef('interpolation_delay_periods', 1.5, 'double', 'The delay is at least this many '
-             'input periods (median interval of the recent head poses): 1.5 ms at 1 kHz, 50 ms '
+    ParamDef('interpolation_delay_periods', 2.0, 'double', 'The delay is at least this many '
+             'input periods (median interval of the recent head poses): 2 ms at 1 kHz, 67 ms '
              'at 30 Hz. 0: use interpolation_delay alone.', 0.0, 10.0),
     ParamDef('latency_compensation', True, 'bool', 'Translate each output chain by its '
              'attachment point\'s displacement over the delay (extrapolated head), so that its '
