@@ -1,7 +1,5 @@
 """The node's per-tick logic without ROS (``ChainRunner``), its parameter table and the head
 script: exact counts and simulated time, fast and deterministic."""
-import math
-
 import numpy as np
 import pytest
 

@@ -54,14 +54,13 @@ Decisions (documented for the node):
   so the simulated head time never runs backwards and never jumps.
 """
 from collections import Counter, deque
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 import inspect
 import math
 
 import numpy as np
 
 from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
-from ponytail_ros.core.scene import ChainSpec, Scene
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
@@ -414,11 +413,3 @@ def _valid_sample(t, p, q, quat_tolerance):
         return False
     return abs(math.sqrt(float(q @ q)) - 1.0) <= quat_tolerance
 
-
-def chain_spec_fields():
-    """Names of ``ChainSpec`` fields (for parameter tables)."""
-    return [f.name for f in fields(ChainSpec)]
-
-
-def default_scene():
-    return Scene()
