@@ -1,0 +1,217 @@
+"""The ponytail node's parameter values outside a running node: from a params file, from a
+recording's metadata, to a recording's metadata -- the full set a node would have, so that a
+replay builds exactly the node's ``Scene`` and ``RunnerSettings``.
+
+Values are plain Python (float, int, bool, str, lists), as the node keeps them
+(``PonytailNode._values``). In a recording every parameter is stored as a JSON string (JSON is
+a subset of YAML; floats are written with ``repr``, so they round-trip bit for bit) in the
+metadata record ``ponytail_ros/parameters``.
+
+This module does not import rclpy.
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Tuple, Union
+
+import yaml
+
+from ponytail_ros.ros.parameters import (
+    CHAIN_PARAMS, DEFAULT_COLORS, GLOBAL_PARAMS, ParameterError, build_runner_settings,
+    chain_param_name, check_chain_names, check_values, definition,
+)
+
+__all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
+           'metadata_from_values', 'default_values', 'scene_and_settings', 'resolve_values',
+           'unknown_names', 'IGNORED_NAMES']
+
+#: Parameters a node has that do not change the simulation (accepted and ignored offline).
+IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service'})
+
+
+def default_values(chains) -> Dict[str, Any]:
+    """Every parameter's default for these chain names, as the node declares them."""
+    values = {p.name: _copy(p.default) for p in GLOBAL_PARAMS}
+    values['chains'] = list(chains)
+    for i, chain in enumerate(chains):
+        for p in CHAIN_PARAMS:
+            default = (list(DEFAULT_COLORS[i % len(DEFAULT_COLORS)]) if p.name == 'color'
+                       else _copy(p.default))
+            values[chain_param_name(chain, p.name)] = default
+    return values
+
+
+def _copy(value):
+    return list(value) if isinstance(value, (list, tuple)) else value
+
+
+def _is_number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _coerce(name, kind, value):
+    """Type check and conversion as the node's declaration (plus its int→double coercion)
+    does; raises ``ParameterError`` naming the parameter."""
+    def bad(expected):
+        return ParameterError(name, f'{name} = {value!r} has the wrong type: expected {expected}')
+    if kind == 'double':
+        if not _is_number(value):
+            raise bad('a number')
+        return float(value)
+    if kind == 'int':
+        if _is_number(value) and float(value).is_integer():
+            return int(value)
+        raise bad('an integer')
+    if kind == 'bool':
+        if not isinstance(value, bool):
+            raise bad('true or false')
+        return value
+    if kind == 'string':
+        if not isinstance(value, str):
+            raise bad('a string')
+        return value
+    if kind in ('double3', 'double4'):
+        if not isinstance(value, (list, tuple)) or not all(_is_number(v) for v in value):
+            raise bad('a list of numbers')
+        return [float(v) for v in value]
+    if kind == 'strings':
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise bad('a list of strings')
+        return list(value)
+    raise bad(kind)  # pragma: no cover - every kind is listed above
+
+
+def complete_values(partial: Mapping[str, Any]) -> Dict[str, Any]:
+    """The node's full parameter set given ``partial`` (name -> value; the rest defaults).
+
+    Unknown names are ignored as the node ignores undeclared overrides (those in
+    :data:`IGNORED_NAMES` silently, the others are returned by :func:`unknown_names`).
+
+    Raises:
+        ParameterError: a value of the wrong type or out of range, inconsistent values; the
+            message names the parameter.
+    """
+    chains = partial.get('chains', [p.default for p in GLOBAL_PARAMS if p.name == 'chains'][0])
+    chains = _coerce('chains', 'strings', chains)
+    check_chain_names(chains)
+    values = default_values(chains)
+    for name, value in partial.items():
+        pdef = definition(name, chains)
+        if pdef is not None:
+            values[name] = _coerce(name, pdef.kind, value)
+    check_values(values, chains)
+    return values
+
+
+def unknown_names(partial: Mapping[str, Any]):
+    """Names in ``partial`` that are not parameters of a node with its chains."""
+    chains = list(partial.get('chains', ['ponytail']))
+    return sorted(n for n in partial
+                  if definition(n, chains) is None and n not in IGNORED_NAMES)
+
+
+def scene_and_settings(values: Mapping[str, Any]):
+    """``(chains, Scene, RunnerSettings)`` of a full value set (see :func:`complete_values`)."""
+    chains = list(values['chains'])
+    return chains, check_values(values, chains), build_runner_settings(values)
+
+
+# -- params files ------------------------------------------------------------------------------
+
+
+def _flatten(tree: Mapping, prefix: str = '') -> Dict[str, Any]:
+    out = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, name + '.'))
+        else:
+            out[name] = value
+    return out
+
+
+def _section_matches(pattern: str, node_fqn: str) -> bool:
+    """rcl's node name matching of a params file section (``/**``, ``/*``, a name with or
+    without the leading slash, wildcards inside)."""
+    pattern = pattern if pattern.startswith('/') else '/' + pattern
+    regex = ''
+    for part in re.split(r'(\*\*|\*)', pattern):
+        regex += {'**': '.*', '*': '[^/]*'}.get(part, re.escape(part))
+    return re.fullmatch(regex, node_fqn) is not None
+
+
+def values_from_params_file(path: Union[str, Path], node_fqn: str = '/ponytail') -> Dict[str, Any]:
+    """The parameters a node named ``node_fqn`` gets from a ROS 2 params file.
+
+    Every section (``/**:``, ``ponytail:``, ``/alice/ponytail:``, wildcards) matching the node
+    applies, in file order, later values winning; nested keys become dotted names.
+
+    Raises:
+        ParameterError: unreadable file, not a params file, no section for the node.
+    """
+    path = Path(path)
+    try:
+        tree = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except OSError as exc:
+        raise ParameterError('params', f'cannot read params file {path}: '
+                                       f'{exc.strerror or exc}') from None
+    except yaml.YAMLError as exc:
+        raise ParameterError('params', f'params file {path} is not valid YAML: '
+                                       f'{str(exc).splitlines()[0]}') from None
+    if not isinstance(tree, Mapping):
+        raise ParameterError('params', f'params file {path} is not a ROS 2 params file '
+                                       f'(expected "/**: ros__parameters: ...")')
+    values: Dict[str, Any] = {}
+    found = False
+    for section, body in tree.items():
+        if not isinstance(body, Mapping) or 'ros__parameters' not in body:
+            continue
+        if _section_matches(str(section), node_fqn):
+            found = True
+            values.update(_flatten(body['ros__parameters'] or {}))
+    if not found:
+        raise ParameterError('params', f'params file {path} has no ros__parameters section for '
+                                       f'node {node_fqn} (e.g. "/**:")')
+    return values
+
+
+# -- recording metadata ------------------------------------------------------------------------
+
+
+def metadata_from_values(values: Mapping[str, Any]) -> Dict[str, str]:
+    """name -> JSON text of the value, every entry a str (an MCAP metadata record)."""
+    return {name: json.dumps(_copy(value)) for name, value in values.items()}
+
+
+def values_from_metadata(record: Mapping[str, str]) -> Dict[str, Any]:
+    """Inverse of :func:`metadata_from_values`; a hand-edited YAML value is accepted too.
+
+    Raises:
+        ParameterError: a value that is neither JSON nor YAML.
+    """
+    values = {}
+    for name, text in record.items():
+        try:
+            values[name] = json.loads(text)
+        except ValueError:
+            try:
+                values[name] = yaml.safe_load(text)
+            except yaml.YAMLError:
+                raise ParameterError(name, f'{name}: recorded value {text!r} is neither JSON '
+                                           f'nor YAML') from None
+    return values
+
+
+def resolve_values(params_file: Optional[Union[str, Path]], recorded: Optional[Mapping[str, str]],
+                   node_fqn: str = '/ponytail') -> Tuple[Dict[str, Any], str]:
+    """The full parameter set of a replay and where it came from: ``params_file`` if given,
+    else the recording's ``recorded`` metadata, else the package's default config."""
+    if params_file is not None:
+        return complete_values(values_from_params_file(params_file, node_fqn)), str(params_file)
+    if recorded:
+        return complete_values(values_from_metadata(recorded)), 'the recording'
+    from ponytail_ros.resources import config_path
+    default = config_path('ponytail.yaml')
+    return complete_values(values_from_params_file(default, node_fqn)), str(default)

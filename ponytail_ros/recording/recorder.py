@@ -1,0 +1,342 @@
+"""Recording one run of the ponytail node (or of a replay) into an MCAP file in rosbag2's layout.
+
+What is recorded (topic names as resolved in the node's namespace; types as published):
+
+* the head input, ``head_pose`` (``geometry_msgs/msg/PoseStamped``) as received;
+* each chain's ``segment_poses`` / ``segment_poses/<chain>`` (``geometry_msgs/msg/PoseArray``);
+* ``segment_markers`` (``visualization_msgs/msg/MarkerArray``) when published (markers on);
+* ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``);
+* ``/parameter_events`` (``rcl_interfaces/msg/ParameterEvent``): one event per accepted live
+  parameter change of the node (``changed_parameters``), at the time it was accepted;
+* metadata ``ponytail_ros/parameters``: every parameter of the node at start-up, name -> value
+  as JSON text (floats round-trip exactly) -- with the events above, enough to reproduce the
+  run from the file alone;
+* metadata ``ponytail_ros/recording``: the node's name, its chains and topic names, what wrote
+  the file (``ponytail_node`` or ``ponytail_replay``).
+
+Times: as in rosbag2, ``log_time`` is the receive time on the node clock (ns) -- for the node's
+own outputs the node clock when they are published -- and ``publish_time`` is the message's
+header stamp. The file order is the order in which the node handled the messages (one writer
+queue), which is what a replay needs: a head pose written before a tick's ``PoseArray`` was
+queued before that tick.
+
+The node never waits on the disk: a write serialises the message and enqueues it; a background
+thread (``BagWriter``) does the I/O. Failures never reach the node: opening errors are logged and
+the node runs without recording; a later I/O error (disk full) is logged once and recording
+stops. See ``bag.py`` for what a SIGKILL loses (at most the last ~0.5 s of log time); SIGINT and
+SIGTERM end ``rclpy.spin`` and the node's ``destroy_node`` finalises the file.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Union
+
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, qos_profile_parameter_events
+
+from .bag import PARAMETERS_METADATA, BagError, BagWriter
+from .cdr import serialize_canonical
+from .params import metadata_from_values
+
+__all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
+           'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'stamp_ns', 'expand_record_path']
+
+#: Metadata record describing the recording (str -> str, lists as JSON).
+RECORDING_METADATA = 'ponytail_ros/recording'
+#: Version of what ``RECORDING_METADATA`` describes.
+FORMAT_VERSION = '1'
+PARAMETER_EVENTS_TOPIC = '/parameter_events'
+#: Message types accepted as head input (the node subscribes to the first).
+HEAD_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
+#: The QoS recorded for the head topic: what a reliable publisher (the head demo) offers; both
+#: reliable and best-effort subscriptions connect to a ``ros2 bag play`` using it.
+HEAD_QOS = QoSProfile(depth=10)
+
+
+def stamp_ns(stamp) -> int:
+    """A ``builtin_interfaces/Time`` as integer nanoseconds."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def _publish_time(msg, default: int) -> int:
+    """Header stamp of a message (ns), ``default`` when it has none or it is negative."""
+    header = getattr(msg, 'header', None)
+    if header is None:
+        markers = getattr(msg, 'markers', None)
+        header = markers[0].header if markers else None
+    if header is None:
+        stamp = getattr(msg, 'stamp', None)
+    else:
+        stamp = header.stamp
+    if stamp is None:
+        return default
+    ns = stamp_ns(stamp)
+    return ns if ns >= 0 else default
+
+
+def expand_record_path(path: str) -> Path:
+    """``~`` and ``$VAR`` expanded; ``%`` codes as ``time.strftime`` (one file per run:
+    ``runs/ponytail_%Y%m%d_%H%M%S.mcap``)."""
+    path = os.path.expandvars(os.path.expanduser(path))
+    if '%' in path:
+        path = time.strftime(path)
+    return Path(path)
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """Who recorded and on which topics.
+
+    Attributes:
+        node: fully qualified node name, e.g. ``/alice/ponytail``.
+        chains: chain names, in parameter order.
+        head_topic: the head input topic.
+        pose_topics: one ``PoseArray`` topic per chain, same order; the first one's header
+            stamps are the tick times.
+        marker_topic, diagnostics_topic, parameter_events_topic: the other topics.
+    """
+
+    node: str
+    chains: tuple
+    head_topic: str
+    pose_topics: tuple
+    marker_topic: str
+    diagnostics_topic: str = '/diagnostics'
+    parameter_events_topic: str = PARAMETER_EVENTS_TOPIC
+
+    @classmethod
+    def for_node(cls, node_fqn: str, chains: Sequence[str],
+                 head_topic: Optional[str] = None) -> 'RunLayout':
+        """The topics of a ``PonytailNode`` named ``node_fqn`` (relative names resolved in its
+        namespace, as the node does)."""
+        namespace = node_fqn.rsplit('/', 1)[0]
+        chains = tuple(chains)
+        if len(chains) == 1:
+            poses = (f'{namespace}/segment_poses',)
+        else:
+            poses = tuple(f'{namespace}/segment_poses/{c}' for c in chains)
+        return cls(node=node_fqn, chains=chains,
+                   head_topic=head_topic or f'{namespace}/head_pose', pose_topics=poses,
+                   marker_topic=f'{namespace}/segment_markers')
+
+    def to_metadata(self) -> Dict[str, str]:
+        return {'node': self.node, 'chains': json.dumps(list(self.chains)),
+                'head_topic': self.head_topic, 'pose_topics': json.dumps(list(self.pose_topics)),
+                'tick_topic': self.pose_topics[0], 'marker_topic': self.marker_topic,
+                'diagnostics_topic': self.diagnostics_topic,
+                'parameter_events_topic': self.parameter_events_topic}
+
+    @classmethod
+    def from_metadata(cls, record: Mapping[str, str]) -> 'RunLayout':
+        """Inverse of :meth:`to_metadata` (raises ``KeyError``/``ValueError`` if malformed)."""
+        return cls(node=record['node'], chains=tuple(json.loads(record['chains'])),
+                   head_topic=record['head_topic'],
+                   pose_topics=tuple(json.loads(record['pose_topics'])),
+                   marker_topic=record['marker_topic'],
+                   diagnostics_topic=record.get('diagnostics_topic', '/diagnostics'),
+                   parameter_events_topic=record.get('parameter_events_topic',
+                                                     PARAMETER_EVENTS_TOPIC))
+
+
+class RunRecorder:
+    """Writes one run: head input, chain poses, markers, diagnostics, parameter changes and the
+    parameters in effect, with the node clock's times.
+
+    Every method returns at once (serialise + enqueue) and never raises once the file is open:
+    after an I/O error recording stops and ``on_error`` is called once with the reason.
+
+    Args:
+        path: the ``.mcap`` file to create (never overwritten unless ``overwrite``).
+        layout: node name and topics (:class:`RunLayout`).
+        parameters: every parameter name -> plain value at start.
+        head_type: type of the head topic (``HEAD_TYPES``).
+        qos: topic -> the publisher's ``QoSProfile`` (defaults: depth 10, reliable).
+        info: extra entries for the ``ponytail_ros/recording`` metadata (str -> str).
+        on_error: called once with a message when recording stops on an I/O error.
+        canonical: zero the CDR alignment padding (``cdr.zero_padding``) so that equal
+            messages are equal bytes (replay determinism; costs ~50 % more serialisation
+            time, so the live node does without).
+        overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
+
+    Raises:
+        BagError: the file cannot be created (exists, folder missing, not writable).
+    """
+
+    def __init__(self, path: Union[str, os.PathLike], layout: RunLayout,
+                 parameters: Mapping[str, Any], *, head_type: str = HEAD_TYPES[0],
+                 qos: Optional[Mapping[str, QoSProfile]] = None,
+                 info: Optional[Mapping[str, str]] = None,
+                 on_error: Optional[Callable[[str], None]] = None,
+                 canonical: bool = False, overwrite: bool = False, chunk_size: int = 64 * 1024,
+                 chunk_duration_ns: int = 500_000_000):
+        path = Path(path)
+        if path.is_dir():
+            raise BagError(f'cannot create bag {path}: it is a directory')
+        self.layout = layout
+        self.on_error = on_error
+        self._error_reported = False
+        self._clock = None  # the node clock of a for_node recorder
+        self._canonical = canonical
+        self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
+                                 chunk_duration_ns=chunk_duration_ns)
+        self.path = self._writer.path
+        qos = dict(qos or {})
+        try:
+            # Metadata first: a file cut short by a SIGKILL still says how to reproduce it.
+            self._writer.write_metadata(PARAMETERS_METADATA, metadata_from_values(parameters))
+            meta = layout.to_metadata()
+            meta.update({'format': FORMAT_VERSION, 'head_type': head_type})
+            meta.update(info or {})
+            self._writer.write_metadata(RECORDING_METADATA, meta)
+            self._writer.add_topic(layout.head_topic, head_type, qos.get(layout.head_topic,
+                                                                         HEAD_QOS))
+            for topic in layout.pose_topics:
+                self._writer.add_topic(topic, 'geometry_msgs/msg/PoseArray',
+                                       qos.get(topic, 10))
+            self._writer.add_topic(layout.marker_topic, 'visualization_msgs/msg/MarkerArray',
+                                   qos.get(layout.marker_topic, 10))
+            self._writer.add_topic(layout.diagnostics_topic,
+                                   'diagnostic_msgs/msg/DiagnosticArray',
+                                   qos.get(layout.diagnostics_topic, 10))
+            self._writer.add_topic(layout.parameter_events_topic,
+                                   'rcl_interfaces/msg/ParameterEvent',
+                                   qos.get(layout.parameter_events_topic,
+                                           qos_profile_parameter_events))
+        except BaseException:
+            self._writer.close()
+            raise
+
+    # -- writing -------------------------------------------------------------------------------
+    @property
+    def error(self) -> Optional[BagError]:
+        """The I/O error that stopped recording, or None."""
+        return self._writer.error
+
+    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
+        """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+        if self._writer.error is not None:
+            self._report_error()
+            return
+        try:
+            if self._canonical:
+                self._writer.write_serialized(topic, serialize_canonical(msg), log_time_ns,
+                                              _publish_time(msg, log_time_ns))
+            else:
+                self._writer.write(topic, msg, log_time_ns, _publish_time(msg, log_time_ns))
+        except BagError as exc:
+            # Closed (a callback after destroy_node) or a negative time: never the node's
+            # problem; reported once like an I/O error.
+            if not self._writer_closed:
+                self._report_error(str(exc))
+
+    def head(self, msg: Any, log_time_ns: int) -> None:
+        """A head pose as received, at its receive time."""
+        self.write(self.layout.head_topic, msg, log_time_ns)
+
+    def poses(self, chain_index: int, msg: Any, log_time_ns: int) -> None:
+        self.write(self.layout.pose_topics[chain_index], msg, log_time_ns)
+
+    def markers(self, msg: Any, log_time_ns: int) -> None:
+        self.write(self.layout.marker_topic, msg, log_time_ns)
+
+    def diagnostics(self, msg: Any, log_time_ns: int) -> None:
+        self.write(self.layout.diagnostics_topic, msg, log_time_ns)
+
+    def parameters_changed(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
+        """An accepted live change (name -> new plain value), as a ``ParameterEvent``."""
+        from rcl_interfaces.msg import ParameterEvent
+        from builtin_interfaces.msg import Time
+        event = ParameterEvent(node=self.layout.node)
+        event.stamp = Time(sec=log_time_ns // 1_000_000_000, nanosec=log_time_ns % 1_000_000_000)
+        event.changed_parameters = [Parameter(name, value=value).to_parameter_msg()
+                                    for name, value in sorted(changed.items())]
+        self.write(self.layout.parameter_events_topic, event, log_time_ns)
+
+    def close(self) -> None:
+        """Finalise the file (idempotent)."""
+        self._writer.close()
+        if self._writer.error is not None:
+            self._report_error()
+
+    @property
+    def _writer_closed(self) -> bool:
+        return self._writer._closed
+
+    def _report_error(self, text: Optional[str] = None) -> None:
+        if self._error_reported:
+            return
+        self._error_reported = True
+        if self.on_error is not None:
+            self.on_error(text or str(self._writer.error))
+
+    # -- the node ------------------------------------------------------------------------------
+    @classmethod
+    def for_node(cls, node, record_path: str, chains: Sequence[str], head_subscription,
+                 pose_publishers: Sequence[Any], marker_publisher, diagnostics_publisher,
+                 ) -> Optional['RunRecorder']:
+        """A recorder for a running ``PonytailNode``, or None (error logged) if the file cannot
+        be created; the node then goes on without recording.
+
+        Records every parameter of the node (``list_parameters``) as it is now, the topics as
+        resolved by the node, the publishers' QoS.
+        """
+        logger = node.get_logger()
+        path = expand_record_path(record_path)
+        layout = RunLayout(
+            node=node.get_fully_qualified_name(), chains=tuple(chains),
+            head_topic=head_subscription.topic_name,
+            pose_topics=tuple(p.topic_name for p in pose_publishers),
+            marker_topic=marker_publisher.topic_name,
+            diagnostics_topic=diagnostics_publisher.topic_name)
+        names = node.list_parameters([], 0).names
+        parameters = {p.name: _plain(p.value) for p in node.get_parameters(names)}
+        qos = {p.topic_name: p.qos_profile
+               for p in (*pose_publishers, marker_publisher, diagnostics_publisher)}
+        try:
+            recorder = cls(path, layout, parameters, qos=qos,
+                           info={'source': 'ponytail_node'},
+                           on_error=lambda text: logger.error(
+                               f'Recording stopped: {text}; the simulation goes on'))
+        except BagError as exc:
+            text = str(exc)
+            if 'already exists' in text:
+                text = (f'{path} already exists: an existing recording is never overwritten '
+                        f'(remove it, or use a new record_path, e.g. with %Y%m%d_%H%M%S)')
+            logger.error(f'Not recording: {text}; the simulation goes on without recording')
+            return None
+        recorder._clock = node.get_clock()
+        logger.info(f'Recording to {recorder.path}')
+        return recorder
+
+    def recording(self, publisher) -> '_RecordingPublisher':
+        """``publisher`` wrapped: ``publish(msg)`` publishes, then records ``msg`` at the node
+        clock's time (:meth:`for_node` recorders only)."""
+        return _RecordingPublisher(publisher, self, self._clock)
+
+
+def _plain(value):
+    if isinstance(value, (str, bool, int, float)) or value is None:
+        return value
+    return list(value)
+
+
+class _RecordingPublisher:
+    """An rclpy publisher whose ``publish`` also records the message (log time: the node clock
+    right after publishing, as a recorder subscribed to the topic would see it)."""
+
+    def __init__(self, publisher, recorder: RunRecorder, clock):
+        self._publisher = publisher
+        self._recorder = recorder
+        self._clock = clock
+        self._topic = publisher.topic_name
+
+    def publish(self, msg) -> None:
+        self._publisher.publish(msg)
+        self._recorder.write(self._topic, msg, self._clock.now().nanoseconds)
+
+    def __getattr__(self, name):
+        return getattr(self._publisher, name)

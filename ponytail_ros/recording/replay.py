@@ -1,0 +1,1044 @@
+"""``ponytail_replay``: re-simulate a recording offline, compare two runs, or play a recording's
+head poses into a running graph.
+
+Usage::
+
+    ponytail_replay INPUT.mcap -o OUTPUT.mcap [--params FILE.yaml] [--head-topic /head_pose]
+                    [--ticks auto|recorded|nominal] [--overwrite] [--quiet]
+    ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
+    ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
+
+Offline replay (no ROS graph, no sleeping; as fast as the machine allows): the head poses
+(``geometry_msgs/msg/PoseStamped`` or ``TransformStamped``) of any rosbag2 MCAP file -- one
+written by the node (``record_path``) or by ``ros2 bag record -s mcap`` -- are pushed into a
+``ChainRunner`` at their log times (receive times), the runner is ticked on the recorded clock
+and the output is written exactly as the node records a run (same topics, types, metadata).
+
+* Parameters: ``--params`` (a node params file, ``/**: ros__parameters:``), else the input's
+  ``ponytail_ros/parameters`` metadata (then the live changes recorded on
+  ``/parameter_events`` are applied at their times too), else the package's
+  ``config/ponytail.yaml``.
+* Ticks (``--ticks``): ``recorded`` ticks at the node's own tick times (the header stamps of its
+  first ``segment_poses`` topic) and feeds every head pose and parameter change in the file
+  order, i.e. exactly as the node interleaved them with its ticks; ``nominal`` ticks every
+  ``1/rate`` s from the first head pose, a head pose counting for a tick if its log time is <=
+  the tick time. ``auto`` (default): ``recorded`` if the input has the node's ticks and the
+  replay's ``rate`` equals the recorded one, else ``nominal``.
+* Deterministic: the same input and parameters give a byte-identical output file (the output's
+  chunks are cut by size only, never by wall time, and the CDR padding bytes, which rclpy's
+  serialiser leaves uninitialised, are zeroed). Replaying a node's recording with its
+  recorded parameters and ticks reproduces its ``segment_poses`` bit for bit.
+* Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
+  keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
+
+Exit status: 0 on success, 2 on bad input (one line on stderr naming the file and topic: not an
+MCAP file, no such topic, not a head pose type, invalid parameters), 1 on an unexpected error. A
+truncated input (a recording whose writer was killed) replays what can be read, with a warning.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ponytail_ros.ros.parameters import (ParameterError, build_runner_settings,
+                                         chain_param_name, check_values)
+from ponytail_ros.ros.runner import DROP_REASONS, RESET_REASONS, ChainRunner
+
+from .bag import PARAMETERS_METADATA, BagError, BagReader
+from .params import resolve_values, unknown_names, values_from_metadata
+from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns)
+
+__all__ = ['main', 'replay', 'ReplayError', 'ReplayResult', 'ReplayInput', 'compare',
+           'load_chain_runs', 'format_comparison', 'plot_comparison', 'live_replay']
+
+_MCAP_MAGIC = b'\x89MCAP0\r\n'
+#: Output chunks are cut by size only: the log-time/idle limit of BagWriter is set beyond any
+#: replay, so that no wall-time effect changes the bytes.
+_OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
+_NA = 'n/a (replay)'
+
+
+class ReplayError(Exception):
+    """Bad input or options; the message is one line naming the file (and topic)."""
+
+
+# -- input -------------------------------------------------------------------------------------
+
+
+class ReplayInput:
+    """An input recording: its topics, metadata, the head topic and what the node recorded.
+
+    Raises:
+        ReplayError: not readable, not MCAP, no head topic, or the head topic is not a pose.
+    """
+
+    def __init__(self, path, head_topic: Optional[str] = None):
+        self.path = Path(path)
+        try:
+            self.reader = BagReader(self.path)
+            self.topics = self.reader.topics()
+            self.metadata = self.reader.metadata()
+        except BagError as exc:
+            raise ReplayError(str(exc)) from None
+        self.truncated = not _finished(self.path)
+        self.layout = None
+        if RECORDING_METADATA in self.metadata:
+            try:
+                self.layout = RunLayout.from_metadata(self.metadata[RECORDING_METADATA])
+            except (KeyError, ValueError):
+                self.layout = None  # not ours after all: treat as a plain recording
+        self.recorded_parameters = self.metadata.get(PARAMETERS_METADATA)
+        self.note = None
+        if head_topic is None:
+            head_topic = self.layout.head_topic if self.layout else '/head_pose'
+            if head_topic not in self.topics:
+                heads = sorted(t for t, ty in self.topics.items() if ty in HEAD_TYPES)
+                if len(heads) == 1:
+                    self.note = f'using {heads[0]}, the only head pose topic in {self.path}'
+                    head_topic = heads[0]
+        self.head_topic = head_topic
+        if head_topic not in self.topics:
+            recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
+            raise ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
+                              f'{recorded or "none"}); choose one with --head-topic')
+        self.head_type = self.topics[head_topic]
+        if self.head_type not in HEAD_TYPES:
+            raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a head '
+                              f'pose ({" or ".join(HEAD_TYPES)})')
+
+    @property
+    def node(self) -> str:
+        return self.layout.node if self.layout else '/ponytail'
+
+    def tick_topic(self) -> Optional[str]:
+        """The node's first ``segment_poses`` topic, if this is a node recording with ticks."""
+        if self.layout and self.layout.pose_topics[0] in self.topics:
+            return self.layout.pose_topics[0]
+        return None
+
+    def span_ns(self) -> Optional[Tuple[int, int]]:
+        """(first, last) log time of a finished file (summary statistics), else None."""
+        if self.truncated:
+            return None
+        from mcap.reader import make_reader
+        try:
+            with self.path.open('rb') as f:
+                stats = make_reader(f).get_summary().statistics
+            return stats.message_start_time, stats.message_end_time
+        except Exception:  # noqa: BLE001 - only the progress bar needs it
+            return None
+
+
+def _finished(path: Path) -> bool:
+    with path.open('rb') as f:
+        size = f.seek(0, os.SEEK_END)
+        if size < 2 * len(_MCAP_MAGIC):
+            return False
+        f.seek(-len(_MCAP_MAGIC), os.SEEK_END)
+        return f.read() == _MCAP_MAGIC
+
+
+def _head_pose(msg, head_type):
+    """(position, orientation) tuples of a PoseStamped or TransformStamped."""
+    if head_type == HEAD_TYPES[0]:
+        p, q = msg.pose.position, msg.pose.orientation
+    else:
+        p, q = msg.transform.translation, msg.transform.rotation
+    return (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)
+
+
+# -- the node, offline -------------------------------------------------------------------------
+
+
+class ReplayNode:
+    """What ``PonytailNode`` does with a head pose, a tick and a parameter change, without ROS:
+    the same ``ChainRunner`` calls with the same arguments, the same messages, recorded with
+    ``RunRecorder`` instead of published. Times are integer ns of the recorded clock."""
+
+    def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str):
+        self._values = dict(values)
+        self._chains = list(self._values['chains'])
+        self._scene = check_values(self._values, self._chains)
+        self.runner = ChainRunner(self._scene, build_runner_settings(self._values))
+        self._stamp_source = self._values['stamp_source']
+        self._recorder = recorder
+        self._head_type = head_type
+        self._chain_msgs = self._make_chain_messages(self._scene)
+        self._last_marker_t = None
+        self.published = 0
+        self._diag_period_ns = int(round(self._values['diagnostics_period'] * 1e9))
+        self._diag_next_ns = None
+        self._win = _Window()
+        self._dropped_at_diag = dict(self.runner.dropped)
+
+    @property
+    def values(self):
+        return dict(self._values)
+
+    @staticmethod
+    def _make_chain_messages(scene):
+        from ponytail_ros.ros.messages import ChainMessages
+        return [ChainMessages(c.name, c.lengths(), c.radius) for c in scene.chains]
+
+    # PonytailNode._on_head_pose
+    def head(self, msg, log_time_ns: int) -> None:
+        self._recorder.head(msg, log_time_ns)
+        st = msg.header.stamp
+        if self._stamp_source == 'receive' or (st.sec == 0 and st.nanosec == 0):
+            t = log_time_ns * 1e-9
+        else:
+            t = st.sec + st.nanosec * 1e-9
+        p, q = _head_pose(msg, self._head_type)
+        self.runner.push(t, p, q, msg.header.frame_id)
+
+    # PonytailNode._on_tick (publishing part)
+    def tick(self, t_ns: int):
+        from builtin_interfaces.msg import Time
+        if t_ns == 0:
+            return None
+        t = t_ns * 1e-9
+        out = self.runner.tick(t)
+        if out is None:
+            return None
+        scene = self.runner.scene
+        if any(m.n != c.n_segments or m.radius != c.radius or
+               not np.array_equal(m.lengths, c.lengths())
+               for m, c in zip(self._chain_msgs, scene.chains)):
+            self._chain_msgs = self._make_chain_messages(scene)
+            for i, c in enumerate(self._chains):
+                self._chain_msgs[i].set_color(self._values[chain_param_name(c, 'color')])
+        frame = self._values['frame_id'] or out.frame_id
+        stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        model = self.runner.sim.model
+        for c, cm in enumerate(self._chain_msgs):
+            sl = model.chain_slice(c)
+            self._recorder.poses(
+                c, cm.fill_poses(out.origins[sl], out.orientations[sl], frame, stamp), t_ns)
+        self.published += 1
+        self._maybe_markers(out, frame, stamp, t_ns)
+        win, rep = self._win, out.report
+        win.ticks += 1
+        win.max_gap = max(win.max_gap, rep.max_gap)
+        win.steps += rep.steps
+        win.accepted += out.accepted
+        win.dropped_time += rep.dropped_time
+        if out.reset_reason == 'guard':
+            win.guard_resets += 1
+        return out
+
+    # PonytailNode._maybe_publish_markers
+    def _maybe_markers(self, out, frame, stamp, t_ns):
+        from visualization_msgs.msg import MarkerArray
+        from ponytail_ros.ros.messages import delete_all_marker
+        style = self._values['markers.style']
+        period = 1.0 / self._values['markers.rate']
+        if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
+                and out.t >= self._last_marker_t:
+            return
+        self._last_marker_t = out.t
+        model = self.runner.sim.model
+        delete = False
+        markers = []
+        for c, cm in enumerate(self._chain_msgs):
+            sl = model.chain_slice(c)
+            color = self._values[chain_param_name(self._chains[c], 'color')]
+            ms, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color,
+                                     frame, stamp)
+            delete = delete or changed
+            markers.extend(ms)
+        if delete:
+            markers.insert(0, delete_all_marker(frame, stamp))
+        if not markers:
+            return
+        self._recorder.markers(MarkerArray(markers=markers), t_ns)
+
+    # PonytailNode._post_set_parameters
+    def set_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
+        from ponytail_ros.ros.parameters import definition
+        changed = {k: v for k, v in changed.items() if definition(k, self._chains) is not None}
+        if not changed:
+            return
+        values = dict(self._values)
+        values.update(changed)
+        try:
+            check_values(values, self._chains, changed)
+        except ParameterError:
+            return  # the node rejects it too
+        self._recorder.parameters_changed(changed, log_time_ns)
+        self._values = values
+        scene = check_values(self._values, self._chains)
+        if scene != self._scene:
+            self.runner.set_scene(scene)
+            self._scene = scene
+        settings = build_runner_settings(self._values)
+        self.runner.update_settings(
+            **{k: getattr(settings, k) for k in (
+                'interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
+                'teleport_distance', 'teleport_angle', 'stale_timeout',
+                'window', 'degree', 'max_extrapolation', 'max_gap', 'quat_tolerance')})
+        for i, c in enumerate(self._chains):
+            if chain_param_name(c, 'color') in changed:
+                self._chain_msgs[i].set_color(self._values[chain_param_name(c, 'color')])
+
+    # PonytailNode._on_diagnostics, on the recorded clock
+    def maybe_diagnostics(self, t_ns: int) -> None:
+        if self._diag_next_ns is None:
+            self._diag_next_ns = t_ns + self._diag_period_ns
+            self._win.t0_ns = t_ns
+            return
+        if t_ns < self._diag_next_ns:
+            return
+        self._diag_next_ns += self._diag_period_ns * max(
+            1, (t_ns - self._diag_next_ns) // self._diag_period_ns + 1)
+        self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+
+    def diagnostics_message(self, t_ns: int):
+        from builtin_interfaces.msg import Time
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        win, self._win = self._win, _Window(t0_ns=t_ns)
+        r = self.runner
+        span = max((t_ns - win.t0_ns) * 1e-9, 1e-9)
+        t = t_ns * 1e-9
+        dropped_now = dict(r.dropped)
+        dropped_window = {k: dropped_now[k] - self._dropped_at_diag.get(k, 0)
+                          for k in DROP_REASONS}
+        self._dropped_at_diag = dropped_now
+        age = r.head_age(t)
+        head = 'none' if not r.has_head else 'stale' if r.head_stale(t) else 'ok'
+        level, problems = DiagnosticStatus.OK, []
+
+        def flag(lvl, text):
+            nonlocal level
+            level = max(level, lvl)
+            problems.append(text)
+        if head == 'none':
+            flag(DiagnosticStatus.WARN, 'no head pose received')
+        elif head == 'stale':
+            flag(DiagnosticStatus.WARN, 'head pose stale')
+        elif age is not None and abs(age) > max(r.settings.stale_timeout, 0.5):
+            flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
+                                        f'(clocks differ? use_sim_time / stamp_source)')
+        if sum(dropped_window.values()):
+            flag(DiagnosticStatus.WARN, f'{sum(dropped_window.values())} head poses dropped')
+        if win.dropped_time > 0.0:
+            flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
+        if win.guard_resets:
+            flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
+        kv = [
+            ('head', head),
+            ('head frame', r.frame_id or ''),
+            ('head input age (s)', 'n/a' if age is None else f'{age:.4f}'),
+            ('head poses accepted per s', f'{win.accepted / span:.1f}'),
+            ('head poses accepted', str(r.accepted_total)),
+            ('ticks per s', f'{win.ticks / span:.1f}'),
+            ('solve time mean (ms)', _NA),
+            ('solve time max (ms)', _NA),
+            ('tick time max (ms)', _NA),
+            ('timer lateness max (ms)', _NA),
+            ('steps per tick', f'{win.steps / max(win.ticks, 1):.2f}'),
+            ('joint gap max (m)', f'{win.max_gap:.3g}'),
+            ('interpolation delay (s)', f'{r.delay:.4f}'),
+            ('dropped inputs', str(sum(dropped_now.values()))),
+        ]
+        kv += [(f'dropped inputs: {k}', str(dropped_now[k])) for k in DROP_REASONS]
+        kv += [('resets', str(sum(r.resets.values())))]
+        kv += [(f'resets: {k}', str(r.resets[k])) for k in RESET_REASONS]
+        kv += [('last reset', r.last_reset or ''),
+               ('head history restarts', str(r.history_restarts)),
+               ('dropped time (s)', f'{r.dropped_time_total:.4f}'),
+               ('segments', str(self._scene.n_segments))]
+        fqn = self._recorder.layout.node
+        status = DiagnosticStatus(
+            level=level, name=f'ponytail: {fqn}', hardware_id=fqn,
+            message='; '.join(problems) if problems else 'ok',
+            values=[KeyValue(key=k, value=v) for k, v in kv])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        return msg
+
+
+@dataclass
+class _Window:
+    t0_ns: int = 0
+    ticks: int = 0
+    max_gap: float = 0.0
+    steps: int = 0
+    accepted: int = 0
+    guard_resets: int = 0
+    dropped_time: float = 0.0
+
+
+# -- offline replay ----------------------------------------------------------------------------
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did."""
+
+    output: Path
+    ticks: int = 0
+    head_samples: int = 0
+    parameter_changes: int = 0
+    first_tick_ns: Optional[int] = None
+    last_tick_ns: Optional[int] = None
+    wall_seconds: float = 0.0
+    tick_mode: str = ''
+    parameters_from: str = ''
+    truncated: bool = False
+    notes: List[str] = field(default_factory=list)
+
+    @property
+    def sim_seconds(self) -> float:
+        if self.first_tick_ns is None:
+            return 0.0
+        return (self.last_tick_ns - self.first_tick_ns) * 1e-9
+
+    def summary(self, input_path) -> str:
+        speed = self.sim_seconds / self.wall_seconds if self.wall_seconds > 0 else float('inf')
+        return (f'{input_path} -> {self.output}: {self.ticks} ticks ({self.tick_mode}), '
+                f'{self.head_samples} head poses, {self.sim_seconds:.2f} s simulated in '
+                f'{self.wall_seconds:.2f} s ({speed:.1f}x real time); parameters from '
+                f'{self.parameters_from}')
+
+
+class _Progress:
+    """A one-line text progress bar on a TTY (stderr)."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.wall0 = time.perf_counter()
+        self.last = 0.0
+
+    def __call__(self, done_s: float, total_s: Optional[float] = None,
+                 final: bool = False) -> None:
+        now = time.perf_counter()
+        if not final and now - self.last < 0.1:
+            return
+        self.last = now
+        self.total = total_s
+        wall = max(now - self.wall0, 1e-9)
+        if self.total:
+            frac = min(max(done_s / self.total, 0.0), 1.0)
+            bar = '#' * int(30 * frac) + '-' * (30 - int(30 * frac))
+            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{self.total:.1f} s'
+        else:
+            text = f'{done_s:7.1f} s'
+        self.stream.write(f'\r{text}  {done_s / wall:6.1f}x real time')
+        if final:
+            self.stream.write('\n')
+        self.stream.flush()
+
+
+def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
+           ticks: str = 'auto', overwrite: bool = False,
+           progress: Optional[Callable[..., None]] = None,
+           warn: Optional[Callable[[str], None]] = None) -> ReplayResult:
+    """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
+
+    Args:
+        params_file: a node params file; None: the recorded parameters (or the package config).
+        head_topic: the head topic; None: the recorded node's, else ``/head_pose`` (or the only
+            head pose topic).
+        ticks: ``'auto'``, ``'recorded'`` or ``'nominal'``.
+        progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
+            during the replay (often: throttle it).
+        warn: called with each warning (default: ignored).
+
+    Raises:
+        ReplayError: bad input or options (one-line message naming the file and topic).
+    """
+    warn = warn or (lambda text: None)
+    wall0 = time.perf_counter()
+    if ticks not in ('auto', 'recorded', 'nominal'):
+        raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
+    inp = ReplayInput(input_path, head_topic)
+    output_path = Path(output_path)
+    if output_path.exists() and output_path.resolve() == inp.path.resolve():
+        raise ReplayError(f'{output_path}: the output would overwrite the input')
+    result = ReplayResult(output=output_path, truncated=inp.truncated)
+    if inp.note:
+        warn(inp.note)
+    if inp.truncated:
+        warn(f'{inp.path} is truncated (no summary: its writer was killed?); replaying what '
+             f'can be read')
+
+    try:
+        values, source = resolve_values(params_file, inp.recorded_parameters, inp.node)
+    except ParameterError as exc:
+        origin = params_file or (f'{inp.path} (recorded parameters)'
+                                 if inp.recorded_parameters else 'the default config')
+        raise ReplayError(f'{origin}: invalid parameters: {exc}') from None
+    partial = values_from_metadata(inp.recorded_parameters) if (
+        params_file is None and inp.recorded_parameters) else {}
+    unknown = unknown_names(partial) if partial else []
+    if unknown:
+        warn(f'ignoring unknown parameters: {", ".join(unknown)}')
+    result.parameters_from = source if source == 'the recording' else Path(source).name
+
+    # Ticks: the node's own where possible.
+    tick_topic = inp.tick_topic()
+    recorded_rate = None
+    if inp.recorded_parameters and 'rate' in inp.recorded_parameters:
+        try:
+            recorded_rate = float(json.loads(inp.recorded_parameters['rate']))
+        except (TypeError, ValueError):
+            recorded_rate = None
+    if ticks == 'recorded':
+        if tick_topic is None:
+            raise ReplayError(f'{inp.path}: --ticks recorded needs a ponytail_node recording '
+                              f'(with its segment_poses); this one has none')
+        mode = 'recorded'
+    elif ticks == 'auto' and tick_topic is not None and recorded_rate == values['rate']:
+        mode = 'recorded'
+    else:
+        mode = 'nominal'
+    result.tick_mode = mode
+    apply_events = (params_file is None and inp.layout is not None
+                    and inp.layout.parameter_events_topic in inp.topics
+                    and inp.topics[inp.layout.parameter_events_topic]
+                    == 'rcl_interfaces/msg/ParameterEvent')
+
+    # The output: the node's layout (the recorded one when the chains are the same).
+    chains = tuple(values['chains'])
+    if inp.layout is not None and inp.layout.chains == chains:
+        layout = RunLayout(node=inp.layout.node, chains=chains, head_topic=inp.head_topic,
+                           pose_topics=inp.layout.pose_topics,
+                           marker_topic=inp.layout.marker_topic,
+                           diagnostics_topic=inp.layout.diagnostics_topic,
+                           parameter_events_topic=inp.layout.parameter_events_topic)
+    else:
+        layout = RunLayout.for_node(inp.node, chains, head_topic=inp.head_topic)
+    recorded_all = values_from_metadata(inp.recorded_parameters or {})
+    parameters = {'use_sim_time': bool(recorded_all.get('use_sim_time', False)), **values,
+                  'record_path': str(output_path)}
+    try:
+        recorder = RunRecorder(
+            output_path, layout, parameters, head_type=inp.head_type, overwrite=overwrite,
+            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, canonical=True,
+            info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
+                  'parameters_from': result.parameters_from})
+    except BagError as exc:
+        text = str(exc)
+        if 'already exists' in text:
+            text = f'{output_path} already exists (use --overwrite to replace it)'
+        raise ReplayError(text) from None
+
+    node = ReplayNode(values, recorder, inp.head_type)
+    span = inp.span_ns() if progress is not None else None
+    t_start = span[0] if span else None
+    total_s = (span[1] - span[0]) * 1e-9 if span else None
+    wanted = {inp.head_topic: inp.head_type}
+    if mode == 'recorded':
+        wanted[tick_topic] = 'geometry_msgs/msg/PoseArray'
+    if apply_events:
+        wanted[inp.layout.parameter_events_topic] = 'rcl_interfaces/msg/ParameterEvent'
+    events_topic = inp.layout.parameter_events_topic if apply_events else None
+
+    def do_tick(t_ns):
+        out = node.tick(t_ns)
+        if out is not None:
+            result.ticks += 1
+            if result.first_tick_ns is None:
+                result.first_tick_ns = t_ns
+            result.last_tick_ns = t_ns
+        node.maybe_diagnostics(t_ns)
+        if progress is not None and t_start is not None:
+            progress((t_ns - t_start) * 1e-9, total_s)
+
+    period_ns = int(round(1e9 / values['rate']))
+    next_tick = None
+    last_log = None
+    try:
+        for topic, _, msg, log_ns in inp.reader.messages(wanted):
+            if mode == 'nominal' and next_tick is not None:
+                while next_tick < log_ns:
+                    do_tick(next_tick)
+                    next_tick += period_ns
+            if topic == inp.head_topic:
+                node.head(msg, log_ns)
+                result.head_samples += 1
+                last_log = log_ns if last_log is None else max(last_log, log_ns)
+                if next_tick is None:
+                    next_tick = log_ns + period_ns
+                if t_start is None:
+                    t_start = log_ns
+            elif topic == events_topic:
+                if msg.node == inp.layout.node:
+                    changed = _event_values(msg)
+                    if changed:
+                        node.set_parameters(changed, log_ns)
+                        result.parameter_changes += 1
+                        if 'rate' in changed:
+                            period_ns = int(round(1e9 / node.values['rate']))
+            else:
+                do_tick(stamp_ns(msg.header.stamp))
+        if mode == 'nominal' and next_tick is not None:
+            while next_tick <= last_log:
+                do_tick(next_tick)
+                next_tick += period_ns
+    except BagError as exc:
+        recorder.close()
+        raise ReplayError(str(exc)) from None
+    finally:
+        recorder.close()
+    if recorder.error is not None:
+        raise ReplayError(f'writing {output_path} failed: {recorder.error}')
+    if result.head_samples == 0:
+        raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
+    if inp.truncated:
+        warn(f'{inp.path}: replayed {result.head_samples} head poses and {result.ticks} ticks '
+             f'(all that could be read)')
+    result.wall_seconds = time.perf_counter() - wall0
+    if progress is not None and result.first_tick_ns is not None and t_start is not None:
+        progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
+    return result
+
+
+def _event_values(event) -> Dict[str, Any]:
+    from rclpy.parameter import Parameter
+    changed = {}
+    for p in list(event.new_parameters) + list(event.changed_parameters):
+        value = Parameter.from_parameter_msg(p).value
+        changed[p.name] = value if isinstance(value, (str, bool, int, float)) else list(value)
+    return changed
+
+
+# -- compare -----------------------------------------------------------------------------------
+
+
+@dataclass
+class ChainRun:
+    """One chain of one recording: tick stamps (ns) and tip positions."""
+
+    name: str
+    topic: str
+    stamps: np.ndarray
+    tips: np.ndarray
+    segment_length: float
+    length_from: str
+
+
+@dataclass
+class ChainComparison:
+    name: str
+    matched: int
+    only_a: int
+    only_b: int
+    rms: float
+    max: float
+    t_max: float
+    final: float
+    matching: str
+    t: np.ndarray
+    distance: np.ndarray
+    tip_a: np.ndarray
+    tip_b: np.ndarray
+
+
+def _pose_arrays(msgs):
+    o = np.array([[(p.position.x, p.position.y, p.position.z) for p in m.poses] for m in msgs])
+    q = np.array([[(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)
+                   for p in m.poses] for m in msgs])
+    return o, q
+
+
+def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
+    """Every chain's tip track in a recording (ours, or any with ``segment_poses`` topics),
+    and its parameters (empty if not recorded).
+
+    Raises:
+        ReplayError: unreadable, or no ``PoseArray`` topic.
+    """
+    from ponytail_ros.core.rotations import quat_axis_x
+    path = Path(path)
+    try:
+        reader = BagReader(path)
+        topics = reader.topics()
+        metadata = reader.metadata()
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    values = {}
+    if PARAMETERS_METADATA in metadata:
+        try:
+            values = values_from_metadata(metadata[PARAMETERS_METADATA])
+        except ParameterError:
+            values = {}
+    chains: Dict[str, str] = {}
+    layout = None
+    if RECORDING_METADATA in metadata:
+        try:
+            layout = RunLayout.from_metadata(metadata[RECORDING_METADATA])
+        except (KeyError, ValueError):
+            layout = None
+    if layout is not None:
+        chains = {c: t for c, t in zip(layout.chains, layout.pose_topics) if t in topics}
+    else:
+        arrays = sorted(t for t, ty in topics.items() if ty == 'geometry_msgs/msg/PoseArray')
+        for t in arrays:
+            parts = t.strip('/').split('/')
+            if parts[-1] == 'segment_poses':
+                name = (values.get('chains') or ['ponytail'])[0]
+            elif len(parts) > 1 and parts[-2] == 'segment_poses':
+                name = parts[-1]
+            else:
+                name = t
+            chains[name] = t
+    if not chains:
+        raise ReplayError(f'{path} has no segment_poses (geometry_msgs/msg/PoseArray) topic')
+    try:
+        msgs = {t: [] for t in chains.values()}
+        for topic, _, msg, _ in reader.messages(list(chains.values())):
+            msgs[topic].append(msg)
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    runs = {}
+    for name, topic in chains.items():
+        ms = [m for m in msgs[topic] if m.poses]
+        if not ms or len({len(m.poses) for m in ms}) != 1:
+            # Segment count changed mid-run: keep the longest stretch with the final count.
+            n = len(ms[-1].poses) if ms else 0
+            ms = [m for m in ms if len(m.poses) == n]
+        if not ms:
+            continue
+        o, q = _pose_arrays(ms)
+        n = o.shape[1]
+        try:
+            seg = float(values[f'{name}.length']) / int(values[f'{name}.n_segments'])
+            length_from = 'parameters'
+            if int(values[f'{name}.n_segments']) != n:
+                raise KeyError
+        except (KeyError, TypeError, ValueError, ZeroDivisionError):
+            if n > 1:
+                seg = float(np.median(np.linalg.norm(o[:, -1] - o[:, -2], axis=1)))
+                length_from = 'joint spacing'
+            else:
+                seg, length_from = 0.0, 'unknown (tip = last joint)'
+        tips = o[:, -1] + quat_axis_x(q[:, -1]) * seg
+        stamps = np.array([stamp_ns(m.header.stamp) for m in ms], dtype=np.int64)
+        runs[name] = ChainRun(name, topic, stamps, tips, seg, length_from)
+    return runs, values
+
+
+def _match(sa: np.ndarray, sb: np.ndarray):
+    """Indices of matching stamps: exact, or nearest within half a tick if few match exactly."""
+    common, ia, ib = np.intersect1d(sa, sb, assume_unique=False, return_indices=True)
+    if len(common) >= 0.5 * min(len(sa), len(sb)) or len(sa) < 2 or len(sb) < 2:
+        return ia, ib, 'exact stamps'
+    tol = 0.5 * float(np.median(np.diff(sa)))
+    j = np.clip(np.searchsorted(sb, sa), 1, len(sb) - 1)
+    left, right = sb[j - 1], sb[j]
+    nearest = np.where(np.abs(sa - left) <= np.abs(right - sa), j - 1, j)
+    ok = np.abs(sb[nearest] - sa) <= tol
+    return np.nonzero(ok)[0], nearest[ok], f'nearest stamps (within {tol * 1e-6:.2f} ms)'
+
+
+def compare(path_a, path_b):
+    """Per chain tip distances between two runs matched by stamp.
+
+    Returns ``(comparisons, runs_a, runs_b, values_a, values_b)``.
+    """
+    runs_a, values_a = load_chain_runs(path_a)
+    runs_b, values_b = load_chain_runs(path_b)
+    pairs = [(n, n) for n in runs_a if n in runs_b]
+    if not pairs and len(runs_a) == 1 and len(runs_b) == 1:
+        pairs = [(next(iter(runs_a)), next(iter(runs_b)))]
+    if not pairs:
+        raise ReplayError(f'{path_a} and {path_b} have no chain in common '
+                          f'({", ".join(runs_a)} vs {", ".join(runs_b)})')
+    out = []
+    for na, nb in pairs:
+        a, b = runs_a[na], runs_b[nb]
+        ia, ib, how = _match(a.stamps, b.stamps)
+        d = np.linalg.norm(a.tips[ia] - b.tips[ib], axis=1)
+        t = a.stamps[ia]
+        t0 = min(a.stamps[0], b.stamps[0])
+        name = na if na == nb else f'{na} / {nb}'
+        if len(d):
+            k = int(np.argmax(d))
+            rms, mx, t_max, final = (float(np.sqrt(np.mean(d * d))), float(d[k]),
+                                     (t[k] - t0) * 1e-9, float(d[-1]))
+        else:
+            rms = mx = t_max = final = float('nan')
+        out.append(ChainComparison(name, len(d), len(a.stamps) - len(ia), len(b.stamps) - len(ib),
+                                   rms, mx, t_max, final, how, (t - t0) * 1e-9, d,
+                                   a.tips[ia], b.tips[ib]))
+    return out, runs_a, runs_b, values_a, values_b
+
+
+def format_comparison(path_a, path_b, comparisons, values_a=None, values_b=None) -> str:
+    """The comparison as text: the files, the parameters that differ, a table per chain."""
+    lines = [f'A: {path_a}', f'B: {path_b}']
+    if values_a and values_b:
+        diff = [k for k in sorted(set(values_a) | set(values_b))
+                if k not in ('record_path',) and values_a.get(k) != values_b.get(k)]
+        if diff:
+            lines.append('parameters that differ (A -> B):')
+            lines += [f'  {k}: {values_a.get(k, "-")} -> {values_b.get(k, "-")}' for k in diff]
+        else:
+            lines.append('parameters: identical')
+    header = ('chain', 'matched ticks', 'RMS tip dist (mm)', 'max tip dist (mm)', 'at t (s)',
+              'final (mm)')
+    rows = [(c.name, f'{c.matched}', f'{1e3 * c.rms:.4g}', f'{1e3 * c.max:.4g}',
+             f'{c.t_max:.3f}', f'{1e3 * c.final:.4g}') for c in comparisons]
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+    lines.append('  '.join(h.ljust(w) if i == 0 else h.rjust(w)
+                           for i, (h, w) in enumerate(zip(header, widths))))
+    for r in rows:
+        lines.append('  '.join(v.ljust(w) if i == 0 else v.rjust(w)
+                               for i, (v, w) in enumerate(zip(r, widths))))
+    for c in comparisons:
+        extra = [c.matching]
+        if c.only_a or c.only_b:
+            extra.append(f'{c.only_a} ticks only in A, {c.only_b} only in B')
+        lines.append(f'  {c.name}: {"; ".join(extra)}')
+    return '\n'.join(lines)
+
+
+def plot_comparison(comparisons, out_png, label_a='A', label_b='B') -> Path:
+    """Tip distance over time and the tips' height (z) in both runs, one column per chain."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    n = len(comparisons)
+    fig, axes = plt.subplots(2, n, figsize=(6 * n, 6), squeeze=False, sharex='col')
+    for i, c in enumerate(comparisons):
+        ax = axes[0, i]
+        ax.plot(c.t, 1e3 * c.distance, lw=1)
+        ax.set_title(f'{c.name}: tip distance A-B (RMS {1e3 * c.rms:.3g} mm)')
+        ax.set_ylabel('mm')
+        ax.grid(alpha=0.3)
+        ax = axes[1, i]
+        for k, axis in enumerate('xyz'):
+            ax.plot(c.t, c.tip_a[:, k], lw=1, label=f'{label_a} {axis}')
+            ax.plot(c.t, c.tip_b[:, k], lw=1, ls='--', label=f'{label_b} {axis}')
+        ax.set_xlabel('time from start (s)')
+        ax.set_ylabel('tip position (m)')
+        ax.legend(fontsize=7, ncol=3)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png
+
+
+# -- live replay -------------------------------------------------------------------------------
+
+
+def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: float = 1.0,
+                clock: bool = True, clock_hz: float = 100.0, restamp: bool = False,
+                loop: bool = False, wait_for_subscribers: float = 2.0,
+                stop: Optional[threading.Event] = None,
+                warn: Optional[Callable[[str], None]] = None) -> int:
+    """Publish a recording's head poses into the ROS graph at the recorded pace.
+
+    ``rclpy`` must be initialised (``context``: the context to use). Publishes the head topic
+    (reliable, depth 10; same type as recorded) and, with ``clock``, ``/clock`` from the
+    recorded times (before each pose and at ``clock_hz`` in between), for ``use_sim_time``
+    nodes. ``rate`` scales the pace; ``restamp`` rewrites the header stamps with this process's
+    clock (for nodes on the system clock); ``loop`` starts again at the end with the times
+    shifted forward so the clock never goes back. Waits up to ``wait_for_subscribers`` s for a
+    subscriber of the head topic first. Returns the number of head poses published.
+
+    Raises:
+        ReplayError: bad input (as the offline replay).
+    """
+    import rclpy
+    from builtin_interfaces.msg import Time
+    from rclpy.qos import QoSProfile
+    from rosgraph_msgs.msg import Clock
+    from .bag import _message_class
+
+    warn = warn or (lambda text: None)
+    if not rate > 0.0:
+        raise ReplayError(f'--rate must be positive, not {rate}')
+    inp = ReplayInput(path, head_topic)
+    if inp.note:
+        warn(inp.note)
+    if inp.truncated:
+        warn(f'{inp.path} is truncated; playing what can be read')
+    try:
+        samples = [(msg, log_ns) for _, _, msg, log_ns in inp.reader.messages(
+            {inp.head_topic: inp.head_type})]
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    if not samples:
+        raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
+    node = rclpy.create_node('ponytail_replay', context=context)
+    try:
+        pub = node.create_publisher(_message_class(inp.head_type), inp.head_topic,
+                                    QoSProfile(depth=10))
+        clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) if clock else None
+        deadline = time.monotonic() + wait_for_subscribers
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        stop = stop or threading.Event()
+        l0 = samples[0][1]
+        duration = max(ns for _, ns in samples) - l0
+        period = int(1e9 / clock_hz) if clock_hz > 0 else None
+        offset = 0
+        clock_ns = -1
+        sent = 0
+
+        def send_clock(ns):
+            nonlocal clock_ns
+            if clock_pub is None or ns <= clock_ns:
+                return
+            clock_ns = ns
+            clock_pub.publish(Clock(clock=Time(sec=ns // 1_000_000_000,
+                                               nanosec=ns % 1_000_000_000)))
+
+        while True:
+            wall0 = time.monotonic()
+            for msg, log_ns in samples:
+                target = wall0 + (log_ns - l0) * 1e-9 / rate
+                while True:
+                    now = time.monotonic()
+                    if stop.is_set():
+                        return sent
+                    if now >= target:
+                        break
+                    if clock_pub is not None and period is not None:
+                        send_clock(offset + min(l0 + int((now - wall0) * rate * 1e9), log_ns))
+                        time.sleep(min(target - now, period * 1e-9 / rate))
+                    else:
+                        time.sleep(min(target - now, 0.05))
+                send_clock(offset + log_ns)
+                if restamp:
+                    msg.header.stamp = node.get_clock().now().to_msg()
+                elif offset:
+                    ns = stamp_ns(msg.header.stamp) + offset
+                    msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+                pub.publish(msg)
+                sent += 1
+            if not loop:
+                return sent
+            offset += duration + (period or 10_000_000)
+    finally:
+        node.destroy_node()
+
+
+# -- command line ------------------------------------------------------------------------------
+
+
+def _parser():
+    p = argparse.ArgumentParser(
+        prog='ponytail_replay',
+        description='Re-simulate a recording offline (-o), compare two runs (compare / '
+                    '--compare) or play its head poses into a running graph (--live).',
+        epilog='Examples:  ponytail_replay run.mcap -o replayed.mcap --params config/ponytail.yaml'
+               '   |   ponytail_replay compare run.mcap replayed.mcap --plot diff.png'
+               '   |   ponytail_replay --live run.mcap')
+    p.add_argument('inputs', nargs='+', metavar='INPUT.mcap',
+                   help='the recording (two with --compare)')
+    p.add_argument('-o', '--output', metavar='OUTPUT.mcap', help='replay: the new recording')
+    p.add_argument('--params', metavar='FILE.yaml',
+                   help='node parameters (default: the recorded ones, else the package config)')
+    p.add_argument('--head-topic', help='head pose topic (default: the recorded node\'s, '
+                                        'else /head_pose)')
+    p.add_argument('--ticks', choices=('auto', 'recorded', 'nominal'), default='auto',
+                   help='tick at the node\'s recorded tick times or every 1/rate s (default '
+                        'auto: recorded when available and the rate is unchanged)')
+    p.add_argument('--overwrite', action='store_true', help='replace an existing OUTPUT')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no summary')
+    p.add_argument('--compare', action='store_true', help='compare two recordings A B')
+    p.add_argument('--plot', metavar='OUT.png', help='compare: also plot (matplotlib)')
+    p.add_argument('--live', action='store_true',
+                   help='publish the head poses (and /clock) into the ROS graph at recorded pace')
+    p.add_argument('--rate', type=float, default=1.0, help='live: pace factor (default 1)')
+    p.add_argument('--no-clock', action='store_true', help='live: do not publish /clock')
+    p.add_argument('--clock-rate', type=float, default=100.0, help='live: /clock Hz between '
+                                                                   'poses (default 100)')
+    p.add_argument('--restamp', action='store_true',
+                   help='live: stamp the poses with this process\'s clock (nodes without '
+                        'use_sim_time)')
+    p.add_argument('--loop', action='store_true', help='live: loop (times keep increasing)')
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Entry point of ``ponytail_replay``; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == 'compare':
+        argv = ['--compare'] + argv[1:]
+    parser = _parser()
+    args, ros_args = parser.parse_known_args(argv)
+    if ros_args and not args.live:
+        parser.error(f'unrecognized arguments: {" ".join(ros_args)}')
+
+    def error(text):
+        print(f'ponytail_replay: error: {text}', file=sys.stderr)
+        return 2
+
+    def warn(text):
+        print(f'ponytail_replay: warning: {text}', file=sys.stderr)
+
+    modes = sum((args.compare, args.live, args.output is not None))
+    if modes != 1:
+        parser.error('give exactly one of -o OUTPUT (replay), --compare A B, --live INPUT')
+    try:
+        if args.compare:
+            if len(args.inputs) != 2:
+                parser.error('--compare takes two recordings: A B')
+            comps, *_, values_a, values_b = compare(*args.inputs)
+            print(format_comparison(args.inputs[0], args.inputs[1], comps, values_a, values_b))
+            if args.plot:
+                try:
+                    print(f'plot: {plot_comparison(comps, args.plot)}')
+                except ImportError:
+                    return error('--plot needs matplotlib (pip install matplotlib)')
+            return 0
+        if len(args.inputs) != 1:
+            parser.error('give one input recording')
+        if args.live:
+            return _main_live(args, ros_args, warn, error)
+        progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
+        result = replay(args.inputs[0], args.output, params_file=args.params,
+                        head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
+                        progress=progress, warn=None if args.quiet else warn)
+        if not args.quiet:
+            print(result.summary(args.inputs[0]))
+        return 0
+    except ReplayError as exc:
+        return error(exc)
+    except KeyboardInterrupt:
+        return 130
+
+
+def _main_live(args, ros_args, warn, error) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    try:
+        rclpy.init(args=['ponytail_replay'] + ros_args)
+    except Exception as exc:  # noqa: BLE001 - malformed --ros-args
+        return error(f'cannot start: {exc}')
+    try:
+        n = live_replay(args.inputs[0], head_topic=args.head_topic, rate=args.rate,
+                        clock=not args.no_clock, clock_hz=args.clock_rate,
+                        restamp=args.restamp, loop=args.loop, warn=warn)
+        if not args.quiet:
+            print(f'published {n} head poses from {args.inputs[0]}')
+        return 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    except ReplayError as exc:
+        return error(exc)
+    except Exception:
+        if rclpy.ok():
+            raise
+        return 0  # shut down by a signal in the middle of a publish
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
