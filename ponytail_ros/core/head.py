@@ -166,8 +166,12 @@ class AnchorTrack:
     acceleration at both frames, so the solver sees a C²-continuous anchor whatever the frame
     rate (this is what makes the result independent of it). The anchor body's orientation is
     slerped and its angular velocity interpolated linearly: they enter only damping and
-    stiffness of the first joint. Outside ``[t0, t1]`` the polynomial extrapolates (the
-    fixed-step accumulator strays at most one internal step outside).
+    stiffness of the first joint.
+
+    Outside ``[t0, t1]`` (the fixed-step accumulator strays up to one internal step before
+    ``t0``) the point follows the 2nd-order Taylor expansion from the nearer end,
+    p + v τ + ½ a τ²: C²-continuous with the quintic there and bounded however short the
+    interval is (a quintic extrapolated to s = -dt/h blows up as frames get close together).
     """
 
     def __init__(self, t0, a0, t1, a1):
@@ -179,10 +183,17 @@ class AnchorTrack:
 
     def at(self, t):
         s = (t - self.t0) / self.h
-        c0, c1, c2, c3, c4, c5 = self.c
-        p = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
-        dp = (c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))) / self.h
-        ddp = (2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))) / (self.h * self.h)
+        if 0.0 <= s <= 1.0:
+            c0, c1, c2, c3, c4, c5 = self.c
+            p = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
+            dp = (c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))) / self.h
+            ddp = (2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))) / (self.h * self.h)
+        else:
+            end = self.a0 if s < 0.0 else self.a1
+            tau = t - (self.t0 if s < 0.0 else self.t0 + self.h)
+            p = end.position + tau * (end.velocity + 0.5 * tau * end.acceleration)
+            dp = end.velocity + tau * end.acceleration
+            ddp = end.acceleration
         sc = min(max(s, 0.0), 1.0)
         return AnchorKinematics(
             position=p, velocity=dp, acceleration=ddp,
