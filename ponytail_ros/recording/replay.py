@@ -54,7 +54,7 @@ from ponytail_ros.ros.parameters import (ParameterError, build_runner_settings,
 from ponytail_ros.ros.runner import DROP_REASONS, RESET_REASONS, ChainRunner
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
-from .params import resolve_values, unknown_names, values_from_metadata
+from .params import IGNORED_NAMES, resolve_values, unknown_names, values_from_metadata
 from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns)
 
 __all__ = ['main', 'replay', 'ReplayError', 'ReplayResult', 'ReplayInput', 'compare',
@@ -518,7 +518,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     else:
         layout = RunLayout.for_node(inp.node, chains, head_topic=inp.head_topic)
     recorded_all = values_from_metadata(inp.recorded_parameters or {})
-    parameters = {'use_sim_time': bool(recorded_all.get('use_sim_time', False)), **values,
+    # The node's other parameters (use_sim_time, ...) as recorded; ours as replayed.
+    parameters = {**{k: v for k, v in recorded_all.items() if k in IGNORED_NAMES}, **values,
                   'record_path': str(output_path)}
     try:
         recorder = RunRecorder(

@@ -14,6 +14,8 @@ Topics (all relative, so a namespace per character scales out; no global state):
   (or parameter ``frame_id``), ``header.stamp`` = the tick time (node clock);
 * publishes ``segment_markers`` (``visualization_msgs/MarkerArray``, reliable, depth 10) at up to
   ``markers.rate``: capsules or line strip + spheres (``markers.style``), one namespace per chain;
+* records the run when ``record_path`` is set (``ponytail_ros/recording/recorder.py``: head
+  input, outputs, parameter changes, parameters in effect; replay it with ``ponytail_replay``);
 * publishes ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every
   ``diagnostics_period`` s of wall time): one status named ``ponytail: <node FQN>`` with the
   solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state.
@@ -161,6 +163,17 @@ class PonytailNode(Node):
         self.add_pre_set_parameters_callback(self._pre_set_parameters)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
+        # Recording (record_path): the publishers are wrapped to record what they publish.
+        self._recorder = None
+        if self._values['record_path']:
+            from ponytail_ros.recording.recorder import RunRecorder
+            self._recorder = RunRecorder.for_node(
+                self, self._values['record_path'], self._chains, self._head_sub,
+                self._pose_pubs, self._marker_pub, self._diag_pub)
+        if self._recorder is not None:
+            self._pose_pubs = [self._recorder.recording(p) for p in self._pose_pubs]
+            self._marker_pub = self._recorder.recording(self._marker_pub)
+            self._diag_pub = self._recorder.recording(self._diag_pub)
         self.get_logger().info(
             f'Simulating {len(self._chains)} chain(s) {self._chains} '
             f'({self._scene.n_segments} segments) at {self._values["rate"]:g} Hz; '
@@ -217,6 +230,8 @@ class PonytailNode(Node):
         if not changed:
             return
         self._values.update(changed)
+        if self._recorder is not None:
+            self._recorder.parameters_changed(changed, self.get_clock().now().nanoseconds)
         scene = check_values(self._values, self._chains)
         if scene != self._scene:
             self.runner.set_scene(scene)
@@ -237,9 +252,12 @@ class PonytailNode(Node):
 
     # -- input -----------------------------------------------------------------------------
     def _on_head_pose(self, msg):
+        now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
+        if self._recorder is not None:
+            self._recorder.head(msg, now_ns)
         st = msg.header.stamp
         if self._stamp_source == 'receive' or (st.sec == 0 and st.nanosec == 0):
-            t = self.get_clock().now().nanoseconds * 1e-9
+            t = now_ns * 1e-9
         else:
             t = st.sec + st.nanosec * 1e-9
         p, q = msg.pose.position, msg.pose.orientation
@@ -429,6 +447,13 @@ class PonytailNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self._diag_pub.publish(msg)
+
+    def destroy_node(self):
+        """Finalise the recording (if any), then destroy the node."""
+        recorder, self._recorder = getattr(self, '_recorder', None), None
+        if recorder is not None:
+            recorder.close()
+        return super().destroy_node()
 
 
 def main(args=None):

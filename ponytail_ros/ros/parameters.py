@@ -15,7 +15,7 @@ Live or not (``ParamDef.live``):
   direction, every ``solver.*``): the simulator is rebuilt from the new scene at rest at the
   current head pose on the next tick (a reset with reason ``'rebuild'``);
 * read-only (fixed at start-up): ``chains`` (it decides the topics), ``stamp_source``,
-  ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``.
+  ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``, ``record_path``.
 
 This module does not import rclpy (the descriptors are built by the node).
 """
@@ -119,6 +119,10 @@ GLOBAL_PARAMS = (
     ParamDef('input_queue_size', 256, 'int', 'Head poses buffered between ticks; beyond it the '
              'oldest are dropped (queue_overflow): bounded work per tick.', 1, 100000,
              live=False),
+    ParamDef('record_path', '', 'string', 'Record the run to this MCAP file (rosbag2 layout: '
+             'head input, outputs, diagnostics, parameters; replay with ponytail_replay). "" = '
+             'off. Never overwrites a file (error logged, the simulation goes on); strftime % '
+             'codes give one file per run, e.g. runs/ponytail_%Y%m%d_%H%M%S.mcap.', live=False),
     ParamDef('diagnostics_period', 1.0, 'double', 'Period of /diagnostics, s (steady clock).',
              0.05, 60.0, live=False),
     ParamDef('markers.style', 'capsules', 'string', 'segment_markers: capsules (cylinder + '
