@@ -1,17 +1,25 @@
-"""Zeroing the alignment padding of CDR data serialised by rclpy.
+"""Canonical CDR bytes from rclpy: alignment padding zeroed, trailing slack cut.
 
-``rclpy.serialization.serialize_message`` (Fast CDR) skips alignment gaps without writing them,
-so they hold whatever the heap held: two serialisations of equal messages can differ in those
-bytes (and leak a little process memory into a file). :func:`zero_padding` walks the data with
-the message type's layout (field order, sizes, string lengths and sequence counts read from the
-data itself) and zeroes every alignment gap, so equal messages give equal bytes.
+``rclpy.serialization.serialize_message`` (rmw_fastrtps, Fast CDR) has two quirks:
+
+* alignment gaps are skipped without being written, so they hold whatever the heap held: two
+  serialisations of equal messages can differ in those bytes (and leak a little process memory
+  into a file);
+* the returned length is the RMW's *estimate* of the serialised size, not the size written: for
+  some types (``rcl_interfaces/msg/ParameterEvent``, whose values hold empty sequences) the data
+  ends with several bytes of slack, and readers that check the length (``rosbags``: "CDR
+  message size mismatch") reject it.
+
+:func:`zero_padding` walks the data with the message type's layout (field order, sizes, string
+lengths and sequence counts read from the data itself), zeroes every alignment gap and cuts the
+data after its last field, padded with zeros to a multiple of 4 bytes as on the wire: equal
+messages give equal bytes that every CDR reader accepts.
 
 Layout: plain CDR (XCDR1) as ROS 2 uses it -- a 4-byte encapsulation header, then the fields in
 order, each primitive aligned to its size (relative to the end of the header), strings and
 sequences as a ``uint32`` length (strings counting their terminating NUL) followed by the
-elements. The buffer rclpy returns is sized by an estimate: bytes after the end of the data are
-slack and are zeroed too. Types this module does not know (wide strings) leave the data
-untouched, as does data that does not match the type (a count or length running past the end).
+elements. Types this module does not know (wide strings) leave the data untouched, as does data
+that does not match the type (a count or length running past the end).
 """
 from __future__ import annotations
 
@@ -122,8 +130,9 @@ def _walk(ops: tuple, data: bytearray, off: int) -> int:
 
 
 def zero_padding(data: bytes, msg_class) -> bytes:
-    """``data`` (CDR of a ``msg_class`` message) with every alignment gap zeroed; unchanged if
-    the type is not supported or the data does not match it."""
+    """``data`` (CDR of a ``msg_class`` message) with every alignment gap zeroed and cut after
+    its last field (+ zeros to a multiple of 4 bytes); unchanged if the type is not supported
+    or the data does not match it."""
     try:
         ops = _ops_of_class(msg_class)
         out = bytearray(data)
@@ -132,13 +141,14 @@ def zero_padding(data: bytes, msg_class) -> bytes:
         return data
     if end > len(data) or len(out) != len(data):
         return data  # counts or lengths that do not fit: not data of this type
-    # The RMW sizes the buffer by an estimate: bytes past the end of the data are slack.
-    out[end:] = bytes(len(out) - end)
-    return bytes(out)
+    # The RMW reports its size estimate as the length: bytes past the last field are slack.
+    padded = end + (-(end - _HEADER)) % 4
+    del out[end:]
+    return bytes(out) + bytes(padded - end)
 
 
 def serialize_canonical(msg) -> bytes:
-    """``serialize_message(msg)`` with zeroed padding: equal messages, equal bytes."""
+    """``serialize_message(msg)`` made canonical (:func:`zero_padding`)."""
     from rclpy.serialization import serialize_message
     return zero_padding(serialize_message(msg), type(msg))
 

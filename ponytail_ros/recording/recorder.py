@@ -157,9 +157,10 @@ class RunRecorder:
         qos: topic -> the publisher's ``QoSProfile`` (defaults: depth 10, reliable).
         info: extra entries for the ``ponytail_ros/recording`` metadata (str -> str).
         on_error: called once with a message when recording stops on an I/O error.
-        canonical: zero the CDR alignment padding (``cdr.zero_padding``) so that equal
-            messages are equal bytes (replay determinism; costs ~50 % more serialisation
-            time, so the live node does without).
+        canonical: write canonical CDR (``cdr.zero_padding``: alignment gaps zeroed, the
+            slack rclpy leaves after the data cut): equal messages are equal bytes and readers
+            that check the length (rosbags) accept every type. On by default; off writes
+            ``serialize_message``'s bytes as they are.
         overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
 
     Raises:
@@ -171,7 +172,7 @@ class RunRecorder:
                  qos: Optional[Mapping[str, QoSProfile]] = None,
                  info: Optional[Mapping[str, str]] = None,
                  on_error: Optional[Callable[[str], None]] = None,
-                 canonical: bool = False, overwrite: bool = False, chunk_size: int = 64 * 1024,
+                 canonical: bool = True, overwrite: bool = False, chunk_size: int = 64 * 1024,
                  chunk_duration_ns: int = 500_000_000):
         path = Path(path)
         if path.is_dir():

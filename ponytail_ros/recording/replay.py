@@ -524,7 +524,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     try:
         recorder = RunRecorder(
             output_path, layout, parameters, head_type=inp.head_type, overwrite=overwrite,
-            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, canonical=True,
+            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS,
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
                   'parameters_from': result.parameters_from})
     except BagError as exc:

@@ -1,0 +1,375 @@
+"""Recording a real node run (``record_path``): what is in the file, read back with our reader and
+with ``rosbags`` (with the schemas in the file and with its own Kilted type store); never
+overwriting; and durability -- a SIGKILLed node leaves every message of its written chunks
+readable, SIGTERM/SIGINT finalise the file.
+
+The in-process run (node + test publisher/subscribers in one executor, on this test run's own
+ROS domain) is shared with ``test_replay.py`` through :func:`live_recording` (made once per
+pytest process).
+"""
+import io
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
+from mcap.exceptions import EndOfFile  # noqa: E402
+from mcap.reader import make_reader  # noqa: E402
+from mcap.records import Chunk, Message  # noqa: E402
+from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+import yaml  # noqa: E402
+
+from conftest import TEST_DOMAIN_ID  # noqa: E402
+from test_bag import plain  # noqa: E402
+from test_node import TIMEOUT_SCALE, overrides, pose_msg  # noqa: E402
+from ponytail_ros.core.rotations import quat_from_rotvec  # noqa: E402
+from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
+from ponytail_ros.recording.params import values_from_metadata  # noqa: E402
+from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
+from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / 'config' / 'ponytail.yaml'
+P_HEAD = np.array([1.0, -2.0, 1.5])
+#: Head samples (counted from the node's first output) sent with NaN / with a zero stamp.
+NAN_SAMPLE, ZERO_STAMP_SAMPLE = 20, 40
+#: Live parameter changes of the recorded run: (wall s after the first tick, {name: value}).
+CHANGES = ((0.6, {'ponytail.damping': 0.01}), (1.2, {'ponytail.n_segments': 8}))
+RUN_SECONDS = 2.0
+TYPES = {
+    '/head_pose': 'geometry_msgs/msg/PoseStamped',
+    '/segment_poses': 'geometry_msgs/msg/PoseArray',
+    '/segment_markers': 'visualization_msgs/msg/MarkerArray',
+    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+    '/parameter_events': 'rcl_interfaces/msg/ParameterEvent',
+}
+
+
+def head_at(t):
+    """A swaying, turning head (m, quaternion)."""
+    w = 2.0 * math.pi * 1.5
+    p = P_HEAD + np.array([0.12 * math.sin(w * t), 0.04 * math.cos(w * t),
+                           0.02 * math.sin(2 * w * t)])
+    q = quat_from_rotvec(np.array([0.2, -0.1, 0.8 + 0.3 * math.sin(w * t)]))
+    return p, q
+
+
+_LIVE = {}
+
+
+def live_recording(tmp_root):
+    """Run the node in-process for ~2 s with ``record_path`` set, a moving head published at
+    100 Hz (one NaN sample, one zero stamp), a live tunable and a live structural parameter
+    change; return what was sent and received and the recording's path. Made once."""
+    if 'run' in _LIVE:
+        return _LIVE['run']
+    path = Path(tmp_root) / 'live_run.mcap'
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=TEST_DOMAIN_ID)
+    try:
+        node = PonytailNode(context=ctx, parameter_overrides=overrides(
+            record_path=str(path), diagnostics_period=0.2))
+        tester = rclpy.create_node('tester', context=ctx)
+        head_pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
+        got = SimpleNamespace(path=path, sent=[], poses=[], markers=[], diags=[], first=10**9)
+        tester.create_subscription(PoseArray, 'segment_poses', got.poses.append, 100)
+        tester.create_subscription(MarkerArray, 'segment_markers', got.markers.append, 100)
+        tester.create_subscription(DiagnosticArray, '/diagnostics', got.diags.append, 100)
+
+        def publish_head():
+            t = tester.get_clock().now().nanoseconds * 1e-9
+            p, q = head_at(t)
+            k = len(got.sent) - got.first
+            if k == NAN_SAMPLE:
+                p = np.array([math.nan, 0.0, 0.0])
+            msg = pose_msg(t, p, q, 'world')
+            if k == ZERO_STAMP_SAMPLE:
+                msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
+            head_pub.publish(msg)
+            got.sent.append(msg)
+        tester.create_timer(0.01, publish_head)
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        executor.add_node(tester)
+        deadline = time.monotonic() + 10.0 * TIMEOUT_SCALE
+        while not got.poses and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.005)
+        assert got.poses, 'the node published nothing'
+        got.first = len(got.sent)
+        start = time.monotonic()
+        pending = list(CHANGES)
+        while time.monotonic() - start < RUN_SECONDS:
+            executor.spin_once(timeout_sec=0.005)
+            if pending and time.monotonic() - start >= pending[0][0]:
+                _, change = pending.pop(0)
+                results = node.set_parameters([Parameter(k, value=v) for k, v in change.items()])
+                assert all(r.successful for r in results)
+        names = node.list_parameters([], 0).names
+        got.parameters = {p.name: p.value for p in node.get_parameters(names)}
+        executor.shutdown()
+        node.destroy_node()          # finalises the recording
+        tester.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    _LIVE['run'] = got
+    return got
+
+
+@pytest.fixture
+def live_run(tmp_path_factory):
+    return live_recording(tmp_path_factory.getbasetemp())
+
+
+def by_topic(path):
+    out = {}
+    for topic, _, msg, log_ns in BagReader(path).messages():
+        out.setdefault(topic, []).append((msg, log_ns))
+    return out
+
+
+# -- what is recorded --------------------------------------------------------------------------
+
+def test_node_recording_holds_what_the_node_published_and_received(live_run):
+    reader = BagReader(live_run.path)
+    assert reader.topics() == TYPES
+    rec = by_topic(live_run.path)
+
+    # Head input as received: an in-order subsequence of what was sent (best effort may drop);
+    # compared by repr, as a NaN field is never == itself.
+    sent = iter(repr(m) for m in live_run.sent)
+    heads = [m for m, _ in rec['/head_pose']]
+    assert all(any(repr(h) == s for s in sent) for h in heads)
+    assert len(heads) >= 0.8 * len(live_run.sent) - 5
+    assert any(math.isnan(h.pose.position.x) for h in heads)
+    assert any(h.header.stamp.sec == 0 for h in heads)
+
+    # Outputs: every message the subscriber got is in the recording, equal in every field.
+    recorded = {stamp_ns(m.header.stamp): m for m, _ in rec['/segment_poses']}
+    assert len(recorded) == len(rec['/segment_poses'])      # one PoseArray per tick
+    assert live_run.poses and all(recorded[stamp_ns(m.header.stamp)] == m
+                                  for m in live_run.poses)
+    assert {len(m.poses) for m in recorded.values()} == {6, 8}   # the live rebuild
+    markers = [m for m, _ in rec['/segment_markers']]
+    assert live_run.markers and all(m in markers for m in live_run.markers)
+    diags = [m for m, _ in rec['/diagnostics']]
+    assert live_run.diags and all(m in diags for m in live_run.diags)
+
+    # Live parameter changes, in order, at their times.
+    events = rec['/parameter_events']
+    assert [(e.node, [(p.name, Parameter.from_parameter_msg(p).value)
+                      for p in e.changed_parameters]) for e, _ in events] == [
+        ('/ponytail', list(change.items())) for _, change in CHANGES]
+
+    # Every parameter of the node at start-up (the changes above came later).
+    meta = reader.metadata()
+    values = values_from_metadata(meta[PARAMETERS_METADATA])
+    expected = {k: (list(v) if isinstance(v, (list, tuple)) or hasattr(v, 'tolist') else v)
+                for k, v in live_run.parameters.items()}
+    expected.update({'ponytail.damping': 1e-3, 'ponytail.n_segments': 6})
+    assert values == expected
+    assert meta[RECORDING_METADATA]['source'] == 'ponytail_node'
+    assert meta[RECORDING_METADATA]['tick_topic'] == '/segment_poses'
+    bag = yaml.safe_load(meta['rosbag2']['serialized_metadata'])
+    assert bag['message_count'] == sum(len(v) for v in rec.values())
+
+
+def test_log_time_is_the_node_clock_receive_time_and_publish_time_the_stamp(live_run):
+    with open(live_run.path, 'rb') as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            if channel.topic == '/segment_poses':
+                stamp = int.from_bytes(message.data[4:8], 'little') * 10**9 + \
+                    int.from_bytes(message.data[8:12], 'little')
+                assert message.publish_time == stamp <= message.log_time
+                assert message.log_time - stamp < 0.5e9       # published right after the tick
+            elif channel.topic == '/head_pose':
+                stamp = int.from_bytes(message.data[4:8], 'little') * 10**9 + \
+                    int.from_bytes(message.data[8:12], 'little')
+                if stamp:                                      # received after it was sent
+                    assert message.publish_time == stamp <= message.log_time
+
+
+def test_rosbags_decodes_the_node_recording_with_and_without_a_typestore(live_run):
+    highlevel = pytest.importorskip('rosbags.highlevel')
+    typesys = pytest.importorskip('rosbags.typesys')
+    ours = {t: sorted(((log_ns, plain(m)) for m, log_ns in v), key=lambda x: x[0])
+            for t, v in by_topic(live_run.path).items()}
+    store = typesys.get_typestore(getattr(typesys.Stores, 'ROS2_KILTED', typesys.Stores.LATEST))
+    for kwargs in ({}, {'default_typestore': store}):
+        with highlevel.AnyReader([live_run.path], **kwargs) as reader:
+            assert {c.topic: c.msgtype for c in reader.connections} == TYPES
+            theirs = {}
+            for c, log_ns, raw in reader.messages():
+                msg = (store.deserialize_cdr(raw, c.msgtype) if kwargs
+                       else reader.deserialize(raw, c.msgtype))
+                theirs.setdefault(c.topic, []).append((log_ns, plain(msg)))
+        assert repr(theirs) == repr(ours)      # repr: NaN fields compare equal
+
+
+# -- never overwritten, clear errors ------------------------------------------------------------
+
+def test_existing_file_kept_unwritable_path_reported_and_the_simulation_goes_on(
+        ros_context, tmp_path, capfd):
+    existing = tmp_path / 'exists.mcap'
+    existing.write_bytes(b'precious')
+    paths = {'a': str(existing), 'b': str(tmp_path / 'missing' / 'run.mcap'),
+             'c': str(tmp_path / 'run_%Y.mcap')}
+    nodes = {ns: PonytailNode(context=ros_context, namespace=ns,
+                              parameter_overrides=overrides(record_path=path))
+             for ns, path in paths.items()}
+    tester = rclpy.create_node('tester', context=ros_context)
+    pubs = {ns: tester.create_publisher(PoseStamped, f'/{ns}/head_pose', 10) for ns in nodes}
+    got = {ns: [] for ns in nodes}
+    for ns in nodes:
+        tester.create_subscription(PoseArray, f'/{ns}/segment_poses', got[ns].append, 10)
+    tester.create_timer(0.01, lambda: [p.publish(pose_msg(
+        tester.get_clock().now().nanoseconds * 1e-9, P_HEAD)) for p in pubs.values()])
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (*nodes.values(), tester):
+        executor.add_node(n)
+    try:
+        deadline = time.monotonic() + 10.0 * TIMEOUT_SCALE
+        while time.monotonic() < deadline and min(len(v) for v in got.values()) < 5:
+            executor.spin_once(timeout_sec=0.005)
+        assert min(len(v) for v in got.values()) >= 5    # all three simulate
+    finally:
+        executor.shutdown()
+        for n in (*nodes.values(), tester):
+            n.destroy_node()
+    assert existing.read_bytes() == b'precious'
+    log = ''.join(capfd.readouterr())
+    assert f'Not recording: {existing} already exists' in log
+    assert f'folder {tmp_path / "missing"} does not exist' in log
+    assert log.count('the simulation goes on without recording') == 2
+    dated = tmp_path / time.strftime('run_%Y.mcap')
+    assert len(list(BagReader(dated).messages('/c/segment_poses'))) >= 5
+
+
+# -- durability: SIGKILL, SIGTERM, SIGINT --------------------------------------------------------
+
+class _WholeReads:
+    def __init__(self, f):
+        self.f = f
+
+    def read(self, n=-1):
+        data = self.f.read(n)
+        return data if n < 0 or len(data) == n else b''
+
+
+def messages_in_complete_chunks(path):
+    """Messages in every chunk fully written (CRC checked), read independently of BagReader."""
+    n = 0
+    reader = StreamReader(_WholeReads(io.BytesIO(Path(path).read_bytes())), emit_chunks=True)
+    try:
+        for record in reader.records:
+            if isinstance(record, Chunk):
+                n += sum(isinstance(r, Message) for r in breakup_chunk(record, validate_crc=True))
+            elif isinstance(record, Message):
+                n += 1
+    except EndOfFile:
+        pass
+    return n
+
+
+def child_env():
+    env = dict(os.environ)
+    env['PYTHONPATH'] = str(ROOT) + os.pathsep + env.get('PYTHONPATH', '')
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_context, tmp_path):
+    files = {ns: tmp_path / f'{ns}.mcap' for ns in ('kill', 'term', 'int')}
+    procs = {ns: subprocess.Popen(
+        [sys.executable, '-m', 'ponytail_ros.ros.node', '--ros-args', '--params-file',
+         str(CONFIG), '-r', f'__ns:=/{ns}', '-p', f'record_path:={path}',
+         # a light chain: three nodes share a (possibly loaded) test machine
+         '-p', 'ponytail.n_segments:=4', '-p', 'markers.style:=line'],
+        env=child_env(), cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True) for ns, path in files.items()}
+    try:
+        node = rclpy.create_node('driver', context=ros_context)
+        pubs = {ns: node.create_publisher(PoseStamped, f'/{ns}/head_pose', 10) for ns in files}
+        got = {ns: [] for ns in files}
+        for ns in files:
+            node.create_subscription(PoseArray, f'/{ns}/segment_poses',
+                                     lambda m, ns=ns: got[ns].append(stamp_ns(m.header.stamp)),
+                                     100)
+
+        def publish():
+            t = node.get_clock().now().nanoseconds * 1e-9
+            p, q = head_at(t)
+            for pub in pubs.values():
+                pub.publish(pose_msg(t, p, q, 'world'))
+        node.create_timer(0.01, publish)
+        executor = SingleThreadedExecutor(context=ros_context)
+        executor.add_node(node)
+        # Run until every node has published for 1.5 s (several chunks written).
+        deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
+
+        def ran():
+            return all(v and v[-1] - v[0] >= 1_500_000_000 for v in got.values())
+        while time.monotonic() < deadline and not ran():
+            executor.spin_once(timeout_sec=0.005)
+            for ns, p in procs.items():
+                assert p.poll() is None, (ns, p.communicate())
+        assert ran()
+        for ns, sig in (('kill', signal.SIGKILL), ('term', signal.SIGTERM),
+                        ('int', signal.SIGINT)):
+            procs[ns].send_signal(sig)
+        results = {ns: p.communicate(timeout=20) for ns, p in procs.items()}
+        executor.shutdown()
+        node.destroy_node()
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+
+    # SIGKILL: no summary, but every message of every complete chunk is there and decodes,
+    # and nothing older than the documented bound (0.5 s of log time, + 0.5 s for a loaded
+    # machine's writer queue) is lost.
+    assert procs['kill'].returncode == -signal.SIGKILL
+    killed = files['kill']
+    with open(killed, 'rb') as f:
+        assert f.read()[-8:] != b'\x89MCAP0\r\n'          # not finalised
+    recovered = list(BagReader(killed).messages())       # every message deserialises
+    assert len(recovered) == messages_in_complete_chunks(killed) > 0
+    ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in recovered if t == '/kill/segment_poses'}
+    last_seen = max(got['kill'])
+    assert {s for s in got['kill'] if s <= last_seen - 1_000_000_000} <= ticks
+    assert PARAMETERS_METADATA in BagReader(killed).metadata()
+
+    # SIGTERM / SIGINT: clean exit, finalised file (summary, final rosbag2 metadata), every
+    # tick the subscriber saw is recorded.
+    for ns in ('term', 'int'):
+        out, err = results[ns]
+        assert procs[ns].returncode == 0, err
+        assert 'Traceback' not in err, err
+        with open(files[ns], 'rb') as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None
+        messages = list(BagReader(files[ns]).messages())
+        assert summary.statistics.message_count == len(messages)
+        bag = yaml.safe_load(BagReader(files[ns]).metadata()['rosbag2']['serialized_metadata'])
+        assert bag['message_count'] == len(messages)
+        ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in messages
+                 if t == f'/{ns}/segment_poses'}
+        assert set(got[ns]) <= ticks
