@@ -50,9 +50,10 @@ CONFIG = ROOT / 'config' / 'ponytail.yaml'
 P_HEAD = np.array([1.0, -2.0, 1.5])
 #: Head samples (counted from the node's first output) sent with NaN / with a zero stamp.
 NAN_SAMPLE, ZERO_STAMP_SAMPLE = 20, 40
-#: Live parameter changes of the recorded run: (wall s after the first tick, {name: value}).
-CHANGES = ((0.6, {'ponytail.damping': 0.01}), (1.2, {'ponytail.n_segments': 8}))
-RUN_SECONDS = 2.0
+#: Live parameter changes of the recorded run: (after this many ticks, {name: value}).
+CHANGES = ((50, {'ponytail.damping': 0.01}), (100, {'ponytail.n_segments': 8}))
+#: Ticks recorded (1.25 s at 120 Hz; counted, not timed, so that a loaded machine gets as many).
+RUN_TICKS = 150
 TYPES = {
     '/head_pose': 'geometry_msgs/msg/PoseStamped',
     '/segment_poses': 'geometry_msgs/msg/PoseArray',
@@ -75,17 +76,19 @@ _LIVE = {}
 
 
 def live_recording(tmp_root):
-    """Run the node in-process for ~2 s with ``record_path`` set, a moving head published at
-    100 Hz (one NaN sample, one zero stamp), a live tunable and a live structural parameter
-    change; return what was sent and received and the recording's path. Made once."""
+    """Run the node in-process with ``record_path`` set for ``RUN_TICKS`` ticks, a moving head
+    published at 100 Hz (one NaN sample, one zero stamp), a live tunable and a live structural
+    parameter change; return what was sent and received and the recording's path. Made once."""
     if 'run' in _LIVE:
         return _LIVE['run']
     path = Path(tmp_root) / 'live_run.mcap'
     ctx = Context()
     rclpy.init(context=ctx, domain_id=TEST_DOMAIN_ID)
     try:
+        # One RK4 step per tick (dt = 1/rate): a loaded machine's late ticks then cost few
+        # steps, so the run cannot fall further and further behind.
         node = PonytailNode(context=ctx, parameter_overrides=overrides(
-            record_path=str(path), diagnostics_period=0.2))
+            record_path=str(path), diagnostics_period=0.2, solver__dt=1.0 / 120.0))
         tester = rclpy.create_node('tester', context=ctx)
         head_pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
         got = SimpleNamespace(path=path, sent=[], poses=[], markers=[], diags=[], first=10**9)
@@ -113,11 +116,11 @@ def live_recording(tmp_root):
             executor.spin_once(timeout_sec=0.005)
         assert got.poses, 'the node published nothing'
         got.first = len(got.sent)
-        start = time.monotonic()
         pending = list(CHANGES)
-        while time.monotonic() - start < RUN_SECONDS:
+        deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
+        while len(got.poses) < RUN_TICKS and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.005)
-            if pending and time.monotonic() - start >= pending[0][0]:
+            if pending and len(got.poses) >= pending[0][0]:
                 _, change = pending.pop(0)
                 results = node.set_parameters([Parameter(k, value=v) for k, v in change.items()])
                 assert all(r.successful for r in results)

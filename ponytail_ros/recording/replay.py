@@ -624,7 +624,6 @@ class ChainRun:
     topic: str
     stamps: np.ndarray
     tips: np.ndarray
-    segment_length: float
     length_from: str
 
 
@@ -643,13 +642,6 @@ class ChainComparison:
     distance: np.ndarray
     tip_a: np.ndarray
     tip_b: np.ndarray
-
-
-def _pose_arrays(msgs):
-    o = np.array([[(p.position.x, p.position.y, p.position.z) for p in m.poses] for m in msgs])
-    q = np.array([[(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)
-                   for p in m.poses] for m in msgs])
-    return o, q
 
 
 def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
@@ -704,28 +696,30 @@ def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
     runs = {}
     for name, topic in chains.items():
         ms = [m for m in msgs[topic] if m.poses]
-        if not ms or len({len(m.poses) for m in ms}) != 1:
-            # Segment count changed mid-run: keep the longest stretch with the final count.
-            n = len(ms[-1].poses) if ms else 0
-            ms = [m for m in ms if len(m.poses) == n]
         if not ms:
             continue
-        o, q = _pose_arrays(ms)
-        n = o.shape[1]
         try:
-            seg = float(values[f'{name}.length']) / int(values[f'{name}.n_segments'])
+            length = float(values[f'{name}.length'])
             length_from = 'parameters'
-            if int(values[f'{name}.n_segments']) != n:
-                raise KeyError
-        except (KeyError, TypeError, ValueError, ZeroDivisionError):
-            if n > 1:
-                seg = float(np.median(np.linalg.norm(o[:, -1] - o[:, -2], axis=1)))
-                length_from = 'joint spacing'
+        except (KeyError, TypeError, ValueError):
+            length, length_from = None, 'joint spacing'
+        tips = np.empty((len(ms), 3))
+        for k, m in enumerate(ms):
+            # Per message: the segment count may change during a run (a live rebuild).
+            last = m.poses[-1]
+            o = np.array([last.position.x, last.position.y, last.position.z])
+            q = np.array([last.orientation.x, last.orientation.y, last.orientation.z,
+                          last.orientation.w])
+            if length is not None:
+                seg = length / len(m.poses)
+            elif len(m.poses) > 1:
+                p = m.poses[-2].position
+                seg = float(np.linalg.norm(o - np.array([p.x, p.y, p.z])))
             else:
                 seg, length_from = 0.0, 'unknown (tip = last joint)'
-        tips = o[:, -1] + quat_axis_x(q[:, -1]) * seg
+            tips[k] = o + quat_axis_x(q) * seg
         stamps = np.array([stamp_ns(m.header.stamp) for m in ms], dtype=np.int64)
-        runs[name] = ChainRun(name, topic, stamps, tips, seg, length_from)
+        runs[name] = ChainRun(name, topic, stamps, tips, length_from)
     return runs, values
 
 
