@@ -261,4 +261,4 @@ def test_live_replay_publishes_the_head_poses_and_clock_at_recorded_pace(ros_con
 def test_replay_benchmark_runs(capsys):
     rows = replay_bench.main(['--seconds', '0.25'])
     assert [n for n, _ in rows] == [1, 4]
-    assert 'sim s / wall s' in capsys.readouterr().out
+    assert 'sim s/wall s' in capsys.readouterr().out

@@ -182,6 +182,7 @@ class RunRecorder:
         self._error_reported = False
         self._clock = None  # the node clock of a for_node recorder
         self._canonical = canonical
+        self._closed = False
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
                                  chunk_duration_ns=chunk_duration_ns)
         self.path = self._writer.path
@@ -219,6 +220,8 @@ class RunRecorder:
 
     def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
         """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+        if self._closed:
+            return  # a callback after destroy_node: nothing to record any more
         if self._writer.error is not None:
             self._report_error()
             return
@@ -229,9 +232,9 @@ class RunRecorder:
             else:
                 self._writer.write(topic, msg, log_time_ns, _publish_time(msg, log_time_ns))
         except BagError as exc:
-            # Closed (a callback after destroy_node) or a negative time: never the node's
+            # A negative time, or closed by another thread meanwhile: never the node's
             # problem; reported once like an I/O error.
-            if not self._writer_closed:
+            if not self._closed:
                 self._report_error(str(exc))
 
     def head(self, msg: Any, log_time_ns: int) -> None:
@@ -259,13 +262,10 @@ class RunRecorder:
 
     def close(self) -> None:
         """Finalise the file (idempotent)."""
+        self._closed = True
         self._writer.close()
         if self._writer.error is not None:
             self._report_error()
-
-    @property
-    def _writer_closed(self) -> bool:
-        return self._writer._closed
 
     def _report_error(self, text: Optional[str] = None) -> None:
         if self._error_reported:

@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
+import yaml
 
 from ponytail_ros.ros.parameters import (ParameterError, build_runner_settings,
                                          chain_param_name, check_values)
@@ -124,6 +125,15 @@ class ReplayInput:
         if self.layout and self.layout.pose_topics[0] in self.topics:
             return self.layout.pose_topics[0]
         return None
+
+    def message_count(self, topic: str) -> int:
+        """Messages on ``topic`` by the final rosbag2 metadata (0 if unknown: truncated)."""
+        try:
+            bag = yaml.safe_load(self.metadata['rosbag2']['serialized_metadata'])
+            return next(t['message_count'] for t in bag['topics_with_message_count']
+                        if t['topic_metadata']['name'] == topic)
+        except (KeyError, TypeError, StopIteration, yaml.YAMLError):
+            return 0
 
     def span_ns(self) -> Optional[Tuple[int, int]]:
         """(first, last) log time of a finished file (summary statistics), else None."""
@@ -391,6 +401,8 @@ class ReplayResult:
     first_tick_ns: Optional[int] = None
     last_tick_ns: Optional[int] = None
     wall_seconds: float = 0.0
+    #: CPU time of this process (all threads) during the replay, s.
+    cpu_seconds: float = 0.0
     tick_mode: str = ''
     parameters_from: str = ''
     truncated: bool = False
@@ -457,7 +469,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         ReplayError: bad input or options (one-line message naming the file and topic).
     """
     warn = warn or (lambda text: None)
-    wall0 = time.perf_counter()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
     if ticks not in ('auto', 'recorded', 'nominal'):
         raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
     inp = ReplayInput(input_path, head_topic)
@@ -502,10 +514,15 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     else:
         mode = 'nominal'
     result.tick_mode = mode
-    apply_events = (params_file is None and inp.layout is not None
-                    and inp.layout.parameter_events_topic in inp.topics
-                    and inp.topics[inp.layout.parameter_events_topic]
+    apply_events = (inp.layout is not None
+                    and inp.topics.get(inp.layout.parameter_events_topic)
                     == 'rcl_interfaces/msg/ParameterEvent')
+    if apply_events and params_file is not None:
+        apply_events = False
+        changes = inp.message_count(inp.layout.parameter_events_topic)
+        if changes:
+            warn(f'{inp.path}: its {changes} live parameter change(s) are not applied over '
+                 f'--params')
 
     # The output: the node's layout (the recorded one when the chains are the same).
     chains = tuple(values['chains'])
@@ -588,17 +605,20 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                 next_tick += period_ns
     except BagError as exc:
         recorder.close()
+        output_path.unlink(missing_ok=True)
         raise ReplayError(str(exc)) from None
     finally:
         recorder.close()
     if recorder.error is not None:
         raise ReplayError(f'writing {output_path} failed: {recorder.error}')
     if result.head_samples == 0:
+        output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
     if inp.truncated:
         warn(f'{inp.path}: replayed {result.head_samples} head poses and {result.ticks} ticks '
              f'(all that could be read)')
     result.wall_seconds = time.perf_counter() - wall0
+    result.cpu_seconds = time.process_time() - cpu0
     if progress is not None and result.first_tick_ns is not None and t_start is not None:
         progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
     return result
@@ -898,13 +918,13 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
                 target = wall0 + (log_ns - l0) * 1e-9 / rate
                 while True:
                     now = time.monotonic()
-                    if stop.is_set():
+                    if stop.is_set() or not node.context.ok():
                         return sent
                     if now >= target:
                         break
                     if clock_pub is not None and period is not None:
                         send_clock(offset + min(l0 + int((now - wall0) * rate * 1e9), log_ns))
-                        time.sleep(min(target - now, period * 1e-9 / rate))
+                        time.sleep(min(target - now, period * 1e-9))
                     else:
                         time.sleep(min(target - now, 0.05))
                 send_clock(offset + log_ns)
