@@ -707,24 +707,19 @@ def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
             chains[name] = t
     if not chains:
         raise ReplayError(f'{path} has no segment_poses (geometry_msgs/msg/PoseArray) topic')
-    try:
-        msgs = {t: [] for t in chains.values()}
-        for topic, _, msg, _ in reader.messages(list(chains.values())):
-            msgs[topic].append(msg)
-    except BagError as exc:
-        raise ReplayError(str(exc)) from None
-    runs = {}
+    lengths = {}
     for name, topic in chains.items():
-        ms = [m for m in msgs[topic] if m.poses]
-        if not ms:
-            continue
         try:
-            length = float(values[f'{name}.length'])
-            length_from = 'parameters'
+            lengths[topic] = (name, float(values[f'{name}.length']), 'parameters')
         except (KeyError, TypeError, ValueError):
-            length, length_from = None, 'joint spacing'
-        tips = np.empty((len(ms), 3))
-        for k, m in enumerate(ms):
+            lengths[topic] = (name, None, 'joint spacing')
+    tracks = {t: ([], []) for t in chains.values()}
+    try:
+        # Only the stamp and the tip of each message are kept (hours of run fit in memory).
+        for topic, _, m, _ in reader.messages(list(chains.values())):
+            if not m.poses:
+                continue
+            _, length, _ = lengths[topic]
             # Per message: the segment count may change during a run (a live rebuild).
             last = m.poses[-1]
             o = np.array([last.position.x, last.position.y, last.position.z])
@@ -736,10 +731,18 @@ def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
                 p = m.poses[-2].position
                 seg = float(np.linalg.norm(o - np.array([p.x, p.y, p.z])))
             else:
-                seg, length_from = 0.0, 'unknown (tip = last joint)'
-            tips[k] = o + quat_axis_x(q) * seg
-        stamps = np.array([stamp_ns(m.header.stamp) for m in ms], dtype=np.int64)
-        runs[name] = ChainRun(name, topic, stamps, tips, length_from)
+                seg = 0.0
+                lengths[topic] = (lengths[topic][0], None, 'unknown (tip = last joint)')
+            tracks[topic][0].append(stamp_ns(m.header.stamp))
+            tracks[topic][1].append(o + quat_axis_x(q) * seg)
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    runs = {}
+    for topic, (stamps, tips) in tracks.items():
+        if stamps:
+            name, _, length_from = lengths[topic]
+            runs[name] = ChainRun(name, topic, np.array(stamps, dtype=np.int64),
+                                  np.array(tips), length_from)
     return runs, values
 
 
