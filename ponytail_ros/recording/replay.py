@@ -24,12 +24,27 @@ and the output is written exactly as the node records a run (same topics, types,
   ``1/rate`` s from the first head pose, a head pose counting for a tick if its log time is <=
   the tick time. ``auto`` (default): ``recorded`` if the input has the node's ticks and the
   replay's ``rate`` equals the recorded one, else ``nominal``.
-* Deterministic: the same input and parameters give a byte-identical output file (the output's
-  chunks are cut by size only, never by wall time, and the CDR padding bytes, which rclpy's
-  serialiser leaves uninitialised, are zeroed). Replaying a node's recording with its
-  recorded parameters and ticks reproduces its ``segment_poses`` bit for bit.
+  File order rather than time decides what came before a tick: under ``use_sim_time`` a pose
+  received just after a tick carries the same clock time as the tick.
+* Deterministic: the same input, parameters and output path give a byte-identical output file
+  (the output's chunks are cut by size only, never by wall time, and the CDR is canonical, see
+  ``cdr.py``). Replaying a node's recording with its recorded parameters and ticks reproduces
+  its ``segment_poses`` and ``segment_markers`` bit for bit: ``ReplayNode`` makes exactly the
+  node's ``ChainRunner`` calls with the same floats (it mirrors ``PonytailNode``'s callbacks;
+  ``test_replay.py`` checks the two stay in step).
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
+
+Compare: per chain, the tip (last segment's far end; segment length from the recorded
+parameters, else the joint spacing) of two runs at the same stamps -- or, when the tick times
+differ (a nominal replay of a live run), at the nearest stamps within half a tick -- printed as
+RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
+time and both tips' coordinates.
+
+Live: the head poses are published at the recorded pace (``--rate`` scales it) on the recorded
+head topic, with ``/clock`` from the recorded log times before each pose and at
+``--clock-rate`` Hz in between, for nodes with ``use_sim_time:=true``. For a node on the system
+clock use ``--no-clock --restamp`` (or its ``stamp_source:=receive``).
 
 Exit status: 0 on success, 2 on bad input (one line on stderr naming the file and topic: not an
 MCAP file, no such topic, not a head pose type, invalid parameters), 1 on an unexpected error. A
@@ -885,8 +900,8 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     if inp.truncated:
         warn(f'{inp.path} is truncated; playing what can be read')
     try:
-        samples = [(msg, log_ns) for _, _, msg, log_ns in inp.reader.messages(
-            {inp.head_topic: inp.head_type})]
+        samples = [(msg, log_ns, stamp_ns(msg.header.stamp)) for _, _, msg, log_ns
+                   in inp.reader.messages({inp.head_topic: inp.head_type})]
     except BagError as exc:
         raise ReplayError(str(exc)) from None
     if not samples:
@@ -901,7 +916,7 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
             time.sleep(0.01)
         stop = stop or threading.Event()
         l0 = samples[0][1]
-        duration = max(ns for _, ns in samples) - l0
+        duration = max(ns for _, ns, _ in samples) - l0
         period = int(1e9 / clock_hz) if clock_hz > 0 else None
         offset = 0
         clock_ns = -1
@@ -917,7 +932,7 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
 
         while True:
             wall0 = time.monotonic()
-            for msg, log_ns in samples:
+            for msg, log_ns, recorded_stamp_ns in samples:
                 target = wall0 + (log_ns - l0) * 1e-9 / rate
                 while True:
                     now = time.monotonic()
@@ -934,7 +949,7 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
                 if restamp:
                     msg.header.stamp = node.get_clock().now().to_msg()
                 elif offset:
-                    ns = stamp_ns(msg.header.stamp) + offset
+                    ns = recorded_stamp_ns + offset
                     msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
                 pub.publish(msg)
                 sent += 1
