@@ -11,7 +11,7 @@ the ``rosbags`` library like one recorded by ``ros2 bag record -s mcap``:
 * one channel per topic, message encoding ``cdr``, with the channel metadata
   ``offered_qos_profiles`` (the YAML rosbag2 writes, metadata version 9 policy names) and
   ``topic_type_hash`` (``RIHS01_...``);
-* messages serialised with ``rclpy.serialization.serialize_message``; ``log_time`` and
+* messages serialised with ``rclpy.serialization`` (padding zeroed, see ``cdr``); ``log_time`` and
   ``publish_time`` in ns;
 * a ``rosbag2`` metadata record (``serialized_metadata``: the YAML bag metadata, version 9, plus
   ``ROS_DISTRO``) written when the file is opened and again, with the final counts, when it is
@@ -69,7 +69,9 @@ from mcap.writer import CompressionType, Writer
 from rclpy.qos import (
     QoSDurabilityPolicy, QoSHistoryPolicy, QoSLivelinessPolicy, QoSProfile, QoSReliabilityPolicy,
 )
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import deserialize_message
+
+from ponytail_ros.recording.cdr import serialize_canonical
 
 try:
     from rosidl_runtime_py.utilities import get_message as _get_message
@@ -414,7 +416,9 @@ class BagWriter:
         if type(msg) is not entry.msg_class:
             raise BagError(f'topic {topic!r} records {entry.type_name}, '
                            f'got {type(msg).__module__}.{type(msg).__name__}')
-        self.write_serialized(topic, serialize_message(msg), log_time_ns, publish_time_ns)
+        # Canonical CDR: rclpy leaves padding uninitialised and may append slack bytes that
+        # rosbags rejects (recording/cdr.py).
+        self.write_serialized(topic, serialize_canonical(msg), log_time_ns, publish_time_ns)
 
     def write_serialized(self, topic: str, data: bytes, log_time_ns: int,
                          publish_time_ns: Optional[int] = None) -> None:
