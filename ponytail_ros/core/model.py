@@ -8,6 +8,10 @@ between chains: many chains (a crowd) are solved in one banded factorisation.
 
 Tunable parameters (damping, stiffness, drag, gravity, wind) are arrays that can be changed
 between steps without rebuilding; a term whose coefficients are all zero is skipped entirely.
+
+One-sided constraints: ``swing_limit``/``twist_limit`` per joint (inf: off), ``collide`` per
+segment, and the scene's colliders as arrays (``collider_*``); ``has_colliders`` and
+``has_limits`` tell the simulator whether to run ``collision``/``limits`` at all.
 """
 import numpy as np
 
@@ -63,6 +67,27 @@ class Model:
             self.stiffness[s:e] = c.stiffness
             self.drag_linear[s:e] = c.drag_linear
             self.drag_quadratic[s:e] = c.drag_quadratic
+        # One-sided constraints (off: inf limits, no colliders).
+        self.swing_limit = np.concatenate([c.joint_limits('swing_limit') for c in chains])
+        self.twist_limit = np.concatenate([c.joint_limits('twist_limit') for c in chains])
+        self.collide = np.concatenate([np.full(c.n_segments, bool(c.collide)) for c in chains])
+        cols = scene.colliders
+        self.n_colliders = len(cols)
+        self.collider_kind = np.array([c.kind for c in cols], dtype=object)
+        self.collider_body = np.array([-1 if c.body is None else c.body for c in cols],
+                                      dtype=np.intp)
+        self.collider_center = np.array([c.center for c in cols], dtype=float).reshape(-1, 3)
+        axis = np.array([c.axis for c in cols], dtype=float).reshape(-1, 3)
+        norm = np.linalg.norm(axis, axis=1, keepdims=True)
+        self.collider_axis = axis / np.where(norm > 0.0, norm, 1.0)
+        self.collider_radius = np.array([0.0 if c.kind == 'plane' else c.radius for c in cols])
+        self.collider_half_length = np.array([c.half_length if c.kind == 'capsule' else 0.0
+                                              for c in cols])
+        self.collider_friction = np.array([c.friction for c in cols], dtype=float)
+        self.has_colliders = bool(self.n_colliders and self.collide.any())
+        self.has_limits = bool(np.isfinite(self.swing_limit).any()
+                               or np.isfinite(self.twist_limit).any())
+
         self.gravity = np.array(scene.gravity, dtype=float)
         self.wind = np.array(scene.wind, dtype=float)
         self.dt = scene.solver.dt

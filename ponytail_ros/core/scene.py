@@ -1,8 +1,10 @@
 """Scene description: what is simulated, validated once when it is built.
 
 A scene is a set of chains, each hung from a point fixed in one of ``n_kinematic_bodies``
-kinematic bodies (heads or static anchors), plus world settings (gravity, wind) and the solver
-settings. Everything is SI (m, kg, s, rad), world frame Z up (REP 103).
+kinematic bodies (heads or static anchors), optional colliders (spheres, capsules, planes fixed
+in a kinematic body or in the world) and per-chain joint limits, plus world settings (gravity,
+wind) and the solver settings. A feature a scene leaves out costs nothing. Everything is SI
+(m, kg, s, rad), world frame Z up (REP 103).
 
 Segment frame: origin at the centre of mass, body +X along the segment from its proximal joint
 (towards the anchor) to its distal joint. A solid cylinder of length ``l``, radius ``r``, mass
@@ -16,13 +18,16 @@ import math
 
 import numpy as np
 
-__all__ = ['SceneError', 'ChainSpec', 'SolverSpec', 'Scene', 'cylinder_inertia', 'INTEGRATORS',
-           'LINEAR_SOLVERS', 'DAMPING_METHODS', 'MAX_SEGMENTS']
+__all__ = ['SceneError', 'ChainSpec', 'ColliderSpec', 'SolverSpec', 'Scene', 'cylinder_inertia',
+           'INTEGRATORS', 'LINEAR_SOLVERS', 'DAMPING_METHODS', 'COLLIDER_KINDS', 'MAX_SEGMENTS',
+           'MAX_COLLIDERS']
 
 INTEGRATORS = ('rk4', 'symplectic_euler')
 LINEAR_SOLVERS = ('banded', 'dense')
 DAMPING_METHODS = ('auto', 'explicit', 'implicit')
+COLLIDER_KINDS = ('sphere', 'capsule', 'plane')
 MAX_SEGMENTS = 4096
+MAX_COLLIDERS = 256
 
 
 class SceneError(ValueError):
@@ -58,6 +63,23 @@ def _check_vector(name, value, n=3, max_abs=1e6):
     return arr
 
 
+MAX_LIMIT = 3.1
+
+
+def _check_limit(name, value, n):
+    """A joint limit: ``None``, one angle or ``n`` angles, each in (0, MAX_LIMIT] rad."""
+    if value is None:
+        return
+    allowed = f'None, or one angle or {n} angles (one per joint), each in (0, {MAX_LIMIT}] rad'
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SceneError(name, value, allowed) from None
+    if arr.shape not in ((), (n,)) or not np.all(np.isfinite(arr)) or np.any(arr <= 0.0) \
+            or np.any(arr > MAX_LIMIT):
+        raise SceneError(name, value, allowed)
+
+
 @dataclass(frozen=True)
 class ChainSpec:
     """One chain of ``n_segments`` rigid segments joined end to end by ball joints.
@@ -75,10 +97,21 @@ class ChainSpec:
         attach: attachment point in the anchor body's frame, m.
         rest_direction: direction of a straight chain at rest, in the anchor body's frame; used
             by ``reset`` and as the bending stiffness' rest pose. ``None``: along gravity.
-        damping: joint damping c, N·m·s/rad: torque ``-c (ω_child - ω_parent)`` at every joint.
+        damping: joint damping c, N·m·s/rad: torque ``-c (ω_child - ω_parent)`` at every joint
+            (default 1e-3: hair and rope lose energy at their joints; an undamped chain driven
+            hard pumps energy into fast whip modes until no fixed step can follow them).
         stiffness: bending stiffness k, N·m/rad, towards the straight rest pose at every joint.
         drag_linear: linear air drag per metre of segment, N·s/m².
         drag_quadratic: quadratic air drag per metre of segment, N·s²/m³.
+        swing_limit: cone half-angle θ_max, rad, in (0, 3.1] (or one per joint), or ``None``
+            (off): the angle between a segment's axis and its rest direction relative to its
+            parent (the parent segment's axis; for the first joint the rest direction in the
+            anchor frame, ``rest_direction`` or the hanging direction taken by ``reset``).
+        twist_limit: ±φ_max, rad, in (0, 3.1] (or one per joint), or ``None`` (off): rotation
+            about the segment's own axis relative to its parent's rest frame (swing–twist
+            decomposition).
+        collide: whether the segments collide with the scene's colliders (as capsules of
+            radius ``radius`` along their whole length).
     """
 
     name: str = 'ponytail'
@@ -92,10 +125,13 @@ class ChainSpec:
     anchor_body: int = 0
     attach: tuple = (-0.10, 0.0, 0.05)
     rest_direction: tuple = None
-    damping: float = 0.0
+    damping: float = 1e-3
     stiffness: float = 0.0
     drag_linear: float = 0.0
     drag_quadratic: float = 0.0
+    swing_limit: float = None
+    twist_limit: float = None
+    collide: bool = True
 
     def validate(self, prefix='chain', n_kinematic_bodies=1):
         p = prefix + '.'
@@ -130,7 +166,18 @@ class ChainSpec:
         _check_range(p + 'stiffness', self.stiffness, 0.0, 1e4)
         _check_range(p + 'drag_linear', self.drag_linear, 0.0, 1e3)
         _check_range(p + 'drag_quadratic', self.drag_quadratic, 0.0, 1e3)
+        for name in ('swing_limit', 'twist_limit'):
+            _check_limit(p + name, getattr(self, name), n)
+        if not isinstance(self.collide, (bool, np.bool_)):
+            raise SceneError(p + 'collide', self.collide, 'True or False')
         return self
+
+    def joint_limits(self, name):
+        """``(N,)`` array of a limit (``'swing_limit'``/``'twist_limit'``), rad; inf where off."""
+        val = getattr(self, name)
+        if val is None:
+            return np.full(self.n_segments, np.inf)
+        return np.broadcast_to(np.asarray(val, dtype=float), (self.n_segments,)).copy()
 
     def lengths(self):
         if self.segment_lengths is not None:
@@ -147,6 +194,68 @@ class ChainSpec:
         if self.inertia is not None:
             return np.asarray(self.inertia, dtype=float)
         return cylinder_inertia(self.masses(), self.lengths(), self.radius)
+
+
+@dataclass(frozen=True)
+class ColliderSpec:
+    """A kinematic collider the chains' segments cannot enter (one-sided contact).
+
+    Segments collide as capsules (radius ``ChainSpec.radius``) along their whole length.
+
+    Attributes:
+        kind: ``'sphere'``, ``'capsule'`` or ``'plane'``.
+        body: index of the kinematic body the collider is fixed in (it moves with it), or
+            ``None``: fixed in the world (static).
+        center: sphere/capsule centre, or a point of the plane, m, in that body's frame
+            (world frame when ``body`` is ``None``); each coordinate within ±1000.
+        axis: capsule axis direction, or the plane's normal (pointing to the free side), in
+            that frame; a non-zero vector (normalised). Unused by a sphere.
+        radius: sphere/capsule radius, m, in (0, 100]. Unused by a plane.
+        half_length: half the length of a capsule's core segment, m, in [0, 100]. Unused by
+            spheres and planes.
+        friction: Coulomb friction coefficient μ against the segments, in [0, 10].
+    """
+
+    kind: str = 'sphere'
+    body: int = 0
+    center: tuple = (0.0, 0.0, 0.0)
+    axis: tuple = (0.0, 0.0, 1.0)
+    radius: float = 0.1
+    half_length: float = 0.0
+    friction: float = 0.0
+
+    @classmethod
+    def sphere(cls, center=(0.0, 0.0, 0.0), radius=0.1, body=0, friction=0.0):
+        return cls('sphere', body, tuple(center), (0.0, 0.0, 1.0), radius, 0.0, friction)
+
+    @classmethod
+    def capsule(cls, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), half_length=0.1, radius=0.05,
+                body=0, friction=0.0):
+        return cls('capsule', body, tuple(center), tuple(axis), radius, half_length, friction)
+
+    @classmethod
+    def plane(cls, point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), body=None, friction=0.0):
+        return cls('plane', body, tuple(point), tuple(normal), 0.1, 0.0, friction)
+
+    def validate(self, prefix='collider', n_kinematic_bodies=1):
+        p = prefix + '.'
+        if self.kind not in COLLIDER_KINDS:
+            raise SceneError(p + 'kind', self.kind, f'one of {COLLIDER_KINDS}')
+        if self.body is not None and (
+                not isinstance(self.body, (int, np.integer)) or isinstance(self.body, bool)
+                or not 0 <= self.body < n_kinematic_bodies):
+            raise SceneError(p + 'body', self.body,
+                             f'None (world) or an integer in [0, {n_kinematic_bodies - 1}]')
+        _check_vector(p + 'center', self.center, max_abs=1e3)
+        axis = _check_vector(p + 'axis', self.axis)
+        if self.kind != 'sphere' and np.linalg.norm(axis) < 1e-9:
+            raise SceneError(p + 'axis', self.axis, 'a non-zero vector')
+        if self.kind != 'plane':
+            _check_range(p + 'radius', self.radius, 0.0, 100.0, lo_open=True)
+        if self.kind == 'capsule':
+            _check_range(p + 'half_length', self.half_length, 0.0, 100.0)
+        _check_range(p + 'friction', self.friction, 0.0, 10.0)
+        return self
 
 
 @dataclass(frozen=True)
@@ -218,6 +327,7 @@ class Scene:
         gravity: m/s², world frame.
         wind: velocity of the air, m/s, world frame (drag acts on velocity relative to it).
         solver: a ``SolverSpec``.
+        colliders: ``ColliderSpec``s (at most 256); empty: no collision code runs at all.
     """
 
     chains: tuple = (ChainSpec(),)
@@ -225,9 +335,11 @@ class Scene:
     gravity: tuple = (0.0, 0.0, -9.81)
     wind: tuple = (0.0, 0.0, 0.0)
     solver: SolverSpec = field(default_factory=SolverSpec)
+    colliders: tuple = ()
 
     def __post_init__(self):
         object.__setattr__(self, 'chains', tuple(self.chains))
+        object.__setattr__(self, 'colliders', tuple(self.colliders))
         self.validate()
 
     def validate(self):
@@ -246,6 +358,12 @@ class Scene:
         if not isinstance(self.solver, SolverSpec):
             raise SceneError('solver', self.solver, 'a SolverSpec')
         self.solver.validate()
+        if len(self.colliders) > MAX_COLLIDERS:
+            raise SceneError('colliders', len(self.colliders), f'at most {MAX_COLLIDERS} colliders')
+        for i, c in enumerate(self.colliders):
+            if not isinstance(c, ColliderSpec):
+                raise SceneError(f'colliders[{i}]', c, 'a ColliderSpec')
+            c.validate(f'colliders[{i}]', self.n_kinematic_bodies)
         return self
 
     @property

@@ -4,7 +4,9 @@ Stages of one internal step (as in a physics engine's pipeline):
     1. anchor kinematics at the stage times (exact motion, or interpolated between frames);
     2. applied forces (``forces``), then constraint forces by A f_c = b (``solver``);
     3. integration (``integrators``: RK4 or symplectic Euler);
-    4. stabilisation: positions and velocities put back on the joints (``stabilization``).
+    4. stabilisation: positions and velocities put back on the joints (``stabilization``);
+    5. only if the scene has colliders or joint limits: one-sided constraints at the step's end
+       (``collision``: positions, then inelastic velocities, then friction).
 
 Time: any frame time is advanced in steps of exactly ``solver.dt`` (an accumulator), so the
 result does not depend on the frame rate; the chain's time lags the requested time by less than
@@ -19,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import collision
 from .head import AnchorTrack, HeadMotion, KinematicState
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
@@ -31,6 +34,11 @@ from .stabilization import project_positions, project_velocities
 from .state import ChainState, half_vectors, joint_points
 
 __all__ = ['Simulator', 'StepReport', 'TUNABLE_PARAMETERS']
+
+# Scenes with colliders or joint limits: a step in which a joint turns by more than this
+# (rad, at the start of the step) is split into sub-steps, at most MAX_SUBSTEPS.
+SUBSTEP_ANGLE = 0.25
+MAX_SUBSTEPS = 8
 
 _X = np.array([1.0, 0.0, 0.0])
 
@@ -76,6 +84,11 @@ class Simulator:
                                  (s.baumgarte_stiffness, s.baumgarte_damping))
         self.external = None
         self.total_resets = 0
+        # One-sided constraints: built only when the scene has them (otherwise never touched).
+        m = self.model
+        self.unilateral = (collision.Unilateral(m, self.dynamics, self.dt)
+                           if m.has_colliders or m.has_limits else None)
+        self._needs_bodies = bool(m.has_colliders and np.any(m.collider_body >= 0))
         if head is None:
             head = KinematicState.still(np.zeros((scene.n_kinematic_bodies, 3)))
         if isinstance(head, HeadMotion):
@@ -124,6 +137,10 @@ class Simulator:
         self._last_anchor = (self.t, anchor)
         self._anchor_at = lambda t: anchor          # until a motion or frame says otherwise
         self.dynamics.last_f_c = np.zeros((m.n, 3))
+        if self._needs_bodies:
+            bodies = _body_kinematics(head)
+            self._last_bodies = (self.t, bodies)
+            self._bodies_at = lambda t: bodies
 
     # -- parameters -----------------------------------------------------------------------
     def set_parameters(self, chain=None, **values):
@@ -189,26 +206,57 @@ class Simulator:
 
         ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``).
         """
-        anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
+        if not self._needs_bodies:
+            anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
+            self._anchor_at = anchor_at
+            return self._advance(t_target, anchor_at, motion.state_at)
+        # Colliders fixed in moving bodies: one evaluation of the motion for both.
+        state_at = _memo_last(motion.state_at)
+        anchor_at = _memo_last(lambda t: self.anchors(state_at(t)))
+        bodies_at = _memo_last(lambda t: _body_kinematics(state_at(t)))
         self._anchor_at = anchor_at
-        return self._advance(t_target, anchor_at, motion.state_at)
+        report = self._advance(t_target, anchor_at, motion.state_at, bodies_at)
+        self._bodies_at = bodies_at
+        self._last_bodies = (self.t, bodies_at(self.t))
+        return report
 
-    def advance_frame(self, t_frame, head):
+    def advance_frame(self, t_frame, head, head_prev=None):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
 
         Between the previous frame and this one the anchor follows the quintic Hermite through
-        both frames' attachment-point position, velocity and acceleration (``AnchorTrack``).
+        both ends' attachment-point position, velocity and acceleration (``AnchorTrack``).
+
+        ``head_prev``: the head at the previous frame's time *as the same estimate sees it*.
+        Pass it when frames come from an estimator that refits every frame (pose samples
+        extrapolated or smoothed): a C² track from the old estimate to the new one would have
+        to bridge their disagreement δ within one frame, an acceleration spike ~60 δ / Δt²
+        that pumps energy into the chain. With both ends from one estimate the disagreement
+        only shifts the anchor kinematically at the frame boundary, which the projection
+        absorbs. Default: the end of the previous frame.
         """
         _check_head(head)
         t_prev, a_prev = self._last_anchor
+        if head_prev is not None:
+            _check_head(head_prev)
+            a_prev = self.anchors(head_prev)
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
-        report = self._advance(t_frame, _memo_last(track.at), lambda t: head)
+        if not self._needs_bodies:
+            report = self._advance(t_frame, _memo_last(track.at), lambda t: head)
+        else:
+            # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
+            b_prev = self._last_bodies[1] if head_prev is None else _body_kinematics(head_prev)
+            b_new = _body_kinematics(head)
+            body_track = AnchorTrack(t_prev, b_prev, t_frame, b_new)
+            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+                                   _memo_last(body_track.at))
+            self._bodies_at = body_track.at
+            self._last_bodies = (float(t_frame), b_new)
         self._anchor_at = track.at
         self._last_anchor = (float(t_frame), a_new)
         return report
 
-    def _advance(self, t_target, anchor_at, head_at):
+    def _advance(self, t_target, anchor_at, head_at, bodies_at=None):
         report = StepReport()
         n_target = int(np.floor((t_target - self._t_base) / self.dt + 1e-9))
         n_steps = n_target - self._n_steps
@@ -224,21 +272,23 @@ class Simulator:
         implicit_damping = m.implicit_damping and m.active_terms['damping']
         accel = self._accel_fn(anchor_at)
         try:
-            for _ in range(max(n_steps, 0)):
-                t = self._t_base + self._n_steps * self.dt
-                x, q, v, w = self._step(accel, t, self.dt, x, q, v, w)
-                self._n_steps += 1
-                t1 = self._t_base + self._n_steps * self.dt
-                if implicit_damping:
-                    a1 = anchor_at(t1)
-                    w = self.dynamics.implicit_damping(q, w, a1.angular_velocity, self.dt)
-                    dv, dw = self.dynamics.velocity_correction(x, q, v, w, a1)
-                    v, w = v + dv, w + dw
-                if project:
-                    a1 = anchor_at(t1)
-                    h = half_vectors(m.length, q)
-                    x = project_positions(m, a1.position, h)
-                    v = project_velocities(m, a1.velocity, w, h)
+            if self.unilateral is not None:
+                x, q, v, w = self._steps_unilateral(max(n_steps, 0), accel, anchor_at, bodies_at,
+                                                    x, q, v, w)
+            else:
+                for _ in range(max(n_steps, 0)):
+                    t = self._t_base + self._n_steps * self.dt
+                    x, q, v, w = self._step(accel, t, self.dt, x, q, v, w)
+                    self._n_steps += 1
+                    t1 = self._t_base + self._n_steps * self.dt
+                    if implicit_damping:
+                        a1 = anchor_at(t1)
+                        v, w = self.dynamics.implicit_damping(x, q, v, w, a1, self.dt)
+                    if project:
+                        a1 = anchor_at(t1)
+                        h = half_vectors(m.length, q)
+                        x = project_positions(m, a1.position, h)
+                        v = project_velocities(m, a1.velocity, w, h)
             report.steps = max(n_steps, 0)
         except np.linalg.LinAlgError:
             x = np.full_like(x, np.nan)
@@ -254,6 +304,37 @@ class Simulator:
             self.reset(head_at(self.t))
             report.max_gap = float(np.max(self.joint_gaps(self.anchors(head_at(self.t)))))
         return report
+
+    def _steps_unilateral(self, n_steps, accel, anchor_at, bodies_at, x, q, v, w):
+        """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
+        above, then its contacts and limits are resolved (``collision``). A step in which some
+        joint turns faster than ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is
+        split into up to ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise."""
+        m, dyn, uni = self.model, self.dynamics, self.unilateral
+        project = self.scene.solver.projection
+        implicit_damping = m.implicit_damping and m.active_terms['damping']
+        for _ in range(n_steps):
+            t0 = self._t_base + self._n_steps * self.dt
+            w_rel = w - m.parent_side(anchor_at(t0).angular_velocity, w)
+            rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
+            n_sub = min(MAX_SUBSTEPS, max(1, int(np.ceil(rate * self.dt / SUBSTEP_ANGLE))))
+            h = self.dt / n_sub
+            for k in range(n_sub):
+                t = t0 + k * h
+                x, q, v, w = self._step(accel, t, h, x, q, v, w)
+                t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
+                    self._t_base + (self._n_steps + 1) * self.dt
+                a1 = anchor_at(t1)
+                if implicit_damping:
+                    v, w = dyn.implicit_damping(x, q, v, w, a1, h)
+                if project:
+                    hv = half_vectors(m.length, q)
+                    x = project_positions(m, a1.position, hv)
+                    v = project_velocities(m, a1.velocity, w, hv)
+                pose = uni.pose(bodies_at(t1) if bodies_at else None)
+                x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
+            self._n_steps += 1
+        return x, q, v, w
 
     def _accel_fn(self, anchor_at):
         m, dyn = self.model, self.dynamics
@@ -294,6 +375,28 @@ class Simulator:
         h = half_vectors(m.length, q)
         return ChainState(project_positions(m, anchor.position, h), q,
                           project_velocities(m, anchor.velocity, st.w, h), st.w.copy())
+
+    def contact_depths(self, t=None):
+        """Deepest penetration of every segment into any collider, ``(n,)``, m (≤ 0: clear,
+        -inf: the segment does not collide or the scene has no colliders), as the collision
+        solver measures it (a first segment rooted inside a collider: beyond its root).
+
+        ``t``: of the chain reported at that time (``state_at``); default the last step.
+        """
+        m = self.model
+        if not m.has_colliders:
+            return np.full(m.n, -np.inf)
+        t = self.t if t is None else float(t)
+        state = self.state if t == self.t else self.state_at(t)
+        bodies = self._bodies_at(t) if self._needs_bodies else None
+        return collision.segment_depths(m, state.x, state.q, self._anchor_at(t).position, bodies)
+
+    def joint_angles(self, t=None):
+        """Swing and twist angle of every joint, ``(n,)`` each, rad (as the limits see them)."""
+        from .limits import joint_angles
+        t = self.t if t is None else float(t)
+        state = self.state if t == self.t else self.state_at(t)
+        return joint_angles(self.model, state.q, self._anchor_at(t).orientation)
 
     def joint_gaps(self, anchor=None):
         """Distance ``(n,)`` between the two sides of every joint, m."""
@@ -349,6 +452,12 @@ def _memo_last(f, size=2):
             v = cache[t] = f(t)
         return v
     return g
+
+
+def _body_kinematics(head):
+    """``AnchorKinematics`` of the origins of all kinematic bodies of a ``KinematicState``."""
+    k = head.n_bodies
+    return head.point_kinematics(np.arange(k), np.zeros((k, 3)))
 
 
 def _check_head(head):

@@ -191,26 +191,72 @@ class Dynamics:
         return (self.model.parent_side(anchor.position, x + h) - (x - h),
                 self.model.parent_side(anchor.velocity, v + w_x_h) - (v - w_x_h))
 
-    def implicit_damping(self, q, w, anchor_w, h):
-        """Angular velocities after a step ``h`` of joint damping alone, by implicit Euler.
+    def implicit_damping(self, x, q, v, w, anchor, h):
+        """Velocities ``(v⁺, ω⁺)`` after a step ``h`` of joint damping, implicit and constrained.
 
-        Joint damping is stiff about a thin segment's own axis (rate ~ 2c/I_axial), beyond
-        explicit RK4's reach at game steps. Implicit Euler is stable for any ``h`` and never
-        adds energy: ``(I + h C) ω⁺ = I ω + h c₀ ω_anchor``, C the block Laplacian of the joint
-        dampers along each chain (the anchor's ω held fixed). Block-tridiagonal SPD: the same
-        banded Cholesky as A f_c = b.
+        Joint damping is stiff (rates up to ~4c/I_min: a thin segment twists easily, a short
+        thick one swings fast), beyond explicit RK4 at game steps. Implicit Euler on the
+        constrained system is stable for any ``h`` and never adds energy:
+
+            (M + h C) u⁺ - Jᵀ λ = M u + h c₀ ω_anchor      (C: block Laplacian of the dampers)
+            J u⁺ = anchor velocity terms                     (every joint closed, Ċ = 0)
+
+        The joints must be in the same solve: damping the first joint's light segment and
+        then projecting would hand most of its loss back to the chain it drags. Unknowns
+        ordered per segment (v_i, ω_i, λ_i) make the KKT matrix banded (half-bandwidth 17):
+        a banded LU in O(n).
         """
         m = self.model
+        n = m.n
         c = m.damping
         c_next = m.distal_side(c[:, None])[:, 0]
+        hv = self.mass_terms(q, w)[0]                 # half-vectors
+        S = skew(hv)
         eye = np.eye(3)
-        I_world = self.world_inertia(q)
-        D = I_world + (h * (c + c_next))[:, None, None] * eye
-        L = np.zeros_like(D)
-        L[1:] = -(h * c[1:])[:, None, None] * eye * self._couple
-        b = (I_world @ w[:, :, None])[:, :, 0]
-        b[m.is_first] += (h * c[m.is_first])[:, None] * anchor_w
-        return self.solve_banded(D, L, b)
+        I_w = self.world_inertia(q)
+        N = 9 * n
+        kl = ku = 17
+        ab = np.zeros((2 * kl + ku + 1, N))           # gbsv storage (kl extra rows for pivots)
+        rhs = np.zeros((n, 3, 3))                     # per segment: v rows, ω rows, λ rows
+
+        def put(rows, cols, blocks):
+            """Scatter 3×3 ``blocks`` at block rows/cols (unknown offsets) into band storage."""
+            r = rows[:, None, None] + np.arange(3)[None, :, None]
+            cc = cols[:, None, None] + np.arange(3)[None, None, :]
+            r, cc = np.broadcast_arrays(r, cc)
+            ab[kl + ku + r - cc, cc] += blocks
+
+        seg = np.arange(n)
+        V, W, LAM = 9 * seg, 9 * seg + 3, 9 * seg + 6
+        has_p = ~m.is_first
+        has_c = m.has_child
+        # v rows: m v⁺ - λ_i + λ_{i+1} = m v
+        put(V, V, m.mass[:, None, None] * eye)
+        put(V, LAM, np.broadcast_to(-eye, (n, 3, 3)))
+        put(V[has_c], LAM[np.nonzero(has_c)[0] + 1], np.broadcast_to(eye, (has_c.sum(), 3, 3)))
+        rhs[:, 0] = m.mass[:, None] * v
+        # ω rows: (I + h(c_i + c_{i+1})) ω⁺ - h c_i ω⁺_{i-1} - h c_{i+1} ω⁺_{i+1}
+        #         + [h]× λ_i + [h]× λ_{i+1} = I ω + h c_i ω_anchor (first joint)
+        put(W, W, I_w + (h * (c + c_next))[:, None, None] * eye)
+        ip = np.nonzero(has_p)[0]
+        put(W[ip], W[ip - 1], -(h * c[ip])[:, None, None] * eye)
+        put(W[ip - 1], W[ip], -(h * c[ip])[:, None, None] * eye)
+        put(W, LAM, S)
+        put(W[has_c], LAM[np.nonzero(has_c)[0] + 1], S[has_c])
+        rhs[:, 1] = (I_w @ w[:, :, None])[:, :, 0]
+        rhs[m.is_first, 1] += (h * c[m.is_first])[:, None] * anchor.angular_velocity
+        # λ rows: parent point velocity - child point velocity = 0
+        #   child:  v_i + [h_i]× ω_i;   parent: v_{i-1} - [h_{i-1}]× ω_{i-1}, or the anchor's.
+        put(LAM, V, np.broadcast_to(-eye, (n, 3, 3)))
+        put(LAM, W, -S)
+        put(LAM[ip], V[ip - 1], np.broadcast_to(eye, (ip.size, 3, 3)))
+        put(LAM[ip], W[ip - 1], -S[ip - 1])
+        rhs[m.is_first, 2] = -anchor.velocity
+        _, _, x_sol, info = lapack.dgbsv(kl, ku, ab, rhs.reshape(-1), overwrite_ab=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f'implicit damping KKT system is singular (gbsv info={info})')
+        sol = x_sol.reshape(n, 3, 3)
+        return sol[:, 0], sol[:, 1]
 
     def velocity_correction(self, x, q, v, w, anchor):
         """Mass-weighted velocity change that closes every joint's velocity error (Ċ = 0).
