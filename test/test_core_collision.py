@@ -255,7 +255,7 @@ def test_a_bar_between_two_joints_catches_the_segment():
     assert dist[-1, 2] < a[2] - 0.2 and sim.energy()[0].sum() < 1e-3
 
 
-@pytest.mark.parametrize('speed', [5.0, 10.0, 20.0, 30.0])
+@pytest.mark.parametrize('speed', [5.0, 20.0, 50.0])
 def test_fast_segments_neither_sink_into_nor_tunnel_through_a_thin_bar(speed):
     """No gravity: a 4-segment rope spun about its anchor so that its far end moves at
     ``speed`` m/s sweeps into a 3 mm bar between its second and third joints. Every reported

@@ -4,19 +4,21 @@ A 20-segment ponytail on the reference moving head (``SwayYawMotion``: ±5 cm at
 of yaw at 0.8 Hz), default solver (RK4, dt = 1/240 s), stepped through ``seconds`` of
 simulated time; each configuration adds one thing to the previous one:
 
-    nothing            no gravity, no force term, no collider, no limit
+    nothing            no gravity, no force term (damping 0), no collider, no limit
     gravity            + gravity
     + damping          + joint damping 2e-4 N·m·s/rad (implicit at this step: stiff axially)
     + stiffness        + bending stiffness 2e-3 N·m/rad
     + drag             + linear and quadratic air drag 0.05
-    + 1 sphere         + the head as a sphere collider (r = 0.1 m, on the head)
+    + far floor        + a floor plane 10 m down, never reached: the detection alone
+    + 1 sphere         + the head as a sphere collider (r = 0.1 m, on the head) instead; the
+                       ponytail rests on it and its root is on it: in contact all the time
     + 3 colliders      + a shoulder capsule and a floor plane (world)
     + limits           + swing (0.6 rad) and twist (0.3 rad) limits at every joint
 
 and then the same scene with features present but switched off, which must cost what the
 scene without them costs:
 
-    gravity, zero terms      gravity, with damping = stiffness = drag = 0 given explicitly
+    gravity, zero terms      gravity, with stiffness = drag = 0 and no limits given explicitly
     gravity, colliders off   gravity, three colliders in the scene but ``collide=False``
 
 Run: ``python -m ponytail_ros.bench.terms [--segments N] [--seconds S] [--repeats R]``.
@@ -34,13 +36,14 @@ HEAD = ColliderSpec.sphere(center=(0.0, 0.0, 0.0), radius=0.1, body=0)
 SHOULDER = ColliderSpec.capsule(center=(-0.05, 0.0, 1.32), axis=(0.0, 1.0, 0.0), half_length=0.2,
                                 radius=0.06, body=None)
 FLOOR = ColliderSpec.plane(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), body=None)
+FAR_FLOOR = ColliderSpec.plane(point=(0.0, 0.0, -10.0), normal=(0.0, 0.0, 1.0), body=None)
 
 
 def term_scenes(n_segments=20):
     """``[(label, Scene)]`` in the order of the module docstring."""
     solver = SolverSpec(max_steps_per_call=10 ** 6)
     base = dict(name='ponytail', n_segments=n_segments, length=0.4, mass=0.1, radius=0.01,
-                attach=(-0.10, 0.0, 0.05))
+                attach=(-0.10, 0.0, 0.05), damping=0.0)
     steps = [
         ('nothing', dict(), (), (0.0, 0.0, 0.0)),
         ('gravity', dict(), (), None),
@@ -48,63 +51,67 @@ def term_scenes(n_segments=20):
         ('+ stiffness', dict(damping=2e-4, stiffness=2e-3), (), None),
         ('+ drag', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05),
          (), None),
+        ('+ far floor', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05),
+         (FAR_FLOOR,), None),
         ('+ 1 sphere', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05),
          (HEAD,), None),
         ('+ 3 colliders', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05,
                                drag_quadratic=0.05), (HEAD, SHOULDER, FLOOR), None),
         ('+ limits', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05,
                           swing_limit=0.6, twist_limit=0.3), (HEAD, SHOULDER, FLOOR), None),
-        ('gravity, zero terms', dict(damping=0.0, stiffness=0.0, drag_linear=0.0,
-                                     drag_quadratic=0.0, swing_limit=None, twist_limit=None),
-         (), None),
+        ('gravity, zero terms', dict(stiffness=0.0, drag_linear=0.0, drag_quadratic=0.0,
+                                     swing_limit=None, twist_limit=None), (), None),
         ('gravity, colliders off', dict(collide=False), (HEAD, SHOULDER, FLOOR), None),
     ]
     out = []
     for label, chain, colliders, gravity in steps:
         kw = {} if gravity is None else dict(gravity=gravity)
-        out.append((label, Scene(chains=(ChainSpec(**base, **chain),), colliders=colliders,
+        out.append((label, Scene(chains=(ChainSpec(**{**base, **chain}),), colliders=colliders,
                                  solver=solver, **kw)))
     return out
 
 
-def _cost(scene, motion, seconds, repeats):
-    """Least CPU time (s) over ``repeats`` runs of ``seconds`` simulated seconds, and the mean
-    number of contacts and active limits per step in the last run."""
-    best = float('inf')
+def _run(scene, motion, seconds):
+    """CPU time (s) of ``seconds`` simulated seconds, frame by frame at the internal step, and
+    the mean number of contact and limit rows per step."""
+    sim = Simulator(scene, motion)
+    steps = int(round(seconds / sim.dt))
     rows = 0
-    for _ in range(repeats):
-        sim = Simulator(scene, motion)
-        steps = int(round(seconds / sim.dt))
-        rows = 0
-        t0 = time.process_time()
-        for k in range(1, steps + 1):
-            sim.advance_to(k * sim.dt, motion)
-            if sim.unilateral is not None:
-                rows += sim.unilateral.last['contacts'] + sim.unilateral.last['limits']
-        best = min(best, time.process_time() - t0)
-        if sim.state.is_finite() is False or sim.total_resets:
-            raise RuntimeError(f'the scene blew up: {sim.total_resets} resets')
-    return best, rows / steps
+    t0 = time.process_time()
+    for k in range(1, steps + 1):
+        sim.advance_to(k * sim.dt, motion)
+        if sim.unilateral is not None:
+            rows += sim.unilateral.last['contacts'] + sim.unilateral.last['limits']
+    cpu = time.process_time() - t0
+    if sim.total_resets or not sim.state.is_finite():
+        raise RuntimeError(f'the scene blew up: {sim.total_resets} resets')
+    return cpu, rows / steps
 
 
 def bench_terms(n_segments=20, seconds=3.0, repeats=3, out=print):
     """Measure every configuration of ``term_scenes``; print and return a table.
 
+    The configurations are run in turn ``repeats`` times (interleaved, so that a change of
+    machine load hits all alike) and each keeps its least CPU time.
     Returns ``[(label, cpu_s_per_simulated_s, relative_to_gravity, rows_per_step)]``.
     """
     motion = SwayYawMotion()
-    results = []
-    for label, scene in term_scenes(n_segments):
-        cpu, rows = _cost(scene, motion, seconds, repeats)
-        results.append((label, cpu / seconds, rows))
-    gravity = next(r[1] for r in results if r[0] == 'gravity')
-    table = [(label, per_s, per_s / gravity, rows) for label, per_s, rows in results]
+    scenes = term_scenes(n_segments)
+    best = {label: float('inf') for label, _ in scenes}
+    rows = {}
+    for _ in range(repeats):
+        for label, scene in scenes:
+            cpu, rows[label] = _run(scene, motion, seconds)
+            best[label] = min(best[label], cpu)
+    gravity = best['gravity']
+    table = [(label, best[label] / seconds, best[label] / gravity, rows[label])
+             for label, _ in scenes]
     if out is not None:
         out(f'{n_segments}-segment ponytail, reference moving head, RK4 dt = 1/240 s, '
-            f'{seconds:g} s simulated, best of {repeats}')
+            f'{seconds:g} s simulated, least of {repeats} interleaved runs')
         out(f'{"configuration":<24} {"CPU ms / sim s":>15} {"vs gravity":>11} {"rows/step":>10}')
-        for label, per_s, rel, rows in table:
-            out(f'{label:<24} {1e3 * per_s:>15.1f} {rel:>10.2f}x {rows:>10.2f}')
+        for label, per_s, rel, r in table:
+            out(f'{label:<24} {1e3 * per_s:>15.1f} {rel:>10.2f}x {r:>10.2f}')
     return table
 
 

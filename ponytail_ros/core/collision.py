@@ -209,6 +209,31 @@ class _Detector:
         self.inner = ~first[:, None]
         self.length = model.length[self.seg]
         self.sum_radius = colliders.radius[None, :colliders.n_round] + self.radius[:, None]
+        # Broad phase: the colliding chains, each within its length (+ radius) of its anchor.
+        self.chains = np.unique(model.chain_of[self.seg])
+        ends = [model.chain_slice(c) for c in self.chains]
+        self.chain_reach = np.array([model.length[e].sum() + model.radius[e].max() for e in ends])
+        self.max_half_length = 0.5 * float(self.length.max())
+        # Which first segments are rooted on which round colliders. Where the anchor and the
+        # collider are fixed in the same body this never changes: decided once, here.
+        nr = colliders.n_round
+        chain_body = model.anchor_body[self.first_chain]
+        self.root_fixed = chain_body[:, None] == colliders.body[None, :nr]
+        self.root_fixed_all = bool(np.all(self.root_fixed))
+        self.rooted_fixed = np.zeros(self.root_fixed.shape, dtype=bool)
+        if np.any(self.root_fixed):
+            a0, d2 = colliders.local_a0[:nr], colliders.local_d2[:nr]
+            self.rooted_fixed = self._rooted(model.attach[self.first_chain], a0, d2) \
+                & self.root_fixed
+
+    def _rooted(self, anchor, a0, d2):
+        """Anchors ``(f, 3)`` inside, or within a quarter segment of, each round collider."""
+        e2 = np.maximum(np.einsum('kj,kj->k', d2, d2), 1e-300)
+        rel = anchor[:, None, :] - a0[None]
+        ta = np.clip(np.einsum('fkj,kj->fk', rel, d2) / e2, 0.0, 1.0)
+        root = self.sum_radius[self.first_rows] - np.linalg.norm(rel - ta[..., None] * d2[None],
+                                                                 axis=2)
+        return root > -0.25 * self.length[self.first_rows][:, None]
 
     def detect(self, x, h, anchor_position, pose, report=False):
         """``depth`` (m, > 0 inside), the closest-point parameters ``s`` (on the segment) and
@@ -234,17 +259,17 @@ class _Detector:
             if fr.size:
                 # A first segment rooted in (or within a quarter segment of) a round
                 # collider: its row is at its distal joint, with the full segment as lever.
-                a0f = pose.a0[None, :nr]
-                d2f = pose.d2[None, :nr]
-                e2 = np.maximum(np.einsum('kj,kj->k', pose.d2[:nr], pose.d2[:nr]), 1e-300)
-                anchor = anchor_position[self.first_chain][:, None, :]
-                ta = np.clip(np.einsum('fkj,kj->fk', anchor - a0f, pose.d2[:nr]) / e2, 0.0, 1.0)
-                root = self.sum_radius[fr] - np.linalg.norm(anchor - a0f - ta[..., None] * d2f,
-                                                            axis=2)
-                rooted = root > -0.25 * self.length[fr][:, None]
+                if self.root_fixed_all:
+                    rooted = self.rooted_fixed
+                else:
+                    rooted = np.where(self.root_fixed, self.rooted_fixed, self._rooted(
+                        anchor_position[self.first_chain], pose.a0[:nr], pose.d2[:nr]))
                 if np.any(rooted):
+                    d2 = pose.d2[:nr]
+                    e2 = np.maximum(np.einsum('kj,kj->k', d2, d2), 1e-300)
                     p1 = (p0[fr] + d1[fr])[:, None, :]
-                    t1 = np.clip(np.einsum('fkj,kj->fk', p1 - a0f, pose.d2[:nr]) / e2, 0.0, 1.0)
+                    t1 = np.clip(np.einsum('fkj,kj->fk', p1 - pose.a0[None, :nr], d2) / e2,
+                                 0.0, 1.0)
                     sf, tf = s[fr], t[fr]
                     sf[rooted], tf[rooted] = 1.0, t1[rooted]
                     s[fr], t[fr] = sf, tf
@@ -337,7 +362,7 @@ class Unilateral:
         """
         m, dt = self.model, self.dt
         parts = []
-        if self.detector is not None:
+        if self.detector is not None and self._near(anchor.position, pose, v, w):
             det = self.detector
             h = half_vectors(m.length, q)
             depth, s, t, own = det.detect(x, h, anchor.position, pose)
@@ -371,6 +396,41 @@ class Unilateral:
                            contact=np.zeros(k, bool))
                 parts.append(lim)
         return _rows_concat(parts)
+
+    def _near(self, anchor_position, pose, v, w):
+        """Broad phase: could any collider be within reach of a chain? A chain lies in the
+        ball of its length about its anchor; its surface moves at most at its fastest
+        centre's speed plus its fastest segment's spin times half its length."""
+        c, det = self.colliders, self.detector
+        p = anchor_position[det.chains]                                  # (C', 3)
+        nr = c.n_round
+        dist = np.empty((p.shape[0], c.cols.size))
+        if nr:
+            a0, d2 = pose.a0[:nr], pose.d2[:nr]
+            rel = p[:, None, :] - a0[None]
+            e2 = np.maximum(np.einsum('kj,kj->k', d2, d2), 1e-300)
+            t = np.clip(np.einsum('ckj,kj->ck', rel, d2) / e2, 0.0, 1.0)
+            dist[:, :nr] = np.linalg.norm(rel - t[..., None] * d2[None], axis=2) - c.radius[:nr]
+        if nr < c.cols.size:
+            nn = pose.normal[nr:]
+            dist[:, nr:] = p @ nn.T - np.sum(pose.a0[nr:] * nn, axis=1)[None]
+        speed = (float(np.sqrt(np.max(np.einsum('ij,ij->i', v, v))))
+                 + float(np.sqrt(np.max(np.einsum('ij,ij->i', w, w)))) * det.max_half_length
+                 + float(pose.speed.max()))
+        reach = det.chain_reach + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * self.dt * speed
+        return bool(np.any(dist < reach[:, None]))
+
+    def _moved_rows(self, rows, dx, dth):
+        """The rows after a small displacement (centres ``dx``, rotations ``dth``), to first
+        order: depths change by -J_r·(dx, dth), the lever arms move with their segments."""
+        seg, par = rows['seg'], rows['par']
+        has = par >= 0
+        rate = (np.einsum('ij,ij->i', rows['lin'], dx[seg])
+                + np.einsum('ij,ij->i', rows['ang'], dth[seg])
+                + np.einsum('ij,ij->i', rows['ang_par'], np.where(has[:, None], dth[par], 0.0)))
+        arm = rows['arm'] + cross(dth[seg], rows['arm'])
+        return dict(rows, depth=rows['depth'] - rate, arm=arm,
+                    ang=np.where(rows['contact'][:, None], cross(arm, rows['lin']), rows['ang']))
 
     def _refresh_sep(self, rows, v, w, anchor):
         """The rows' separation rates for new velocities (geometry unchanged)."""
@@ -518,12 +578,18 @@ class Unilateral:
             active = depth > -np.where(contact, POSITION_SKIN, ANGLE_SKIN) - 4.0 * worst
             sub = {k: val[active] for k, val in rows.items()}
             _, dx, dth = self._solve(sub, self._factor(q), -sub['depth'])
-            ang = np.sqrt(np.einsum('ij,ij->i', dth, dth))[:, None]
-            dth *= np.minimum(1.0, MAX_ROTATION / np.maximum(ang, 1e-300))
+            ang2 = np.einsum('ij,ij->i', dth, dth)
+            clamp = np.minimum(1.0, MAX_ROTATION / np.sqrt(np.maximum(ang2, 1e-300)))
+            dth *= clamp[:, None]
             q = quat_normalize(quat_integrate(q, dth, 1.0))
             self.last['position_passes'] = passes + 1
             moved = True
-            x = project_positions(m, anchor.position, half_vectors(m.length, q))
+            x_old, x = x, project_positions(m, anchor.position, half_vectors(m.length, q))
+            if np.all(clamp == 1.0) and float(np.max(ang2 * m.length)) < 0.1 * POSITION_TOLERANCE:
+                # The pass was small enough for its linearisation to hold to a tenth of the
+                # tolerance (error ~ l θ²): its predicted depths stand, no second detection.
+                rows = self._moved_rows(rows, x - x_old, dth)
+                break
             rows = self.rows(x, q, v, w, anchor, pose)
         stale = False          # rows computed before the last change of pose
         if m.has_limits:
@@ -610,8 +676,11 @@ class Unilateral:
 def _lcp(W, b):
     """``λ ≥ 0`` with ``Wλ + b ≥ 0`` and ``λ·(Wλ + b) = 0``, W symmetric positive semi-definite.
 
-    Equivalent to min ½ λᵀWλ + bᵀλ over λ ≥ 0 = min |Lᵀλ + L⁻¹b|² (W = L Lᵀ): NNLS, on W
-    scaled to unit diagonal and regularised by 1e-9 (more if it is singular to rounding).
+    Principal pivoting on the (unit-diagonal scaled, 1e-9 regularised) W: start from the
+    rows with ``b < 0`` active, solve the active block exactly, and move every row that
+    violates a sign condition to the other side (block pivoting; after 4 rounds, only the
+    lowest violating index, Murty's rule, which terminates for positive definite W). Typically
+    one or two small solves; falls back to NNLS (min ½λᵀWλ + bᵀλ, λ ≥ 0) if it ever stalls.
     """
     if not np.any(b < 0.0):
         return np.zeros_like(b)
@@ -619,18 +688,26 @@ def _lcp(W, b):
         return np.maximum(-b / W[0], 0.0)
     d = 1.0 / np.sqrt(np.diag(W))
     Ws = W * d[:, None] * d[None, :]
-    diag_idx = np.diag_indices_from(Ws)
-    reg = _REG
-    while True:
-        Ws[diag_idx] += reg
-        try:
-            L = np.linalg.cholesky(Ws)
-            break
-        except np.linalg.LinAlgError:
-            if reg > 1e-3:
-                raise
-            reg *= 100.0
-    lam, _ = nnls(L.T, np.linalg.solve(L, -b * d))
+    Ws[np.diag_indices_from(Ws)] += _REG
+    bs = b * d
+    k = b.size
+    active = bs < 0.0
+    lam = np.zeros(k)
+    for it in range(4 * k + 8):
+        lam[:] = 0.0
+        if np.any(active):
+            lam[active] = np.linalg.solve(Ws[np.ix_(active, active)], -bs[active])
+        slack = Ws @ lam + bs
+        bad = (active & (lam < -1e-12)) | (~active & (slack < -1e-12))
+        if not np.any(bad):
+            return np.maximum(lam, 0.0) * d
+        if it < 4:
+            active ^= bad
+        else:
+            i = int(np.flatnonzero(bad)[0])
+            active[i] = not active[i]
+    L = np.linalg.cholesky(Ws)
+    lam, _ = nnls(L.T, np.linalg.solve(L, -bs))
     return lam * d
 
 
