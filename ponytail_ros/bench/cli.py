@@ -932,9 +932,16 @@ def build_parser():
                                 description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest='command')
-    for name, fn in list(COMMANDS.items()) + [('all', None)]:
-        doc = 'every subcommand but refcheck' if fn is None else (fn.__doc__ or name)
-        sub.add_parser(name, parents=[common], help=doc.strip().split('\n')[0])
+    helps = dict(trade='the sweep on the named scenes: cost, tip error, gap, energy; Pareto plot',
+                 scaling='cost per step vs segment count 1..1000 (banded, dense, MuJoCo)',
+                 mujoco='the same chain in MuJoCo side by side (optional mujoco package)',
+                 batch='C chains in one scene vs one chain alone vs C simulators',
+                 energy='energy drift per integrator and step, still anchor, no damping',
+                 refcheck="RK4 against every file of ../shared/reference/",
+                 report='results.md from the JSON files in --out',
+                 all='trade, scaling, mujoco, batch, energy, then report (the default)')
+    for name in list(COMMANDS) + ['all']:
+        sub.add_parser(name, parents=[common], help=helps[name])
     return p
 
 
