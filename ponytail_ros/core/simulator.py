@@ -379,8 +379,8 @@ class Simulator:
     def contact_depths(self, t=None):
         """Deepest penetration of every segment into any collider, ``(n,)``, m (≤ 0: clear,
         -inf: the segment does not collide or the scene has no colliders), as the collision
-        solver measures it (a chain's first segment rooted on a round collider: at its distal
-        joint; a plane: the deeper end).
+        solver measures it (a chain's first segment rooted on a round collider: on its outer
+        half; a plane: the deeper end).
 
         ``t``: of the chain reported at that time (``state_at``); default the last step.
         """
