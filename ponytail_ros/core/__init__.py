@@ -5,10 +5,10 @@ Stages, one module each: ``scene`` (description and validation) → ``model`` (a
 → ``integrators`` → ``stabilization``; ``simulator`` runs them in fixed steps.
 """
 from .head import AnchorKinematics, HeadMotion, KinematicState, StillMotion, SwayYawMotion
-from .scene import ChainSpec, Scene, SceneError, SolverSpec
+from .scene import ChainSpec, ColliderSpec, Scene, SceneError, SolverSpec
 from .simulator import Simulator, StepReport, TUNABLE_PARAMETERS
 from .state import ChainState
 
-__all__ = ['AnchorKinematics', 'ChainSpec', 'ChainState', 'HeadMotion', 'KinematicState', 'Scene',
+__all__ = ['AnchorKinematics', 'ChainSpec', 'ColliderSpec', 'ChainState', 'HeadMotion', 'KinematicState', 'Scene',
            'SceneError', 'Simulator', 'SolverSpec', 'StepReport', 'StillMotion', 'SwayYawMotion',
            'TUNABLE_PARAMETERS']
