@@ -13,7 +13,7 @@ Segment frame: origin at the centre of mass, body +X along the segment from its 
 Every field is checked by ``validate()``; an error names the field, the value and the allowed
 range (``SceneError``, a ``ValueError``).
 """
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
@@ -374,6 +374,3 @@ class Scene:
         """A validated copy with ``changes`` applied (dataclasses.replace)."""
         return replace(self, **changes)
 
-
-def spec_field_names(cls):
-    return [f.name for f in fields(cls)]

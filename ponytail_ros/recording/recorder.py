@@ -314,8 +314,8 @@ class RunRecorder:
         return recorder
 
     def recording(self, publisher) -> '_RecordingPublisher':
-        """``publisher`` wrapped: ``publish(msg)`` publishes, then records ``msg`` at the node
-        clock's time (:meth:`for_node` recorders only)."""
+        """``publisher`` wrapped: ``publish(msg)`` records ``msg`` at the node clock's time, then
+        publishes it (:meth:`for_node` recorders only)."""
         return _RecordingPublisher(publisher, self, self._clock)
 
 
@@ -327,7 +327,11 @@ def _plain(value):
 
 class _RecordingPublisher:
     """An rclpy publisher whose ``publish`` also records the message (log time: the node clock
-    right after publishing, as a recorder subscribed to the topic would see it)."""
+    at publishing, as a recorder subscribed to the topic would see it).
+
+    Recorded first, then published: a SIGTERM or Ctrl-C that shuts the context down between the
+    two must never leave a message that a subscriber received but the file lacks.
+    """
 
     def __init__(self, publisher, recorder: RunRecorder, clock):
         self._publisher = publisher
@@ -336,8 +340,8 @@ class _RecordingPublisher:
         self._topic = publisher.topic_name
 
     def publish(self, msg) -> None:
-        self._publisher.publish(msg)
         self._recorder.write(self._topic, msg, self._clock.now().nanoseconds)
+        self._publisher.publish(msg)
 
     def __getattr__(self, name):
         return getattr(self._publisher, name)

@@ -17,8 +17,6 @@ The motion itself is ROS-free (``ponytail_ros/ros/head_script.py``).
 """
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
@@ -28,6 +26,7 @@ import numpy as np
 
 from ponytail_ros.core.head import StillMotion, SwayYawMotion
 from .head_script import HeadScript
+from ponytail_ros.ros.spin import run_node
 
 __all__ = ['HeadDemoNode', 'make_motion', 'main']
 
@@ -101,27 +100,7 @@ class HeadDemoNode(Node):
 
 def main(args=None):
     """Entry point of ``ponytail_head_demo``; returns the exit code."""
-    try:
-        rclpy.init(args=sys.argv if args is None else args)
-    except Exception as err:          # malformed --ros-args, unreadable params file
-        print(f'ponytail_head_demo: cannot start: {err}', file=sys.stderr)
-        return 2
-    node = None
-    try:
-        node = HeadDemoNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        # Ctrl-C/SIGTERM shut the context down from the signal handler, possibly in the middle
-        # of a callback (a publish then fails): that is a clean shutdown, not an error.
-        if rclpy.ok():
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('ponytail_head_demo', HeadDemoNode, args)
 
 
 if __name__ == '__main__':

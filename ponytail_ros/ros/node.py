@@ -34,10 +34,8 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -54,6 +52,7 @@ from .parameters import (CHAIN_PARAMS, DEFAULT_COLORS, GLOBAL_PARAMS, ParameterE
                          build_runner_settings, chain_param_name, check_chain_names,
                          check_values, definition)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner
+from ponytail_ros.ros.spin import run_node
 
 __all__ = ['PonytailNode', 'main', 'OUTPUT_QOS', 'INPUT_QOS']
 
@@ -458,31 +457,7 @@ class PonytailNode(Node):
 
 def main(args=None):
     """Entry point of ``ponytail_node``; returns the exit code."""
-    try:
-        rclpy.init(args=sys.argv if args is None else args)
-    except Exception as err:          # malformed --ros-args, unreadable params file
-        print(f'ponytail_node: cannot start: {err}', file=sys.stderr)
-        return 2
-    node = None
-    code = 0
-    try:
-        node = PonytailNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ParameterError, ParameterException) as err:
-        print(f'ponytail_node: invalid parameters: {err}', file=sys.stderr)
-        code = 2
-    except Exception:
-        # Ctrl-C/SIGTERM shut the context down from the signal handler, possibly in the middle
-        # of a callback (a publish then fails): that is a clean shutdown, not an error.
-        if rclpy.ok():
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node('ponytail_node', PonytailNode, args, bad_input=(ParameterError, ParameterException))
 
 
 if __name__ == '__main__':
