@@ -65,9 +65,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import yaml
 
-from ponytail_ros.ros.parameters import (ParameterError, build_runner_settings,
-                                         chain_param_name, check_values)
-from ponytail_ros.ros.runner import DROP_REASONS, RESET_REASONS, ChainRunner
+from ponytail_ros.ros.parameters import ParameterError
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
 from .params import IGNORED_NAMES, resolve_values, unknown_names, values_from_metadata
@@ -186,139 +184,61 @@ def _head_pose(msg, head_type):
 
 class ReplayNode:
     """What ``PonytailNode`` does with a head pose, a tick and a parameter change, without ROS:
-    the same ``ChainRunner`` calls with the same arguments, the same messages, recorded with
-    ``RunRecorder`` instead of published. Times are integer ns of the recorded clock."""
+    the same ``NodeCore`` (``ponytail_ros/ros/node_core.py``) with the same arguments, its
+    messages recorded with ``RunRecorder`` instead of published. Times are integer ns of the
+    recorded clock."""
 
     def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str):
-        self._values = dict(values)
-        self._chains = list(self._values['chains'])
-        self._scene = check_values(self._values, self._chains)
-        self.runner = ChainRunner(self._scene, build_runner_settings(self._values))
-        self._stamp_source = self._values['stamp_source']
+        from ponytail_ros.ros.node_core import NodeCore
+        self.core = NodeCore(values)
+        self.runner = self.core.runner
         self._recorder = recorder
         self._head_type = head_type
-        self._chain_msgs = self._make_chain_messages(self._scene)
-        self._last_marker_t = None
-        self.published = 0
-        self._diag_period_ns = int(round(self._values['diagnostics_period'] * 1e9))
+        self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
         self._diag_next_ns = None
-        self._win = _Window()
-        self._dropped_at_diag = dict(self.runner.dropped)
 
     @property
     def values(self):
-        return dict(self._values)
+        return dict(self.core.values)
 
-    @staticmethod
-    def _make_chain_messages(scene):
-        from ponytail_ros.ros.messages import ChainMessages
-        return [ChainMessages(c.name, c.lengths(), c.radius) for c in scene.chains]
+    @property
+    def published(self):
+        return self.core.published
 
     # PonytailNode._on_head_pose
     def head(self, msg, log_time_ns: int) -> None:
         self._recorder.head(msg, log_time_ns)
-        st = msg.header.stamp
-        if self._stamp_source == 'receive' or (st.sec == 0 and st.nanosec == 0):
-            t = log_time_ns * 1e-9
-        else:
-            t = st.sec + st.nanosec * 1e-9
         p, q = _head_pose(msg, self._head_type)
-        self.runner.push(t, p, q, msg.header.frame_id)
+        self.core.push_head(msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
 
-    # PonytailNode._on_tick (publishing part)
+    # PonytailNode._on_tick
     def tick(self, t_ns: int):
-        from builtin_interfaces.msg import Time
-        if t_ns == 0:
+        tick = self.core.tick(t_ns)
+        if tick is None:
             return None
-        t = t_ns * 1e-9
-        out = self.runner.tick(t)
-        if out is None:
-            return None
-        scene = self.runner.scene
-        if any(m.n != c.n_segments or m.radius != c.radius or
-               not np.array_equal(m.lengths, c.lengths())
-               for m, c in zip(self._chain_msgs, scene.chains)):
-            self._chain_msgs = self._make_chain_messages(scene)
-            for i, c in enumerate(self._chains):
-                self._chain_msgs[i].set_color(self._values[chain_param_name(c, 'color')])
-        frame = self._values['frame_id'] or out.frame_id
-        stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
-        model = self.runner.sim.model
-        for c, cm in enumerate(self._chain_msgs):
-            sl = model.chain_slice(c)
-            self._recorder.poses(
-                c, cm.fill_poses(out.origins[sl], out.orientations[sl], frame, stamp), t_ns)
-        self.published += 1
-        self._maybe_markers(out, frame, stamp, t_ns)
-        win, rep = self._win, out.report
-        win.ticks += 1
-        win.max_gap = max(win.max_gap, rep.max_gap)
-        win.steps += rep.steps
-        win.accepted += out.accepted
-        win.dropped_time += rep.dropped_time
-        if out.reset_reason == 'guard':
-            win.guard_resets += 1
-        return out
+        for c, msg in enumerate(tick.poses):
+            self._recorder.poses(c, msg, t_ns)
+        if tick.markers is not None:
+            self._recorder.markers(tick.markers, t_ns)
+        return tick.output
 
-    # PonytailNode._maybe_publish_markers
-    def _maybe_markers(self, out, frame, stamp, t_ns):
-        from visualization_msgs.msg import MarkerArray
-        from ponytail_ros.ros.messages import delete_all_marker
-        style = self._values['markers.style']
-        period = 1.0 / self._values['markers.rate']
-        if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
-                and out.t >= self._last_marker_t:
-            return
-        self._last_marker_t = out.t
-        model = self.runner.sim.model
-        delete = False
-        markers = []
-        for c, cm in enumerate(self._chain_msgs):
-            sl = model.chain_slice(c)
-            color = self._values[chain_param_name(self._chains[c], 'color')]
-            ms, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color,
-                                     frame, stamp)
-            delete = delete or changed
-            markers.extend(ms)
-        if delete:
-            markers.insert(0, delete_all_marker(frame, stamp))
-        if not markers:
-            return
-        self._recorder.markers(MarkerArray(markers=markers), t_ns)
-
-    # PonytailNode._post_set_parameters
+    # PonytailNode._on_set_parameters + _post_set_parameters
     def set_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
-        from ponytail_ros.ros.parameters import definition
-        changed = {k: v for k, v in changed.items() if definition(k, self._chains) is not None}
+        changed = self.core.ours(changed)
         if not changed:
             return
-        values = dict(self._values)
-        values.update(changed)
         try:
-            check_values(values, self._chains, changed)
+            self.core.check_change(changed)
         except ParameterError:
             return  # the node rejects it too
         self._recorder.parameters_changed(changed, log_time_ns)
-        self._values = values
-        scene = check_values(self._values, self._chains)
-        if scene != self._scene:
-            self.runner.set_scene(scene)
-            self._scene = scene
-        settings = build_runner_settings(self._values)
-        self.runner.update_settings(
-            **{k: getattr(settings, k) for k in (
-                'interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
-                'teleport_distance', 'teleport_angle', 'stale_timeout',
-                'window', 'degree', 'max_extrapolation', 'max_gap', 'quat_tolerance')})
-        for i, c in enumerate(self._chains):
-            if chain_param_name(c, 'color') in changed:
-                self._chain_msgs[i].set_color(self._values[chain_param_name(c, 'color')])
+        self.core.apply_change(changed)
 
     # PonytailNode._on_diagnostics, on the recorded clock
     def maybe_diagnostics(self, t_ns: int) -> None:
         if self._diag_next_ns is None:
             self._diag_next_ns = t_ns + self._diag_period_ns
-            self._win.t0_ns = t_ns
+            self.core.window.t0_ns = t_ns
             return
         if t_ns < self._diag_next_ns:
             return
@@ -327,79 +247,13 @@ class ReplayNode:
         self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
 
     def diagnostics_message(self, t_ns: int):
-        from builtin_interfaces.msg import Time
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-        win, self._win = self._win, _Window(t0_ns=t_ns)
-        r = self.runner
-        span = max((t_ns - win.t0_ns) * 1e-9, 1e-9)
-        t = t_ns * 1e-9
-        dropped_now = dict(r.dropped)
-        dropped_window = {k: dropped_now[k] - self._dropped_at_diag.get(k, 0)
-                          for k in DROP_REASONS}
-        self._dropped_at_diag = dropped_now
-        age = r.head_age(t)
-        head = 'none' if not r.has_head else 'stale' if r.head_stale(t) else 'ok'
-        level, problems = DiagnosticStatus.OK, []
-
-        def flag(lvl, text):
-            nonlocal level
-            level = max(level, lvl)
-            problems.append(text)
-        if head == 'none':
-            flag(DiagnosticStatus.WARN, 'no head pose received')
-        elif head == 'stale':
-            flag(DiagnosticStatus.WARN, 'head pose stale')
-        elif age is not None and abs(age) > max(r.settings.stale_timeout, 0.5):
-            flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
-                                        f'(clocks differ? use_sim_time / stamp_source)')
-        if sum(dropped_window.values()):
-            flag(DiagnosticStatus.WARN, f'{sum(dropped_window.values())} head poses dropped')
-        if win.dropped_time > 0.0:
-            flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
-        if win.guard_resets:
-            flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
-        kv = [
-            ('head', head),
-            ('head frame', r.frame_id or ''),
-            ('head input age (s)', 'n/a' if age is None else f'{age:.4f}'),
-            ('head poses accepted per s', f'{win.accepted / span:.1f}'),
-            ('head poses accepted', str(r.accepted_total)),
-            ('ticks per s', f'{win.ticks / span:.1f}'),
-            ('solve time mean (ms)', _NA),
-            ('solve time max (ms)', _NA),
-            ('tick time max (ms)', _NA),
-            ('timer lateness max (ms)', _NA),
-            ('steps per tick', f'{win.steps / max(win.ticks, 1):.2f}'),
-            ('joint gap max (m)', f'{win.max_gap:.3g}'),
-            ('interpolation delay (s)', f'{r.delay:.4f}'),
-            ('dropped inputs', str(sum(dropped_now.values()))),
-        ]
-        kv += [(f'dropped inputs: {k}', str(dropped_now[k])) for k in DROP_REASONS]
-        kv += [('resets', str(sum(r.resets.values())))]
-        kv += [(f'resets: {k}', str(r.resets[k])) for k in RESET_REASONS]
-        kv += [('last reset', r.last_reset or ''),
-               ('head history restarts', str(r.history_restarts)),
-               ('dropped time (s)', f'{r.dropped_time_total:.4f}'),
-               ('segments', str(self._scene.n_segments))]
-        fqn = self._recorder.layout.node
-        status = DiagnosticStatus(
-            level=level, name=f'ponytail: {fqn}', hardware_id=fqn,
-            message='; '.join(problems) if problems else 'ok',
-            values=[KeyValue(key=k, value=v) for k, v in kv])
+        from diagnostic_msgs.msg import DiagnosticArray
+        from ponytail_ros.ros.node_core import time_msg
+        span = (t_ns - self.core.window.t0_ns) * 1e-9
+        status = self.core.diagnostic_status(t_ns, span, self._recorder.layout.node)
         msg = DiagnosticArray(status=[status])
-        msg.header.stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        msg.header.stamp = time_msg(t_ns)
         return msg
-
-
-@dataclass
-class _Window:
-    t0_ns: int = 0
-    ticks: int = 0
-    max_gap: float = 0.0
-    steps: int = 0
-    accepted: int = 0
-    guard_resets: int = 0
-    dropped_time: float = 0.0
 
 
 # -- offline replay ----------------------------------------------------------------------------
@@ -626,7 +480,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         recorder.close()
     if recorder.error is not None:
         raise ReplayError(f'writing {output_path} failed: {recorder.error}')
-    if result.head_samples == 0:
+    if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
         output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
     if inp.truncated:

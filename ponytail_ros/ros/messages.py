@@ -12,8 +12,11 @@ local +X along the segment, so the distal joint is ``origin + R · (length, 0, 0
 * ``line``: a ``LINE_STRIP`` through the joints (id 1, width = the radius) plus the same
   ``SPHERE_LIST`` (id 0).
 
-The marker namespace is the chain's name. When the set of markers changes (style, segment
-count) a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
+The marker namespace is the chain's name. Colliders (``ColliderMarkers``) are drawn in the
+namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as a ``CYLINDER``
+(id 2k + 1000) and a ``SPHERE_LIST`` of its two end caps (id 2k + 1001); a plane as a thin
+2 m × 2 m ``CUBE`` around its point. When the set of markers changes (style, segment count)
+a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
 
@@ -23,9 +26,15 @@ from visualization_msgs.msg import Marker
 
 import numpy as np
 
-from ponytail_ros.core.rotations import quat_axis_x, quat_multiply
+from ponytail_ros.core.rotations import quat_axis_x, quat_from_two_vectors, quat_multiply, quat_rotate
 
-__all__ = ['ChainMessages', 'delete_all_marker', 'Q_Z_TO_X']
+__all__ = ['ChainMessages', 'ColliderMarkers', 'delete_all_marker', 'Q_Z_TO_X',
+           'COLLIDER_COLOR']
+
+#: Colour of collider markers: translucent grey.
+COLLIDER_COLOR = (0.6, 0.6, 0.65, 0.35)
+#: Edge of the square drawn for a plane collider, m.
+PLANE_SIZE = 2.0
 
 #: Rotation by +90° about Y: takes a cylinder's axis (local Z) to local X.
 Q_Z_TO_X = np.array([0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)])
@@ -134,4 +143,80 @@ class ChainMessages:
         else:
             for pt, j in zip(self._markers[1].points, joints):
                 pt.x, pt.y, pt.z = j
+        return self._markers, changed
+
+
+class ColliderMarkers:
+    """Markers of the scene's colliders (namespace ``colliders``), posed by the kinematic
+    bodies they are fixed in."""
+
+    def __init__(self):
+        self._key = None
+        self._markers = []
+
+    def _build(self, colliders):
+        color = ColorRGBA(r=COLLIDER_COLOR[0], g=COLLIDER_COLOR[1], b=COLLIDER_COLOR[2],
+                          a=COLLIDER_COLOR[3])
+        markers = []
+        for k, c in enumerate(colliders):
+            m = Marker()
+            m.ns = 'colliders'
+            m.action = Marker.ADD
+            m.color = color
+            if c.kind == 'sphere':
+                m.id, m.type = k, Marker.SPHERE
+                m.scale.x = m.scale.y = m.scale.z = 2.0 * c.radius
+                markers.append(m)
+            elif c.kind == 'capsule':
+                m.id, m.type = 2 * k + 1000, Marker.CYLINDER
+                m.scale.x = m.scale.y = 2.0 * c.radius
+                m.scale.z = max(2.0 * c.half_length, 1e-6)
+                caps = Marker()
+                caps.ns, caps.id, caps.type = 'colliders', 2 * k + 1001, Marker.SPHERE_LIST
+                caps.action, caps.color = Marker.ADD, color
+                caps.pose.orientation.w = 1.0
+                caps.scale.x = caps.scale.y = caps.scale.z = 2.0 * c.radius
+                caps.points = [Point(), Point()]
+                markers += [m, caps]
+            else:
+                m.id, m.type = k, Marker.CUBE
+                m.scale.x = m.scale.y = PLANE_SIZE
+                m.scale.z = 1e-3
+                markers.append(m)
+        self._markers = markers
+
+    def markers(self, colliders, bodies, style, frame_id, stamp):
+        """Markers of ``colliders`` (``ColliderSpec``s) with the kinematic bodies ``bodies``
+        (``KinematicState``; a collider with ``body None`` is static), and whether the set of
+        marker ids changed since the last call."""
+        key = None if style == 'off' or not colliders else tuple(colliders)
+        changed = key != self._key and self._key is not None
+        if key != self._key:
+            self._key = key
+            self._markers = []
+            if key is not None:
+                self._build(colliders)
+        if key is None:
+            return [], changed
+        markers = iter(self._markers)
+        z = np.array([0.0, 0.0, 1.0])
+        for c in colliders:
+            centre, axis = np.asarray(c.center, float), np.asarray(c.axis, float)
+            axis = axis / np.linalg.norm(axis) if c.kind != 'sphere' else z
+            if c.body is not None:
+                qb = bodies.orientation[c.body]
+                centre = bodies.position[c.body] + quat_rotate(qb, centre)
+                axis = quat_rotate(qb, axis)
+            q = quat_from_two_vectors(z, axis)        # marker Z along the axis / normal
+            m = next(markers)
+            m.header.frame_id = frame_id
+            m.header.stamp = stamp
+            _set_pose(m.pose, centre.tolist(), q.tolist())
+            if c.kind == 'capsule':
+                caps = next(markers)
+                caps.header.frame_id = frame_id
+                caps.header.stamp = stamp
+                for pt, end in zip(caps.points, (centre - c.half_length * axis,
+                                                 centre + c.half_length * axis)):
+                    pt.x, pt.y, pt.z = end.tolist()
         return self._markers, changed

@@ -3,8 +3,16 @@ range, read-only flag) and builds the ``Scene`` and the input settings.
 
 Naming: global parameters are plain (``rate``, ``gravity``), groups use a dot (``solver.dt``,
 ``head.window``, ``markers.style``), and every chain's parameters are prefixed with its name
-(``chains: [left, right]`` → ``left.n_segments``, ``right.attach``, ...). In a params file the
-dots are nested YAML keys.
+(``chains: [left, right]`` → ``left.n_segments``, ``right.attach``, ...), and so are every
+collider's (``colliders: [skull, floor]`` → ``skull.kind``, ``skull.radius``, ``floor.axis``,
+...; chain and collider names share one namespace). In a params file the dots are nested YAML
+keys.
+
+Frames: a chain hangs from the head (``<chain>.anchor: head``, ``attach`` in the head frame) or
+from a static point (``anchor: world``, ``attach`` in the head pose's frame: a rope from a
+ceiling; a node whose chains all hang from the world needs no head pose at all). A collider is
+fixed in the head (``<collider>.frame: head``: ``center``/``axis`` are fixed offsets in the head
+frame) or in the world (``frame: world``: a floor, a wall).
 
 Live or not (``ParamDef.live``):
 
@@ -12,9 +20,11 @@ Live or not (``ParamDef.live``):
   ``Simulator.set_parameters``, the chain keeps moving), the input handling settings, ``rate``,
   ``frame_id``, the marker settings;
 * live by rebuild: the structural ones (segment count, length, mass, radius, attachment, rest
-  direction, every ``solver.*``): the simulator is rebuilt from the new scene at rest at the
+  direction, anchor, joint limits, collide, every collider parameter, every ``solver.*``):
+  the simulator is rebuilt from the new scene at rest at the
   current head pose on the next tick (a reset with reason ``'rebuild'``);
-* read-only (fixed at start-up): ``chains`` (it decides the topics), ``stamp_source``,
+* read-only (fixed at start-up): ``chains`` (it decides the topics), ``colliders`` (it decides
+  the parameters), ``stamp_source``,
   ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``, ``record_path``.
 
 This module does not import rclpy (the descriptors are built by the node).
@@ -25,18 +35,23 @@ import re
 
 import numpy as np
 
-from ponytail_ros.core.scene import (ChainSpec, DAMPING_METHODS, INTEGRATORS, LINEAR_SOLVERS,
+from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DAMPING_METHODS,
+                                     INTEGRATORS, LINEAR_SOLVERS, MAX_COLLIDERS, MAX_LIMIT,
                                      MAX_SEGMENTS, Scene, SceneError, SolverSpec)
 from .runner import RunnerSettings
 
-__all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'ParameterError', 'chain_param_name',
-           'check_values', 'build_scene', 'build_runner_settings', 'MARKER_STYLES',
-           'STAMP_SOURCES', 'RESERVED_NAMES', 'DEFAULT_COLORS']
+__all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'ParameterError',
+           'chain_param_name', 'check_values', 'build_scene', 'build_runner_settings',
+           'check_names', 'collider_names', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
+           'DEFAULT_COLORS', 'FRAMES']
 
 MARKER_STYLES = ('capsules', 'line', 'off')
 STAMP_SOURCES = ('header', 'receive')
-#: Group prefixes a chain may not be named after.
-RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains')
+#: What a chain hangs from, or a collider is fixed in: the head, or the head pose's frame.
+FRAMES = ('head', 'world')
+#: Group prefixes a chain or collider may not be named after.
+RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains', 'colliders',
+                  'world')
 _CHAIN_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 #: Marker colours cycled over the chains when ``<chain>.color`` is not set.
@@ -90,6 +105,9 @@ GLOBAL_PARAMS = (
     ParamDef('chains', ['ponytail'], 'strings', 'Names of the chains (each configured by '
              '<name>.* parameters). One chain publishes segment_poses, several publish '
              'segment_poses/<name>.', live=False),
+    ParamDef('colliders', [], 'strings', 'Names of the colliders (each configured by '
+             '<name>.* parameters; names distinct from the chains\'); [] = no collision code '
+             f'runs at all. At most {MAX_COLLIDERS}.', live=False),
     ParamDef('interpolation_delay', 0.0, 'double', 'Minimum delay, s: the chain is driven by '
              'the head as it was delay = max(interpolation_delay, interpolation_delay_periods x '
              'input period) before the tick; samples on both sides of that time give smooth '
@@ -183,7 +201,19 @@ CHAIN_PARAMS = (
     ParamDef('attach', list(_CHAIN.attach), 'double3', 'Attachment point in the head frame, '
              'm.', -1e3, 1e3, rebuild=True),
     ParamDef('rest_direction', [0.0, 0.0, 0.0], 'double3', 'Direction of the straight chain '
-             'at rest in the head frame; [0, 0, 0]: along gravity.', -1e6, 1e6, rebuild=True),
+             'at rest in the anchor frame; [0, 0, 0]: along gravity.', -1e6, 1e6, rebuild=True),
+    ParamDef('anchor', 'head', 'string', 'What the chain hangs from: head (attach and '
+             'rest_direction in the head frame) or world (a static point: attach and '
+             'rest_direction in the head pose\'s frame, e.g. a rope from a ceiling).',
+             choices=FRAMES, rebuild=True),
+    ParamDef('swing_limit', 0.0, 'double', 'Cone limit of every joint, rad: the angle between '
+             'a segment and its parent\'s axis (the first one: its rest direction) stays below '
+             'it. 0 = off (no limit code runs).', 0.0, MAX_LIMIT, rebuild=True),
+    ParamDef('twist_limit', 0.0, 'double', 'Twist limit of every joint, rad: rotation about '
+             'the segment\'s own axis relative to its parent, within +-it. 0 = off.', 0.0,
+             MAX_LIMIT, rebuild=True),
+    ParamDef('collide', True, 'bool', 'Whether the segments collide with the colliders (as '
+             'capsules of the chain\'s radius along their whole length).', rebuild=True),
     ParamDef('damping', _CHAIN.damping, 'double', 'Joint damping, N m s/rad (live).', 0.0, 1e3),
     ParamDef('stiffness', _CHAIN.stiffness, 'double', 'Bending stiffness towards the rest '
              'pose, N m/rad (live).', 0.0, 1e4),
@@ -195,8 +225,31 @@ CHAIN_PARAMS = (
              1.0),
 )
 
+_COLLIDER = ColliderSpec()
+
+COLLIDER_PARAMS = (
+    ParamDef('kind', _COLLIDER.kind, 'string', 'Shape: sphere, capsule (a segment swept by a '
+             'sphere) or plane (the segments stay on the side the axis points to).',
+             choices=COLLIDER_KINDS, rebuild=True),
+    ParamDef('frame', 'head', 'string', 'What the collider is fixed in: head (center and axis '
+             'are fixed offsets in the head frame; it moves with the head) or world (static, '
+             'in the head pose\'s frame: a floor, a wall).', choices=FRAMES, rebuild=True),
+    ParamDef('center', list(_COLLIDER.center), 'double3', 'Sphere/capsule centre, or a point '
+             'of the plane, m, in its frame.', -1e3, 1e3, rebuild=True),
+    ParamDef('axis', list(_COLLIDER.axis), 'double3', 'Capsule axis, or the plane\'s normal '
+             '(towards the free side), in its frame; non-zero (normalised). Unused by a '
+             'sphere.', -1e6, 1e6, rebuild=True),
+    ParamDef('radius', _COLLIDER.radius, 'double', 'Sphere/capsule radius, m. Unused by a '
+             'plane.', 1e-6, 100.0, rebuild=True),
+    ParamDef('half_length', _COLLIDER.half_length, 'double', 'Half the length of a capsule\'s '
+             'core segment, m. Unused by spheres and planes.', 0.0, 100.0, rebuild=True),
+    ParamDef('friction', _COLLIDER.friction, 'double', 'Coulomb friction coefficient against '
+             'the segments; 0 = frictionless.', 0.0, 10.0, rebuild=True),
+)
+
 _GLOBAL = {p.name: p for p in GLOBAL_PARAMS}
 _CHAIN_DEFS = {p.name: p for p in CHAIN_PARAMS}
+_COLLIDER_DEFS = {p.name: p for p in COLLIDER_PARAMS}
 
 
 class ParameterError(ValueError):
@@ -211,26 +264,47 @@ def chain_param_name(chain, field):
     return f'{chain}.{field}'
 
 
-def definition(name, chains):
+def definition(name, chains, colliders=()):
     """The ``ParamDef`` of a full parameter name, or None if it is not one of ours."""
     if name in _GLOBAL:
         return _GLOBAL[name]
-    chain, _, field = name.partition('.')
-    if chain in chains and field in _CHAIN_DEFS:
+    group, _, field = name.partition('.')
+    if group in chains and field in _CHAIN_DEFS:
         return _CHAIN_DEFS[field]
+    if group in colliders and field in _COLLIDER_DEFS:
+        return _COLLIDER_DEFS[field]
     return None
 
 
-def check_chain_names(names):
-    if not names:
+def collider_names(values):
+    """The collider names of a value set (``[]`` when it has none)."""
+    return [str(c) for c in values.get('colliders', ())]
+
+
+def check_names(chains, colliders=()):
+    """Check the chain and collider names (valid, not reserved, all distinct)."""
+    if not chains:
         raise ParameterError('chains', 'chains: at least one chain name is needed')
-    for n in names:
-        if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
-            raise ParameterError('chains', f'chains: {n!r} is not a valid chain name (letters, '
-                                 f'digits, underscores, starting with a letter; not one of '
-                                 f'{", ".join(RESERVED_NAMES)})')
-    if len(set(names)) != len(names):
-        raise ParameterError('chains', f'chains: duplicate names in {list(names)}')
+    if len(colliders) > MAX_COLLIDERS:
+        raise ParameterError('colliders', f'colliders: {len(colliders)} names, at most '
+                                          f'{MAX_COLLIDERS} are allowed')
+    for param, names in (('chains', chains), ('colliders', colliders)):
+        for n in names:
+            if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
+                raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
+                                     f'digits, underscores, starting with a letter; not one of '
+                                     f'{", ".join(RESERVED_NAMES)})')
+        if len(set(names)) != len(names):
+            raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
+    shared = sorted(set(chains) & set(colliders))
+    if shared:
+        raise ParameterError(('chains', 'colliders'), f'chains and colliders share the '
+                             f'name(s) {shared}: every name prefixes its own parameters')
+
+
+def check_chain_names(names):
+    """Check chain names alone (see :func:`check_names`)."""
+    check_names(names)
 
 
 def _check_value(name, pdef, value):
@@ -255,29 +329,54 @@ def _check_value(name, pdef, value):
                                        f'[{pdef.lo:g}, {pdef.hi:g}]')
 
 
-def _scene_error_name(err, chains):
+def _scene_error_name(err, chains, colliders=()):
     """Map a ``SceneError`` field (``chains[0].length``, ``solver.dt``) to a parameter name."""
     f = err.field
     m = re.match(r'^chains\[(\d+)\]\.(.*)$', f)
     if m:
         return chain_param_name(chains[int(m.group(1))], m.group(2))
+    m = re.match(r'^colliders\[(\d+)\]\.(.*)$', f)
+    if m:
+        field = m.group(2)
+        return chain_param_name(colliders[int(m.group(1))], 'frame' if field == 'body' else field)
     return f
+
+
+def _vector(value):
+    return tuple(float(x) for x in value)
 
 
 def build_scene(values, chains):
     """The ``Scene`` of a full set of parameter ``values`` (dict name → value); raises
-    ``ParameterError`` naming the offending parameter(s)."""
+    ``ParameterError`` naming the offending parameter(s).
+
+    Kinematic bodies: 0 is the head; a static body 1 (identity pose, the head pose's frame) is
+    added only when some chain hangs from the world. World colliders are static (body None).
+    """
+    colliders = collider_names(values)
+    world_anchor = any(values[chain_param_name(c, 'anchor')] == 'world' for c in chains)
     specs = []
     for c in chains:
         v = {f: values[chain_param_name(c, f)] for f in _CHAIN_DEFS}
-        rest = tuple(float(x) for x in v['rest_direction'])
+        rest = _vector(v['rest_direction'])
         specs.append(ChainSpec(
             name=c, n_segments=int(v['n_segments']), length=float(v['length']),
             mass=float(v['mass']), radius=float(v['radius']),
-            attach=tuple(float(x) for x in v['attach']),
+            anchor_body=1 if v['anchor'] == 'world' else 0,
+            attach=_vector(v['attach']),
             rest_direction=None if not any(rest) else rest,
             damping=float(v['damping']), stiffness=float(v['stiffness']),
-            drag_linear=float(v['drag_linear']), drag_quadratic=float(v['drag_quadratic'])))
+            drag_linear=float(v['drag_linear']), drag_quadratic=float(v['drag_quadratic']),
+            swing_limit=float(v['swing_limit']) or None,
+            twist_limit=float(v['twist_limit']) or None,
+            collide=bool(v['collide'])))
+    collider_specs = []
+    for c in colliders:
+        v = {f: values[chain_param_name(c, f)] for f in _COLLIDER_DEFS}
+        collider_specs.append(ColliderSpec(
+            kind=v['kind'], body=0 if v['frame'] == 'head' else None, center=_vector(v['center']),
+            axis=_vector(v['axis']), radius=float(v['radius']),
+            half_length=float(v['half_length']), friction=float(v['friction'])))
     solver = SolverSpec(
         integrator=values['solver.integrator'], dt=float(values['solver.dt']),
         max_steps_per_call=int(values['solver.max_steps_per_call']),
@@ -289,11 +388,11 @@ def build_scene(values, chains):
         guard_max_speed=float(values['solver.guard_max_speed']),
         guard_max_gap=float(values['solver.guard_max_gap']))
     try:
-        return Scene(chains=tuple(specs), n_kinematic_bodies=1,
-                     gravity=tuple(float(x) for x in values['gravity']),
-                     wind=tuple(float(x) for x in values['wind']), solver=solver)
+        return Scene(chains=tuple(specs), n_kinematic_bodies=2 if world_anchor else 1,
+                     gravity=_vector(values['gravity']), wind=_vector(values['wind']),
+                     solver=solver, colliders=tuple(collider_specs))
     except SceneError as err:
-        name = _scene_error_name(err, chains)
+        name = _scene_error_name(err, chains, colliders)
         raise ParameterError(name, f'{name} = {err.value!r} is not allowed: must be '
                                    f'{err.allowed}') from err
 
@@ -318,8 +417,9 @@ def check_values(values, chains, changed=None):
     """Check a full set of ``values``: every value (or those in ``changed``), then the scene and
     the cross-parameter consistency. Returns the ``Scene``; raises ``ParameterError``."""
     names = values.keys() if changed is None else changed
+    colliders = collider_names(values)
     for name in names:
-        pdef = definition(name, chains)
+        pdef = definition(name, chains, colliders)
         if pdef is not None:
             _check_value(name, pdef, values[name])
     scene = build_scene(values, chains)

@@ -60,6 +60,7 @@ import math
 
 import numpy as np
 
+from ponytail_ros.core.head import KinematicState
 from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
 from ponytail_ros.core.simulator import Simulator, StepReport
 
@@ -160,14 +161,18 @@ def structural_change(old, new):
     strip_c = {f: 0.0 for f in TUNABLE_CHAIN_FIELDS}
     if any(replace(a, **strip_c) != replace(b, **strip_c) for a, b in zip(old.chains, new.chains)):
         return True
-    return (old.n_kinematic_bodies != new.n_kinematic_bodies or old.solver != new.solver)
+    return (old.n_kinematic_bodies != new.n_kinematic_bodies or old.solver != new.solver
+            or old.colliders != new.colliders)
 
 
 class ChainRunner:
     """Head samples → estimator → simulator, one ``tick`` at a time (see the module docstring).
 
     Args:
-        scene: a validated ``Scene`` (one kinematic body: the head).
+        scene: a validated ``Scene``: kinematic body 0 is the head; a body 1, if the scene has
+            one, is the static world (identity pose in the head pose's frame: chains hanging
+            from a ceiling). A scene in which neither a chain nor a collider uses the head runs
+            without any head pose (frame ``''`` until one arrives).
         settings: ``RunnerSettings``.
     """
 
@@ -232,6 +237,22 @@ class ChainRunner:
     @property
     def has_head(self):
         return len(self.estimator) > 0
+
+    @property
+    def needs_head(self):
+        """Whether some chain or collider of the scene is fixed in the head (body 0)."""
+        return _needs_head(self.scene)
+
+    def bodies_at(self, t):
+        """The scene's kinematic bodies at head time ``t``: the estimated head (still at the
+        origin while there is none), then the static world if the scene has it."""
+        head = (self.estimator.state_at(t) if self.has_head
+                else KinematicState.still())
+        if self.scene.n_kinematic_bodies == 1:
+            return head
+        world = KinematicState.still()
+        return KinematicState(*(np.concatenate([getattr(head, f), getattr(world, f)])
+                                for f in _STATE_FIELDS))
 
     @property
     def newest_stamp(self):
@@ -320,7 +341,7 @@ class ChainRunner:
         elapsed = 0.0 if self._last_tick is None else t - self._last_tick
         self._last_tick = t
         accepted = self._drain(t)
-        if not self.has_head:
+        if not self.has_head and _needs_head(self._pending_scene or self.scene):
             return None
         self.ticks += 1
 
@@ -331,23 +352,26 @@ class ChainRunner:
             step = DELAY_SLEW * elapsed
             self._delay += min(max(target - self._delay, -step), step)
         t_head = t - self._delay
-        head = self.estimator.state_at(t_head)
+        # A structural change takes effect before the head is evaluated (it may add the world
+        # body); a tunable one is applied to the running simulator below.
+        scene = self._pending_scene
+        self._pending_scene = None
+        rebuild = scene is not None and (self.sim is None or structural_change(self.scene, scene))
+        if rebuild:
+            self.scene = scene
+        head = self.bodies_at(t_head)
 
         report = StepReport()
         reset_reason = None
-        scene = self._pending_scene
-        self._pending_scene = None
-        if self.sim is None or (scene is not None and structural_change(self.scene, scene)):
-            if scene is not None:
-                self.scene = scene
-                if self.sim is not None:
-                    reset_reason = 'rebuild'
+        if self.sim is None or rebuild:
+            if self.sim is not None:
+                reset_reason = 'rebuild'
             self.sim = Simulator(self.scene, head=head, t0=t_head)
             self._t_frame = t_head
             self._pending_reset = None
         else:
             if scene is not None:
-                self._apply_tunables(scene)
+                self._apply_tunables(scene)     # not structural
             if self._pending_reset is not None:
                 reset_reason = self._pending_reset
                 self.sim.reset(head, t_head)
@@ -361,7 +385,7 @@ class ChainRunner:
                     # disagrees slightly with the previous tick's, and bridging that within
                     # one frame would be an acceleration spike.
                     report = self.sim.advance_frame(
-                        t_head, head, head_prev=self.estimator.state_at(self._t_frame))
+                        t_head, head, head_prev=self.bodies_at(self._t_frame))
                 else:
                     report = self.sim.advance_frame(t_head, head)
                 self._t_frame = t_head
@@ -381,7 +405,7 @@ class ChainRunner:
             # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
             # moved onto the attachment point of the head estimated at t.
             m = self.sim.model
-            now = self.sim.anchors(head if t_head == t else self.estimator.state_at(t))
+            now = self.sim.anchors(head if t_head == t else self.bodies_at(t))
             origins += (now.position - origins[m.chain_start])[m.chain_of]
         return TickOutput(
             t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
@@ -399,6 +423,15 @@ class ChainRunner:
             if changed:
                 self.sim.set_parameters(chain=i, **changed)
         self.scene = scene
+
+
+_STATE_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                 'linear_acceleration', 'angular_acceleration')
+
+
+def _needs_head(scene):
+    return (any(c.anchor_body == 0 for c in scene.chains)
+            or any(c.body == 0 for c in scene.colliders))
 
 
 def _valid_sample(t, p, q, quat_tolerance):

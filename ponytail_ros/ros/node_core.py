@@ -1,0 +1,258 @@
+"""What the ponytail node does with a head pose, a tick, a parameter change and a diagnostics
+period, as messages and without an rclpy node: ``PonytailNode`` publishes what ``NodeCore``
+returns, ``ponytail_replay`` records it. One implementation, so a replay is the node's run.
+
+Times are integer ns of the node clock (the recorded clock in a replay). The per-tick logic
+(input checks, head estimation, stepping) is ``ChainRunner``; the parameter table is
+``parameters.py``; messages are built by ``messages.py``.
+"""
+from dataclasses import dataclass, field
+from typing import Any, List, Mapping, Optional
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from visualization_msgs.msg import MarkerArray
+
+import numpy as np
+
+from .messages import ChainMessages, ColliderMarkers, delete_all_marker
+from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
+                         collider_names, definition)
+from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
+
+__all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'time_msg']
+
+#: ``RunnerSettings`` fields that follow their parameters live.
+LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
+                 'teleport_distance', 'teleport_angle', 'stale_timeout', 'window', 'degree',
+                 'max_extrapolation', 'max_gap', 'quat_tolerance')
+
+#: Diagnostics keys of wall-clock timing (the node measures them; a replay has none).
+TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'tick time max (ms)',
+               'timer lateness max (ms)')
+
+
+def time_msg(t_ns: int) -> Time:
+    """``builtin_interfaces/Time`` of ``t_ns`` (as ``rclpy.time.Time.to_msg``)."""
+    return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+
+
+@dataclass
+class NodeTick:
+    """The messages of one tick: ``poses[i]`` is chain ``i``'s ``PoseArray``; ``markers`` a
+    ``MarkerArray`` when markers are due (``markers.rate``), else None."""
+
+    output: TickOutput
+    frame_id: str
+    poses: List[Any]
+    markers: Optional[Any]
+
+
+@dataclass
+class _Window:
+    """Counts between two diagnostics messages."""
+
+    t0_ns: int = 0
+    ticks: int = 0
+    max_gap: float = 0.0
+    steps: int = 0
+    accepted: int = 0
+    guard_resets: int = 0
+    dropped_time: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+class NodeCore:
+    """The node's state and behaviour over a full parameter value set ``values`` (name ->
+    plain value, as ``recording.params.complete_values`` gives or the node declares).
+
+    Raises ``ParameterError`` (naming the parameter) if the values are invalid.
+    """
+
+    def __init__(self, values: Mapping[str, Any]):
+        self.values = dict(values)
+        self.chains = [str(c) for c in self.values['chains']]
+        self.colliders = collider_names(self.values)
+        check_names(self.chains, self.colliders)
+        self.scene = check_values(self.values, self.chains)
+        self.runner = ChainRunner(self.scene, build_runner_settings(self.values))
+        self.stamp_source = self.values['stamp_source']
+        self._chain_msgs = self._make_chain_messages(self.scene)
+        self._collider_markers = ColliderMarkers()
+        self._last_marker_t = None
+        self.published = 0
+        self.window = _Window()
+        self._dropped_at_diag = dict(self.runner.dropped)
+
+    def is_parameter(self, name: str) -> bool:
+        return definition(name, self.chains, self.colliders) is not None
+
+    # -- input ---------------------------------------------------------------------------------
+    def push_head(self, stamp, receive_ns: int, position, orientation, frame_id: str) -> None:
+        """Queue a head pose: ``stamp`` its ``header.stamp`` (a zero stamp, or ``stamp_source:
+        receive``, uses the receive time), ``position``/``orientation`` tuples."""
+        if self.stamp_source == 'receive' or (stamp.sec == 0 and stamp.nanosec == 0):
+            t = receive_ns * 1e-9
+        else:
+            t = stamp.sec + stamp.nanosec * 1e-9
+        self.runner.push(t, position, orientation, frame_id)
+
+    # -- the tick ------------------------------------------------------------------------------
+    def _make_chain_messages(self, scene):
+        msgs = [ChainMessages(c.name, c.lengths(), c.radius) for c in scene.chains]
+        for m, name in zip(msgs, self.chains):
+            m.set_color(self.values[chain_param_name(name, 'color')])
+        return msgs
+
+    def tick(self, t_ns: int) -> Optional[NodeTick]:
+        """Advance to ``t_ns``; the tick's messages, or None (no clock yet, no head pose yet)."""
+        if t_ns == 0:                    # sim time before the first /clock
+            return None
+        out = self.runner.tick(t_ns * 1e-9)
+        if out is None:
+            return None
+        scene = self.runner.scene
+        if any(m.n != c.n_segments or m.radius != c.radius or
+               not np.array_equal(m.lengths, c.lengths())
+               for m, c in zip(self._chain_msgs, scene.chains)):
+            self._chain_msgs = self._make_chain_messages(scene)
+        # No frame set and no head pose seen (chains hanging from the world only): 'world'.
+        frame = self.values['frame_id'] or out.frame_id or 'world'
+        stamp = time_msg(t_ns)
+        model = self.runner.sim.model
+        poses = [cm.fill_poses(out.origins[model.chain_slice(c)],
+                               out.orientations[model.chain_slice(c)], frame, stamp)
+                 for c, cm in enumerate(self._chain_msgs)]
+        self.published += 1
+        win, rep = self.window, out.report
+        win.ticks += 1
+        win.max_gap = max(win.max_gap, rep.max_gap)
+        win.steps += rep.steps
+        win.accepted += out.accepted
+        win.dropped_time += rep.dropped_time
+        if out.reset_reason == 'guard':
+            win.guard_resets += 1
+        return NodeTick(out, frame, poses, self._markers(out, frame, stamp))
+
+    def _markers(self, out, frame, stamp):
+        style = self.values['markers.style']
+        period = 1.0 / self.values['markers.rate']
+        if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
+                and out.t >= self._last_marker_t:
+            return None
+        self._last_marker_t = out.t
+        model = self.runner.sim.model
+        delete = False
+        markers = []
+        for c, cm in enumerate(self._chain_msgs):
+            sl = model.chain_slice(c)
+            color = self.values[chain_param_name(self.chains[c], 'color')]
+            ms, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color,
+                                     frame, stamp)
+            delete = delete or changed
+            markers.extend(ms)
+        ms, changed = self._collider_markers.markers(
+            self.runner.scene.colliders, self.runner.bodies_at(out.t), style, frame, stamp)
+        delete = delete or changed
+        markers.extend(ms)
+        if delete:
+            markers.insert(0, delete_all_marker(frame, stamp))
+        if not markers:
+            return None
+        return MarkerArray(markers=markers)
+
+    # -- parameters ----------------------------------------------------------------------------
+    def ours(self, changed: Mapping[str, Any]) -> dict:
+        """The entries of ``changed`` that are this node's parameters."""
+        return {k: v for k, v in changed.items() if self.is_parameter(k)}
+
+    def check_change(self, changed: Mapping[str, Any]) -> None:
+        """Raise ``ParameterError`` (naming the parameter) if ``changed`` is not acceptable; the
+        running values are untouched either way."""
+        values = dict(self.values)
+        values.update(changed)
+        check_values(values, self.chains, changed)
+
+    def apply_change(self, changed: Mapping[str, Any]) -> None:
+        """Apply an accepted change: tunables at the next tick, structural ones by a rebuild
+        (``ChainRunner.set_scene``), input settings and marker colours at once."""
+        self.values.update(changed)
+        scene = check_values(self.values, self.chains)
+        if scene != self.scene:
+            self.runner.set_scene(scene)
+            self.scene = scene
+        settings = build_runner_settings(self.values)
+        self.runner.update_settings(**{k: getattr(settings, k) for k in LIVE_SETTINGS})
+        for i, c in enumerate(self.chains):
+            if chain_param_name(c, 'color') in changed:
+                self._chain_msgs[i].set_color(self.values[chain_param_name(c, 'color')])
+
+    # -- diagnostics ---------------------------------------------------------------------------
+    def diagnostic_status(self, t_ns: int, span: float, name: str,
+                          timing: Optional[Mapping[str, str]] = None) -> DiagnosticStatus:
+        """The status over the window since the last call (which it starts anew).
+
+        ``span``: the window's length, s (wall time in the node, recorded time in a replay);
+        ``name``: the node's fully qualified name; ``timing``: values of ``TIMING_KEYS``
+        (``'n/a (replay)'`` when None).
+        """
+        win, self.window = self.window, _Window(t0_ns=t_ns)
+        r = self.runner
+        span = max(span, 1e-9)
+        t = t_ns * 1e-9
+        dropped_now = dict(r.dropped)
+        dropped_window = sum(dropped_now[k] - self._dropped_at_diag.get(k, 0)
+                             for k in DROP_REASONS)
+        self._dropped_at_diag = dropped_now
+        age = r.head_age(t)
+        if not r.has_head:
+            head = 'none' if r.needs_head else 'not needed'
+        else:
+            head = 'stale' if r.head_stale(t) else 'ok'
+        level, problems = DiagnosticStatus.OK, []
+
+        def flag(lvl, text):
+            nonlocal level
+            level = max(level, lvl)
+            problems.append(text)
+        if head == 'none':
+            flag(DiagnosticStatus.WARN, 'no head pose received')
+        elif head == 'stale' and r.needs_head:
+            flag(DiagnosticStatus.WARN, 'head pose stale')
+        elif head == 'ok' and age is not None and abs(age) > max(r.settings.stale_timeout, 0.5):
+            flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
+                                        f'(clocks differ? use_sim_time / stamp_source)')
+        if dropped_window:
+            flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped')
+        if win.dropped_time > 0.0:
+            flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
+        if win.guard_resets:
+            flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
+        timing = timing or {k: 'n/a (replay)' for k in TIMING_KEYS}
+        kv = [
+            ('head', head),
+            ('head frame', r.frame_id or ''),
+            ('head input age (s)', 'n/a' if age is None else f'{age:.4f}'),
+            ('head poses accepted per s', f'{win.accepted / span:.1f}'),
+            ('head poses accepted', str(r.accepted_total)),
+            ('ticks per s', f'{win.ticks / span:.1f}'),
+        ]
+        kv += [(k, timing[k]) for k in TIMING_KEYS]
+        kv += [
+            ('steps per tick', f'{win.steps / max(win.ticks, 1):.2f}'),
+            ('joint gap max (m)', f'{win.max_gap:.3g}'),
+            ('interpolation delay (s)', f'{r.delay:.4f}'),
+            ('dropped inputs', str(sum(dropped_now.values()))),
+        ]
+        kv += [(f'dropped inputs: {k}', str(dropped_now[k])) for k in DROP_REASONS]
+        kv += [('resets', str(sum(r.resets.values())))]
+        kv += [(f'resets: {k}', str(r.resets[k])) for k in RESET_REASONS]
+        kv += [('last reset', r.last_reset or ''),
+               ('head history restarts', str(r.history_restarts)),
+               ('dropped time (s)', f'{r.dropped_time_total:.4f}'),
+               ('segments', str(self.scene.n_segments)),
+               ('colliders', str(len(self.scene.colliders)))]
+        return DiagnosticStatus(
+            level=level, name=f'ponytail: {name}', hardware_id=name,
+            message='; '.join(problems) if problems else 'ok',
+            values=[KeyValue(key=k, value=v) for k, v in kv])
