@@ -131,7 +131,7 @@ class PonytailNode(Node):
     def __init__(self, node_name='ponytail', *, context=None, **kwargs):
         super().__init__(node_name, context=context, **kwargs)
         self._declare_parameters()
-        values = {p.name: _plain(p.value) for p in self.get_parameters(self._param_names)}
+        values = {name: self._value(name) for name in self._param_names}
         #: What the node does, without rclpy (shared with ``ponytail_replay``).
         self.core = NodeCore(values)
         self.core.runner.on_drop = self._on_drop
@@ -188,15 +188,23 @@ class PonytailNode(Node):
         override = self._parameter_overrides.get(name)
         if override is not None:
             self._parameter_overrides[name] = _coerce(override, pdef.kind)
-        self.declare_parameter(name, default, _descriptor(pdef))
+        descriptor = _descriptor(pdef)
+        if isinstance(default, list) and not default:
+            # rclpy types an empty list as BYTE_ARRAY, which would refuse a list of strings:
+            # such a parameter (``colliders``, read-only) is declared dynamically typed.
+            descriptor.dynamic_typing = True
+        self.declare_parameter(name, default, descriptor)
         self._param_names.append(name)
+
+    def _value(self, name):
+        return _plain(self.get_parameter(name).value)
 
     def _declare_parameters(self):
         self._param_names = []
         for pdef in GLOBAL_PARAMS:
             self._declare(pdef, pdef.name, pdef.default)
         self._chains = [str(c) for c in self.get_parameter('chains').value]
-        self._colliders = [str(c) for c in self.get_parameter('colliders').value]
+        self._colliders = [str(c) for c in self._value('colliders')]
         check_names(self._chains, self._colliders)
         for i, chain in enumerate(self._chains):
             for pdef in CHAIN_PARAMS:

@@ -1,0 +1,261 @@
+"""The ready-made scenes (``config/*.yaml``): each runs in the node and in replay, and the
+colliders and limits each enables hold under a violent shake.
+
+The first part is ROS-free (the scenes built from their params files, stepped in the core);
+the second runs each scene in a real node on an in-process executor, records it, and replays
+the recording offline.
+"""
+import time
+
+import numpy as np
+import pytest
+
+from ponytail_ros.core import Simulator
+from ponytail_ros.core.head import HeadMotion, KinematicState
+from ponytail_ros.core.rotations import quat_rotate
+from ponytail_ros.recording.params import (complete_values, scene_and_settings,
+                                           values_from_params_file)
+from ponytail_ros.resources import config_path
+
+from test_core_collision import TOLERANCE, ShakeMotion
+from test_core_limits import ANGLE_TOLERANCE
+
+SCENES = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail.yaml',
+          'tail_and_ponytail.yaml')
+DT = 1.0 / 120.0            # frames: the node's default rate
+
+
+def scene_of(name):
+    values = complete_values(values_from_params_file(config_path(name)))
+    chains, scene, _ = scene_and_settings(values)
+    return values, scene
+
+
+class WithWorld(HeadMotion):
+    """A head motion plus, when the scene has it, the static world body (as the node adds)."""
+
+    def __init__(self, motion, n_bodies):
+        self.motion, self.n_bodies = motion, n_bodies
+
+    def state_at(self, t):
+        head = self.motion.state_at(t)
+        if self.n_bodies == 1:
+            return head
+        world = KinematicState.still()
+        return KinematicState(*(np.concatenate([getattr(head, f), getattr(world, f)]) for f in (
+            'position', 'orientation', 'linear_velocity', 'angular_velocity',
+            'linear_acceleration', 'angular_acceleration')))
+
+
+# -- what each scene models (ROS-free) ----------------------------------------------------------
+
+def test_each_scene_enables_only_what_it_needs():
+    scenes = {name: scene_of(name)[1] for name in SCENES}
+    pony = scenes['ponytail.yaml']
+    (c,) = pony.chains
+    assert [k.kind for k in pony.colliders] == ['sphere'] and pony.colliders[0].body == 0
+    assert c.damping > 0 and c.stiffness > 0 and c.drag_linear > 0
+    assert c.swing_limit is None and c.twist_limit is None
+    pig = scenes['pigtails.yaml']
+    assert [ch.name for ch in pig.chains] == ['left', 'right']
+    assert np.allclose(np.array(pig.chains[0].attach) * [1, -1, 1], pig.chains[1].attach)
+    rope = scenes['rope.yaml']
+    (c,) = rope.chains
+    assert c.n_segments == 40 and rope.n_kinematic_bodies == 2 and c.anchor_body == 1
+    assert not rope.colliders and c.swing_limit is None and c.twist_limit is None
+    assert c.damping == c.stiffness == c.drag_linear == c.drag_quadratic == 0.0
+    assert np.allclose(rope.wind, 0.0)
+    sword = scenes['sword.yaml']
+    (c,) = sword.chains
+    assert c.n_segments <= 2 and c.swing_limit > 0 and c.stiffness == 0.0
+    assert [k.kind for k in sword.colliders] == ['capsule']
+    tail = scenes['tail.yaml']
+    (c,) = tail.chains
+    assert c.stiffness > 0 and c.swing_limit > 0 and [k.kind for k in tail.colliders] == ['capsule']
+
+
+def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
+    """The rope is undamped and its anchor static: released 60° from the vertical it swings
+    with its energy conserved (RK4 at 1/240 s) and its root on the ceiling point."""
+    values, scene = scene_of('rope.yaml')
+    motion = WithWorld(ShakeMotion(), scene.n_kinematic_bodies)   # the head is irrelevant
+    sim = Simulator(scene, motion)
+    (c,) = scene.chains
+    e0 = sum(float(e.sum()) for e in sim.energy())
+    # Energy the release can give: from 60° (centre of mass 0.5 m below the ceiling) to
+    # hanging straight (1 m below).
+    releasable = c.mass * 9.81 * (0.5 * c.length - 0.5 * c.length * 0.5)
+    lowest, fastest, drift = np.inf, 0.0, 0.0
+    for k in range(1, int(round(5.0 / DT)) + 1):
+        report = sim.advance_to(k * DT, motion)
+        assert report.reset_reason is None and report.max_gap < 1e-9
+        lowest = min(lowest, float(sim.joint_positions()[1][-1, 2]))
+        ke, pe = sim.energy()
+        drift = max(drift, abs(float(ke.sum() + pe.sum()) - e0))
+        fastest = max(fastest, float(ke.sum()))
+    assert drift < 1e-3 * releasable
+    assert fastest > 0.5 * releasable                          # it did swing
+    assert lowest < 3.0 - 0.95 * c.length                      # through the vertical
+    assert np.allclose(sim.joint_positions()[0][0], values['rope.attach'], atol=1e-12)
+
+
+@pytest.mark.parametrize('name', ['ponytail.yaml', 'pigtails.yaml', 'sword.yaml', 'tail.yaml'])
+def test_colliders_and_limits_of_each_scene_hold_under_a_violent_shake(name):
+    """The violent shake (±0.1 m at 3 Hz, ±1 rad of yaw at 2.5 Hz, ±0.3 rad of nod) for 6 s
+    at the node's 120 Hz frames: no reset, joints closed, no segment deeper than TOLERANCE in
+    a collider (a chain's rooted first segment on its outer half, as the solver treats it),
+    no joint beyond its swing or twist limit by more than ANGLE_TOLERANCE."""
+    _, scene = scene_of(name)
+    motion = ShakeMotion()
+    sim = Simulator(scene, motion)
+    m = sim.model
+    swing_max = np.concatenate([c.joint_limits('swing_limit') for c in scene.chains])
+    twist_max = np.concatenate([c.joint_limits('twist_limit') for c in scene.chains])
+    worst_depth = worst_swing = worst_twist = -np.inf
+    touching = 0
+    for k in range(1, int(round(6.0 / DT)) + 1):
+        report = sim.advance_to(k * DT, motion)
+        assert report.reset_reason is None and report.max_gap < 1e-6
+        depth = sim.contact_depths()
+        worst_depth = max(worst_depth, float(depth.max()))
+        touching += int(np.count_nonzero(depth > -1e-3))
+        if m.has_limits:
+            swing, twist = sim.joint_angles()
+            worst_swing = max(worst_swing, float((swing - swing_max).max()))
+            worst_twist = max(worst_twist, float((np.abs(twist) - twist_max).max()))
+    assert worst_depth < TOLERANCE and touching > 0
+    if m.has_limits:
+        assert worst_swing < ANGLE_TOLERANCE and worst_twist < ANGLE_TOLERANCE
+
+
+# -- in the node and in replay -----------------------------------------------------------------
+
+rclpy = pytest.importorskip('rclpy')
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+from ponytail_ros.recording.bag import BagReader  # noqa: E402
+from ponytail_ros.recording.replay import replay  # noqa: E402
+from ponytail_ros.ros.head_script import HeadScript  # noqa: E402
+from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+from test_node import TIMEOUT_SCALE, pose_msg  # noqa: E402
+
+TICKS = 60
+
+
+def poses_by_stamp(path, topic):
+    return {(m.header.stamp.sec, m.header.stamp.nanosec): m
+            for t, _, m, _ in BagReader(path).messages({topic: 'geometry_msgs/msg/PoseArray'})
+            if t == topic}
+
+
+@pytest.mark.parametrize('name', SCENES)
+def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_path):
+    """The scene's params file as the node's parameters, recorded; a scripted head at 100 Hz
+    (none for a scene that needs no head: the rope hangs from the ceiling alone). Every chain
+    publishes TICKS ticks with closed joints, the world-anchored root on its ceiling point,
+    colliders drawn in the markers; then ``ponytail_replay`` reproduces every tick exactly."""
+    values, scene = scene_of(name)
+    params = dict(values_from_params_file(config_path(name)))
+    path = tmp_path / 'run.mcap'
+    params.update(record_path=str(path), diagnostics_period=0.2)
+    node = PonytailNode(context=ros_context,
+                        parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    chains = list(values['chains'])
+    topics = ['segment_poses'] if len(chains) == 1 else [f'segment_poses/{c}' for c in chains]
+    tester = rclpy.create_node('tester', context=ros_context)
+    got = {tp: [] for tp in topics}
+    for tp in topics:
+        tester.create_subscription(PoseArray, tp, got[tp].append, 100)
+    markers = []
+    tester.create_subscription(MarkerArray, 'segment_markers', markers.append, 100)
+    head_pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
+    needs_head = node.runner.needs_head
+    script, t0 = HeadScript(origin=np.array([0.0, 0.0, 1.0])), time.monotonic()
+
+    def publish_head():
+        state = script.state_at(time.monotonic() - t0)
+        head_pub.publish(pose_msg(tester.get_clock().now().nanoseconds * 1e-9,
+                                  state.position[0], state.orientation[0]))
+    if needs_head:
+        tester.create_timer(0.01, publish_head)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(tester)
+    try:
+        deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
+        while min(len(v) for v in got.values()) < TICKS and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.005)
+        resets = dict(node.runner.resets)
+    finally:
+        executor.shutdown()
+        node.destroy_node()               # finalises the recording
+        tester.destroy_node()
+    assert min(len(v) for v in got.values()) >= TICKS
+    assert resets['guard'] == 0
+    assert needs_head == (name != 'rope.yaml')
+
+    for c, (tp, spec) in enumerate(zip(topics, scene.chains)):
+        lengths = spec.lengths()
+        for msg in got[tp]:
+            assert msg.header.frame_id == 'world' and len(msg.poses) == spec.n_segments
+            o = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
+            q = np.array([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+                          for p in msg.poses])
+            tips = o + quat_rotate(q, np.outer(lengths, [1.0, 0.0, 0.0]))
+            assert np.abs(tips[:-1] - o[1:]).max(initial=0.0) < 1e-6    # joints closed
+            if spec.anchor_body == 1:
+                assert np.allclose(o[0], spec.attach, atol=1e-9)         # on the ceiling
+    drawn = {m.ns for a in markers for m in a.markers}
+    assert set(chains) <= drawn and (('colliders' in drawn) == bool(scene.colliders))
+
+    out = tmp_path / 'replayed.mcap'
+    result = replay(path, out)
+    assert result.ticks >= TICKS
+    for tp in topics:
+        live, again = poses_by_stamp(path, '/' + tp), poses_by_stamp(out, '/' + tp)
+        assert list(again) == list(live) and len(live) >= TICKS
+        assert all(again[s] == live[s] for s in live)
+
+
+def test_collider_and_limit_parameters_are_checked_named_and_applied_live(ros_context):
+    """Bad collider/limit values are refused at start-up and live with the parameter's name
+    and range (the running value stays); a good live change rebuilds the chain with it."""
+    from ponytail_ros.ros.parameters import ParameterError
+    params = dict(values_from_params_file(config_path('ponytail.yaml')))
+
+    def make(**changes):
+        p = {**params, **{k.replace('__', '.'): v for k, v in changes.items()}}
+        return PonytailNode(context=ros_context,
+                            parameter_overrides=[Parameter(k, value=v) for k, v in p.items()])
+    with pytest.raises(ParameterError, match=r'skull\.kind = .box. is not allowed: must be one '
+                                              r'of sphere, capsule, plane'):
+        make(skull__kind='box')
+    with pytest.raises(ParameterError, match=r'share the name'):
+        make(colliders=['ponytail'])
+    with pytest.raises(Exception, match=r'skull\.radius'):
+        make(skull__radius=-1.0)
+
+    node = make()
+    try:
+        assert node.core.scene.colliders[0].radius == 0.09
+        bad = node.set_parameters([Parameter('skull.radius', value=200.0),
+                                   Parameter('ponytail.swing_limit', value=4.0),
+                                   Parameter('skull.center', value=[0.0, 2e3, 0.0])])
+        assert not any(r.successful for r in bad)
+        assert 'skull.radius' in bad[0].reason and '100' in bad[0].reason
+        assert 'ponytail.swing_limit' in bad[1].reason and '3.1' in bad[1].reason
+        assert 'skull.center' in bad[2].reason and '1000' in bad[2].reason
+        assert node.core.values['skull.radius'] == 0.09
+        assert node.core.scene.colliders[0].radius == 0.09
+        good = node.set_parameters([Parameter('skull.radius', value=0.08),
+                                    Parameter('ponytail.swing_limit', value=0.5)])
+        assert all(r.successful for r in good)
+        assert node.core.scene.colliders[0].radius == 0.08
+        assert node.core.scene.chains[0].swing_limit == 0.5
+        (colliders,) = [p.value for p in node.get_parameters(['colliders'])]
+        assert list(colliders) == ['skull']
+    finally:
+        node.destroy_node()
