@@ -43,7 +43,7 @@ def tiny_run(tmp_path_factory):
 
 
 def test_default_run_writes_every_table_and_figure(tiny_run):
-    names = {'trade', 'refcheck', 'scaling', 'mujoco', 'batch', 'energy'}
+    names = {'trade', 'refcheck', 'scaling', 'mujoco', 'batch', 'energy', 'terms', 'scenes'}
     for name in names:
         assert (tiny_run / f'{name}.csv').exists(), name
         doc = read_json(tiny_run / f'{name}.json')
@@ -57,7 +57,8 @@ def test_default_run_writes_every_table_and_figure(tiny_run):
     if mujoco_chain.available():
         assert_png(tiny_run / 'mujoco.png')
     summary = read_json(tiny_run / 'summary.json')
-    assert set(summary['wall_s']) >= {'trade', 'scaling', 'mujoco', 'batch', 'energy', 'total'}
+    assert set(summary['wall_s']) >= {'trade', 'scaling', 'mujoco', 'batch', 'energy', 'terms',
+                                      'total'}
     assert 'recommendation' in summary
 
 

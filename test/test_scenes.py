@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ponytail_ros.core import Simulator
-from ponytail_ros.core.head import HeadMotion, KinematicState
+from ponytail_ros.core.head import WithStaticBodies
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.recording.params import (complete_values, scene_and_settings,
                                            values_from_params_file)
@@ -29,22 +29,6 @@ def scene_of(name):
     values = complete_values(values_from_params_file(config_path(name)))
     chains, scene, _ = scene_and_settings(values)
     return values, scene
-
-
-class WithWorld(HeadMotion):
-    """A head motion plus, when the scene has it, the static world body (as the node adds)."""
-
-    def __init__(self, motion, n_bodies):
-        self.motion, self.n_bodies = motion, n_bodies
-
-    def state_at(self, t):
-        head = self.motion.state_at(t)
-        if self.n_bodies == 1:
-            return head
-        world = KinematicState.still()
-        return KinematicState(*(np.concatenate([getattr(head, f), getattr(world, f)]) for f in (
-            'position', 'orientation', 'linear_velocity', 'angular_velocity',
-            'linear_acceleration', 'angular_acceleration')))
 
 
 # -- what each scene models (ROS-free) ----------------------------------------------------------
@@ -78,7 +62,7 @@ def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
     """The rope is undamped and its anchor static: released 60° from the vertical it swings
     with its energy conserved (RK4 at 1/240 s) and its root on the ceiling point."""
     values, scene = scene_of('rope.yaml')
-    motion = WithWorld(ShakeMotion(), scene.n_kinematic_bodies)   # the head is irrelevant
+    motion = WithStaticBodies(ShakeMotion(), scene.n_kinematic_bodies - 1)   # the head is irrelevant
     sim = Simulator(scene, motion)
     (c,) = scene.chains
     e0 = sum(float(e.sum()) for e in sim.energy())

@@ -18,6 +18,10 @@ Subcommands (default ``all``):
              chain alone and vs C separate simulators: ``batch.csv/json``.
 ``energy``   still anchor, no damping, 5 segments released 45° from vertical, 10 s: relative
              energy drift per integrator and step: ``energy.csv/json``, ``energy.png``.
+``terms``    what each force term, collider and joint limit costs on a 20-segment ponytail
+             (each added in turn; switched-off terms against the plain scene), and what each
+             ready-made scene (``config/*.yaml``) costs: ``terms.csv/json``,
+             ``scenes.csv/json``.
 ``refcheck`` this core's RK4 against every file of ``../shared/reference/``.
 ``report``   ``results.md``: all tables of the JSON files in the output directory, as markdown
              (also written at the end of ``all``).
@@ -97,7 +101,8 @@ PROFILES = {
         mujoco_n=(3,), mujoco_dts=(1 / 240, 1 / 960), mujoco_duration=0.1, mujoco_dt_ref=1 / 1920,
         mujoco_crosscheck_max=10, mujoco_scaling_max=10, mujoco_budget_s=5.0, long_run_s=0.5,
         batch_c=(1, 3), batch_segments=5, batch_steps=2, batch_loop_max=3, batch_repeats=1,
-        energy_T=0.2, energy_settings=[S(RK4, 1 / 240), S(SE, 1 / 480)]),
+        energy_T=0.2, energy_settings=[S(RK4, 1 / 240), S(SE, 1 / 480)],
+        terms_seconds=0.05, terms_repeats=1),
     'quick': dict(
         scenes=SCENES, durations=dict(moving=3.0, release=1.5, shake=2.0, rope=1.5, damped=3.0),
         dt_ref=1 / 4000, repeats=3, timing_window=0.25, settings=_settings_quick,
@@ -110,7 +115,8 @@ PROFILES = {
         batch_c=(1, 10, 100, 1000), batch_segments=20, batch_steps=6, batch_loop_max=100,
         batch_repeats=3,
         energy_T=10.0, energy_settings=[S(RK4, 1 / hz) for hz in (60, 120, 240, 480)]
-        + [S(SE, 1 / hz) for hz in (240, 480, 960, 1920)]),
+        + [S(SE, 1 / hz) for hz in (240, 480, 960, 1920)],
+        terms_seconds=2.0, terms_repeats=3),
     'full': dict(
         scenes=SCENES + ('damped',),
         durations=dict(moving=3.0, release=1.9, shake=2.0, rope=2.0, damped=3.0),
@@ -128,7 +134,8 @@ PROFILES = {
         batch_repeats=5,
         energy_T=10.0, energy_settings=[S(RK4, 1 / hz) for hz in (30, 60, 120, 240, 480, 960)]
         + [S(SE, 1 / hz) for hz in (120, 240, 480, 960, 1920, 3840)]
-        + [S(RK4, 1 / 240, projection=False), S(SE, 1 / 960, projection=False)]),
+        + [S(RK4, 1 / 240, projection=False), S(SE, 1 / 960, projection=False)],
+        terms_seconds=5.0, terms_repeats=5),
 }
 
 # What "good enough" means for the recommendation (see ``recommend``).
@@ -779,6 +786,24 @@ def cmd_energy(prof, out, meta, log=print):
     return rows
 
 
+# -- terms ------------------------------------------------------------------------------------
+def cmd_terms(prof, out, meta, log=print):
+    """Cost of each term, collider and limit, and of each ready-made scene (``terms.py``)."""
+    from . import terms
+    seconds, repeats = prof['terms_seconds'], prof['terms_repeats']
+    table = terms.bench_terms(20, seconds, repeats, out=log)
+    rows = [dict(configuration=label, cpu_ms_per_sim_s=1e3 * per_s, vs_gravity=rel,
+                 rows_per_step=r, seconds=seconds, repeats=repeats)
+            for label, per_s, rel, r in table]
+    write_table(out, 'terms', rows, meta)
+    table = terms.bench_ready_made(seconds, repeats, out=log)
+    scene_rows = [dict(scene=name, models=what, segments=n, cpu_ms_per_sim_s=1e3 * per_s,
+                       rows_per_step=r, seconds=seconds, repeats=repeats)
+                  for name, what, n, per_s, r in table]
+    write_table(out, 'scenes', scene_rows, meta)
+    return rows
+
+
 # -- refcheck ---------------------------------------------------------------------------------
 def cmd_refcheck(prof, out, meta, log=print):
     """This core's RK4 at the reference step against every shared reference file."""
@@ -883,7 +908,17 @@ def cmd_report(prof, out, meta, log=print):
             ('energy', 'Energy drift (still anchor, no damping, 5 segments released 45°)', [
                 ('setting', 'setting', ''), ('max abs dE/(E0-Erest)', 'drift_max_abs', '.2e'),
                 ('final', 'drift_final', '+.2e'), ('max growth', 'growth_max', '+.2e'),
-                ('resets', 'resets', 'd')])):
+                ('resets', 'resets', 'd')]),
+            ('terms', 'Cost of each term, collider and limit (20-segment ponytail, moving head, '
+                      'RK4 1/240 s; each row adds to the one above, the last two switch '
+                      'features off)', [
+                ('configuration', 'configuration', ''),
+                ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'), ('vs gravity', 'vs_gravity', '.2f'),
+                ('contact+limit rows/step', 'rows_per_step', '.2f')]),
+            ('scenes', 'Ready-made scenes (config/*.yaml) on the scripted head', [
+                ('scene', 'scene', ''), ('models', 'models', ''),
+                ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'),
+                ('contact+limit rows/step', 'rows_per_step', '.2f')])):
         rows, d = _load_rows(out, name)
         if not rows:
             continue
@@ -909,8 +944,9 @@ def cmd_report(prof, out, meta, log=print):
 
 # -- main -------------------------------------------------------------------------------------
 COMMANDS = {'trade': cmd_trade, 'scaling': cmd_scaling, 'mujoco': cmd_mujoco, 'batch': cmd_batch,
-            'energy': cmd_energy, 'refcheck': cmd_refcheck, 'report': cmd_report}
-ALL = ('trade', 'scaling', 'mujoco', 'batch', 'energy')
+            'energy': cmd_energy, 'terms': cmd_terms, 'refcheck': cmd_refcheck,
+            'report': cmd_report}
+ALL = ('trade', 'scaling', 'mujoco', 'batch', 'energy', 'terms')
 
 
 def build_parser():
@@ -937,9 +973,10 @@ def build_parser():
                  mujoco='the same chain in MuJoCo side by side (optional mujoco package)',
                  batch='C chains in one scene vs one chain alone vs C simulators',
                  energy='energy drift per integrator and step, still anchor, no damping',
+                 terms='cost of each force term, collider and limit; of each ready-made scene',
                  refcheck="RK4 against every file of ../shared/reference/",
                  report='results.md from the JSON files in --out',
-                 all='trade, scaling, mujoco, batch, energy, then report (the default)')
+                 all='trade, scaling, mujoco, batch, energy, terms, then report (the default)')
     for name in list(COMMANDS) + ['all']:
         sub.add_parser(name, parents=[common], help=helps[name])
     return p
@@ -991,8 +1028,12 @@ def _run_commands(todo, profile, prof, out, command):
         if name == 'trade':
             summary['recommendation'] = _jsonable(res[2])
     wall = time.perf_counter() - t_all
-    if command != 'report':
+    if command == 'all':
         summary.update(dict(meta=make_meta(profile, command), wall_s=dict(walls, total=wall)))
+    elif command != 'report':
+        # One subcommand re-run: its wall time joins those of the last full run.
+        summary['wall_s'] = {**summary.get('wall_s', {}), **walls}
+    if command != 'report':
         with open(summary_path, 'w') as f:
             json.dump(_jsonable(summary), f, indent=1, allow_nan=False)
         if command == 'all':

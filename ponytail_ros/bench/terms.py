@@ -12,8 +12,11 @@ simulated time; each configuration adds one thing to the previous one:
     + far floor        + a floor plane 10 m down, never reached: the detection alone
     + 1 sphere         + the head as a sphere collider (r = 0.1 m, on the head) instead; the
                        ponytail rests on it and its root is on it: in contact all the time
-    + 3 colliders      + a shoulder capsule and a floor plane (world)
-    + limits           + swing (0.6 rad) and twist (0.3 rad) limits at every joint
+    + 1 capsule        + a shoulder capsule (world) instead of the sphere, touched at times
+    + 3 colliders      + the head sphere, the shoulder capsule and a floor plane (world)
+    + swing limit      + a swing (cone, 0.6 rad) limit at every joint, no colliders
+    + limits           + swing (0.6 rad) and twist (0.3 rad) limits at every joint, and the
+                       three colliders
 
 and then the same scene with features present but switched off, which must cost what the
 scene without them costs:
@@ -21,9 +24,14 @@ scene without them costs:
     gravity, zero terms      gravity, with stiffness = drag = 0 and no limits given explicitly
     gravity, colliders off   gravity, three colliders in the scene but ``collide=False``
 
-Run: ``python -m ponytail_ros.bench.terms [--segments N] [--seconds S] [--repeats R]``.
+Then the ready-made scenes (``config/*.yaml``, as the node builds them) on the scripted head
+of ``ponytail_head_demo``, each with what it enables.
+
+Run: ``ponytail_bench terms`` (tables in ``docs/bench/terms.*``), or
+``python -m ponytail_ros.bench.terms [--segments N] [--seconds S] [--repeats R]``.
 """
 import argparse
+from dataclasses import replace
 import time
 
 from ponytail_ros.core.head import SwayYawMotion
@@ -55,8 +63,12 @@ def term_scenes(n_segments=20):
          (FAR_FLOOR,), None),
         ('+ 1 sphere', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05),
          (HEAD,), None),
+        ('+ 1 capsule', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05),
+         (SHOULDER,), None),
         ('+ 3 colliders', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05,
                                drag_quadratic=0.05), (HEAD, SHOULDER, FLOOR), None),
+        ('+ swing limit', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05,
+                               drag_quadratic=0.05, swing_limit=0.6), (), None),
         ('+ limits', dict(damping=2e-4, stiffness=2e-3, drag_linear=0.05, drag_quadratic=0.05,
                           swing_limit=0.6, twist_limit=0.3), (HEAD, SHOULDER, FLOOR), None),
         ('gravity, zero terms', dict(stiffness=0.0, drag_linear=0.0, drag_quadratic=0.0,
@@ -115,6 +127,67 @@ def bench_terms(n_segments=20, seconds=3.0, repeats=3, out=print):
     return table
 
 
+READY_MADE = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail.yaml')
+
+
+def ready_made_scenes(names=READY_MADE):
+    """``[(name, Scene, what it enables)]`` of the ready-made params files, as the node builds
+    them (a world-anchored chain gets the static world body)."""
+    from ponytail_ros.recording.params import (complete_values, scene_and_settings,
+                                               values_from_params_file)
+    from ponytail_ros.resources import config_path
+    out = []
+    for name in names:
+        _, scene, _ = scene_and_settings(complete_values(values_from_params_file(
+            config_path(name))))
+        scene = scene.replace(solver=replace(scene.solver, max_steps_per_call=10 ** 6))
+        out.append((name, scene, describe(scene)))
+    return out
+
+
+def describe(scene):
+    """What a scene enables, e.g. ``'12 seg; damping, stiffness, drag; 1 sphere'``."""
+    seg = '+'.join(str(c.n_segments) for c in scene.chains) + ' seg'
+    terms = [t for t in ('damping', 'stiffness', 'drag') if any(
+        (getattr(c, t) if t != 'drag' else c.drag_linear + c.drag_quadratic) > 0
+        for c in scene.chains)]
+    lim = [t for t in ('swing', 'twist') if any(getattr(c, t + '_limit') for c in scene.chains)]
+    kinds = [k.kind for k in scene.colliders]
+    cols = ', '.join(f'{kinds.count(k)} {k}' for k in dict.fromkeys(kinds))
+    parts = [seg, ', '.join(terms) or 'gravity only']
+    if lim:
+        parts.append(' and '.join(lim) + ' limit')
+    if cols:
+        parts.append(cols)
+    return '; '.join(parts)
+
+
+def bench_ready_made(seconds=3.0, repeats=3, out=print):
+    """CPU cost of each ready-made scene on the demo's scripted head (``HeadScript``).
+
+    Returns ``[(name, what, segments, cpu_s_per_simulated_s, rows_per_step)]``.
+    """
+    from ponytail_ros.core.head import WithStaticBodies
+    from ponytail_ros.ros.head_script import HeadScript
+    scenes = ready_made_scenes()
+    best, rows = {}, {}
+    for _ in range(repeats):
+        for name, scene, _ in scenes:
+            motion = WithStaticBodies(HeadScript(origin=(0.0, 0.0, 1.0)),
+                                      scene.n_kinematic_bodies - 1)
+            cpu, rows[name] = _run(scene, motion, seconds)
+            best[name] = min(best.get(name, float('inf')), cpu)
+    table = [(name, what, scene.n_segments, best[name] / seconds, rows[name])
+             for name, scene, what in scenes]
+    if out is not None:
+        out(f'Ready-made scenes on the scripted head, as configured (RK4 dt = 1/240 s), '
+            f'{seconds:g} s simulated, least of {repeats}')
+        out(f'{"scene":<16} {"CPU ms / sim s":>15} {"rows/step":>10}  what it models')
+        for name, what, _, per_s, r in table:
+            out(f'{name:<16} {1e3 * per_s:>15.1f} {r:>10.2f}  {what}')
+    return table
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--segments', type=int, default=20)
@@ -122,6 +195,7 @@ def main(argv=None):
     parser.add_argument('--repeats', type=int, default=3)
     args = parser.parse_args(argv)
     bench_terms(args.segments, args.seconds, args.repeats)
+    bench_ready_made(args.seconds, args.repeats)
     return 0
 
 

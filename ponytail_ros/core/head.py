@@ -22,8 +22,13 @@ from .rotations import cross, quat_rotate, quat_slerp
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
+    'WithStaticBodies',
     'AnchorTrack',
 ]
+
+
+_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+           'linear_acceleration', 'angular_acceleration')
 
 
 @dataclass
@@ -57,6 +62,15 @@ class KinematicState:
     @property
     def n_bodies(self):
         return self.position.shape[0]
+
+    def with_static_bodies(self, k=1):
+        """These bodies followed by ``k`` bodies at rest at the world origin, unrotated (a
+        static anchor such as a ceiling, whose points are given in world coordinates)."""
+        if k == 0:
+            return self
+        still = KinematicState.still(np.zeros((k, 3)))
+        return KinematicState(*(np.concatenate([getattr(self, f), getattr(still, f)])
+                                for f in _FIELDS))
 
     def is_finite(self):
         return all(np.all(np.isfinite(a)) for a in (
@@ -102,6 +116,17 @@ class HeadMotion:
 
     def state_at(self, t):  # pragma: no cover - interface
         raise NotImplementedError
+
+
+class WithStaticBodies(HeadMotion):
+    """``motion``'s bodies followed by ``k`` static ones (``KinematicState.with_static_bodies``):
+    a scene with a head and a ceiling anchor."""
+
+    def __init__(self, motion, k=1):
+        self.motion, self.k = motion, int(k)
+
+    def state_at(self, t):
+        return self.motion.state_at(t).with_static_bodies(self.k)
 
 
 class StillMotion(HeadMotion):

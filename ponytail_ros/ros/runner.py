@@ -248,15 +248,7 @@ class ChainRunner:
         origin while there is none), then the static world if the scene has it."""
         head = (self.estimator.state_at(t) if self.has_head
                 else KinematicState.still())
-        if self.scene.n_kinematic_bodies == 1:
-            return head
-        world = KinematicState.still()
-        return KinematicState(*(np.concatenate([getattr(head, f), getattr(world, f)])
-                                for f in _STATE_FIELDS))
-
-    @property
-    def newest_stamp(self):
-        return self._newest_stamp
+        return head.with_static_bodies(self.scene.n_kinematic_bodies - 1)
 
     def head_stale(self, t):
         """No sample accepted during the last ``stale_timeout`` s of clock time before ``t``."""
@@ -423,10 +415,6 @@ class ChainRunner:
             if changed:
                 self.sim.set_parameters(chain=i, **changed)
         self.scene = scene
-
-
-_STATE_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
-                 'linear_acceleration', 'angular_acceleration')
 
 
 def _needs_head(scene):
