@@ -250,6 +250,10 @@ class ChainRunner:
                 else KinematicState.still())
         return head.with_static_bodies(self.scene.n_kinematic_bodies - 1)
 
+    @property
+    def newest_stamp(self):
+        return self._newest_stamp
+
     def head_stale(self, t):
         """No sample accepted during the last ``stale_timeout`` s of clock time before ``t``."""
         return (self._last_accept_tick is None
