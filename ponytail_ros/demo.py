@@ -54,7 +54,9 @@ def run_demo(duration, config, domain_id=None):
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
         lengths = node.runner.sim.model.length.copy()
-        diagnostics = {'resets': node.runner.sim.total_resets, 'dropped': dict(node.runner.dropped)}
+        diagnostics = {'resets': {k: v for k, v in node.runner.resets.items() if v},
+                       'dropped': dict(node.runner.dropped),
+                       'dropped_time': node.runner.dropped_time_total}
         executor.shutdown()
         for n in (head, node, viewer):
             n.destroy_node()
@@ -87,8 +89,9 @@ def summarize(data):
     lines = [f'ticks published: {len(t)} over {t[-1]:.1f} s ({len(t) / max(t[-1], 1e-9):.0f} Hz), '
              f'{segs.shape[1]} segments',
              f'largest joint gap in any published PoseArray: {gap:.1e} m',
-             f'chain resets: {data["resets"]}; dropped head poses: '
-             f'{sum(data["dropped"].values())}']
+             f'chain resets: {sum(data["resets"].values())} {data["resets"] or ""}; dropped head '
+             f'poses: {sum(data["dropped"].values())}; simulation time dropped (the machine '
+             f'could not keep up): {data["dropped_time"]:.2f} s']
     rel = pts[:, -1] - pts[:, 0]
     for name, a, b in PHASES:
         sel = (t >= a) & (t < b)
