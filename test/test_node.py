@@ -110,6 +110,7 @@ class Harness:
         self.executor.add_node(self.tester)
         self.extra = []
         self.head = None          # callable t -> (p, q, frame) published at 100 Hz when set
+        self.last_sent = None     # stamp of the last head pose it published
         self.tester.create_timer(0.01, self._publish_head)
 
     def now(self):
@@ -120,6 +121,7 @@ class Harness:
             t = self.now()
             p, q, frame = self.head(t)
             self.head_pub.publish(pose_msg(t, p, q, frame))
+            self.last_sent = t
 
     def add(self, node):
         self.executor.add_node(node)
@@ -287,7 +289,9 @@ def test_every_bad_input_is_dropped_counted_and_harmless(harness):
     assert h.spin_until(lambda: len(got) >= 5, 5.0)
     r = h.node.runner
     h.head = None            # pause the good stream so that "newest" stays the newest
-    h.spin_for(0.05)
+    # Every good pose sent has been taken in by a tick (a loaded machine may lag).
+    assert h.spin_until(lambda: r.newest_stamp is not None
+                        and abs(r.newest_stamp - h.last_sent) < 1e-5, 3.0)
     newest = r.newest_stamp
     bad = {
         'nonfinite': [pose_msg(h.now(), p=(math.nan, 0.0, 1.0)),
