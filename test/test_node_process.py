@@ -21,6 +21,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 
 from test_node import attach_point, check_geometry, pose_msg  # noqa: E402
+from ponytail_ros.recording.params import values_from_params_file  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -28,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / 'config' / 'ponytail.yaml'
 N_SEG = 12          # config/ponytail.yaml
 LENGTH = 0.35
-ATTACH = [-0.09, 0.0, 0.06]
+ATTACH = values_from_params_file(CONFIG)['ponytail.attach']     # as the nodes read it
 
 
 def child_env():
