@@ -19,7 +19,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple, Union
 import yaml
 
 from ponytail_ros.ros.parameters import (
-    CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, GLOBAL_PARAMS, ParameterError,
+    CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
     build_runner_settings, chain_param_name, check_names, check_values, definition,
 )
 
@@ -31,12 +31,13 @@ __all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
 IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service'})
 
 
-def default_values(chains, colliders=()) -> Dict[str, Any]:
-    """Every parameter's default for these chain and collider names, as the node declares
-    them."""
+def default_values(chains, colliders=(), frames=()) -> Dict[str, Any]:
+    """Every parameter's default for these chain, collider and frame names, as the node
+    declares them."""
     values = {p.name: _copy(p.default) for p in GLOBAL_PARAMS}
     values['chains'] = list(chains)
     values['colliders'] = list(colliders)
+    values['frames'] = list(frames)
     for i, chain in enumerate(chains):
         for p in CHAIN_PARAMS:
             default = (list(DEFAULT_COLORS[i % len(DEFAULT_COLORS)]) if p.name == 'color'
@@ -45,6 +46,9 @@ def default_values(chains, colliders=()) -> Dict[str, Any]:
     for collider in colliders:
         for p in COLLIDER_PARAMS:
             values[chain_param_name(collider, p.name)] = _copy(p.default)
+    for frame in frames:
+        for p in FRAME_PARAMS:
+            values[chain_param_name(frame, p.name)] = _copy(p.default)
     return values
 
 
@@ -101,10 +105,11 @@ def complete_values(partial: Mapping[str, Any]) -> Dict[str, Any]:
     chains = partial.get('chains', [p.default for p in GLOBAL_PARAMS if p.name == 'chains'][0])
     chains = _coerce('chains', 'strings', chains)
     colliders = _coerce('colliders', 'strings', partial.get('colliders', []))
-    check_names(chains, colliders)
-    values = default_values(chains, colliders)
+    frames = _coerce('frames', 'strings', partial.get('frames', []))
+    check_names(chains, colliders, frames)
+    values = default_values(chains, colliders, frames)
     for name, value in partial.items():
-        pdef = definition(name, chains, colliders)
+        pdef = definition(name, chains, colliders, frames)
         if pdef is not None:
             values[name] = _coerce(name, pdef.kind, value)
     check_values(values, chains)
@@ -115,8 +120,9 @@ def unknown_names(partial: Mapping[str, Any]):
     """Names in ``partial`` that are not parameters of a node with its chains."""
     chains = list(partial.get('chains', ['ponytail']))
     colliders = list(partial.get('colliders', []))
+    frames = list(partial.get('frames', []))
     return sorted(n for n in partial
-                  if definition(n, chains, colliders) is None and n not in IGNORED_NAMES)
+                  if definition(n, chains, colliders, frames) is None and n not in IGNORED_NAMES)
 
 
 def scene_and_settings(values: Mapping[str, Any]):

@@ -3,6 +3,8 @@
 What is recorded (topic names as resolved in the node's namespace; types as published):
 
 * the head input, ``head_pose`` (``geometry_msgs/msg/PoseStamped``) as received;
+* each extra frame's pose topic (``frames``, ``<frame>.topic``; ``PoseStamped``) as received,
+  like the head's;
 * each chain's ``segment_poses`` / ``segment_poses/<chain>`` (``geometry_msgs/msg/PoseArray``);
 * ``segment_markers`` (``visualization_msgs/msg/MarkerArray``) when published (markers on);
 * ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``);
@@ -11,14 +13,15 @@ What is recorded (topic names as resolved in the node's namespace; types as publ
 * metadata ``ponytail_ros/parameters``: every parameter of the node at start-up, name -> value
   as JSON text (floats round-trip exactly) -- with the events above, enough to reproduce the
   run from the file alone;
-* metadata ``ponytail_ros/recording``: the node's name, its chains and topic names, what wrote
-  the file (``ponytail_node`` or ``ponytail_replay``).
+* metadata ``ponytail_ros/recording``: the node's name, its chains and topic names (with the
+  frames and their topics, ``frames``/``frame_topics``, when the node has frames: a recording
+  without them has none), what wrote the file (``ponytail_node`` or ``ponytail_replay``).
 
 Times: as in rosbag2, ``log_time`` is the receive time on the node clock (ns) -- for the node's
 own outputs the node clock when they are published -- and ``publish_time`` is the message's
 header stamp. The file order is the order in which the node handled the messages (one writer
-queue), which is what a replay needs: a head pose written before a tick's ``PoseArray`` was
-queued before that tick.
+queue), which is what a replay needs: a head (or frame) pose written before a tick's
+``PoseArray`` was queued before that tick.
 
 The node never waits on the disk: a write serialises the message and enqueues it; a background
 thread (``BagWriter``) does the I/O. Failures never reach the node: opening errors are logged and
@@ -43,7 +46,8 @@ from .cdr import serialize_canonical
 from .params import metadata_from_values
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
-           'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'stamp_ns', 'expand_record_path']
+           'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'stamp_ns', 'expand_record_path',
+           'resolve_topic']
 
 #: Metadata record describing the recording (str -> str, lists as JSON).
 RECORDING_METADATA = 'ponytail_ros/recording'
@@ -98,6 +102,8 @@ class RunLayout:
         pose_topics: one ``PoseArray`` topic per chain, same order; the first one's header
             stamps are the tick times.
         marker_topic, diagnostics_topic, parameter_events_topic: the other topics.
+        frames: the extra kinematic frames' names (``frames``), in parameter order.
+        frame_topics: their pose topics (resolved), same order.
     """
 
     node: str
@@ -107,12 +113,15 @@ class RunLayout:
     marker_topic: str
     diagnostics_topic: str = '/diagnostics'
     parameter_events_topic: str = PARAMETER_EVENTS_TOPIC
+    frames: tuple = ()
+    frame_topics: tuple = ()
 
     @classmethod
     def for_node(cls, node_fqn: str, chains: Sequence[str],
-                 head_topic: Optional[str] = None) -> 'RunLayout':
+                 head_topic: Optional[str] = None, frames: Sequence[str] = (),
+                 frame_topics: Sequence[str] = ()) -> 'RunLayout':
         """The topics of a ``PonytailNode`` named ``node_fqn`` (relative names resolved in its
-        namespace, as the node does)."""
+        namespace, as the node does); ``frame_topics`` as configured (``<frame>.topic``)."""
         namespace = node_fqn.rsplit('/', 1)[0]
         chains = tuple(chains)
         if len(chains) == 1:
@@ -121,25 +130,47 @@ class RunLayout:
             poses = tuple(f'{namespace}/segment_poses/{c}' for c in chains)
         return cls(node=node_fqn, chains=chains,
                    head_topic=head_topic or f'{namespace}/head_pose', pose_topics=poses,
-                   marker_topic=f'{namespace}/segment_markers')
+                   marker_topic=f'{namespace}/segment_markers', frames=tuple(frames),
+                   frame_topics=tuple(resolve_topic(node_fqn, t) for t in frame_topics))
 
     def to_metadata(self) -> Dict[str, str]:
-        return {'node': self.node, 'chains': json.dumps(list(self.chains)),
+        meta = {'node': self.node, 'chains': json.dumps(list(self.chains)),
                 'head_topic': self.head_topic, 'pose_topics': json.dumps(list(self.pose_topics)),
                 'tick_topic': self.pose_topics[0], 'marker_topic': self.marker_topic,
                 'diagnostics_topic': self.diagnostics_topic,
                 'parameter_events_topic': self.parameter_events_topic}
+        if self.frames:
+            meta.update(frames=json.dumps(list(self.frames)),
+                        frame_topics=json.dumps(list(self.frame_topics)))
+        return meta
 
     @classmethod
     def from_metadata(cls, record: Mapping[str, str]) -> 'RunLayout':
-        """Inverse of :meth:`to_metadata` (raises ``KeyError``/``ValueError`` if malformed)."""
+        """Inverse of :meth:`to_metadata` (raises ``KeyError``/``ValueError`` if malformed); a
+        recording without frames (older ones too) has none."""
+        frames = tuple(json.loads(record.get('frames', '[]')))
+        frame_topics = tuple(json.loads(record.get('frame_topics', '[]')))
+        if len(frame_topics) != len(frames):
+            raise ValueError('frames and frame_topics differ in length')
         return cls(node=record['node'], chains=tuple(json.loads(record['chains'])),
                    head_topic=record['head_topic'],
                    pose_topics=tuple(json.loads(record['pose_topics'])),
                    marker_topic=record['marker_topic'],
                    diagnostics_topic=record.get('diagnostics_topic', '/diagnostics'),
                    parameter_events_topic=record.get('parameter_events_topic',
-                                                     PARAMETER_EVENTS_TOPIC))
+                                                     PARAMETER_EVENTS_TOPIC),
+                   frames=frames, frame_topics=frame_topics)
+
+
+def resolve_topic(node_fqn: str, topic: str) -> str:
+    """A topic name as a node named ``node_fqn`` resolves it: absolute as is, ``~/x`` under the
+    node's name, relative names in its namespace (no remapping, no substitutions)."""
+    if topic.startswith('/'):
+        return topic
+    if topic.startswith('~'):
+        return node_fqn.rstrip('/') + topic[1:]
+    namespace = node_fqn.rsplit('/', 1)[0]
+    return f'{namespace}/{topic}'
 
 
 class RunRecorder:
@@ -154,6 +185,8 @@ class RunRecorder:
         layout: node name and topics (:class:`RunLayout`).
         parameters: every parameter name -> plain value at start.
         head_type: type of the head topic (``HEAD_TYPES``).
+        frame_types: type of each frame topic (``layout.frame_topics``; default
+            ``PoseStamped``).
         qos: topic -> the publisher's ``QoSProfile`` (defaults: depth 10, reliable).
         info: extra entries for the ``ponytail_ros/recording`` metadata (str -> str).
         on_error: called once with a message when recording stops on an I/O error.
@@ -169,6 +202,7 @@ class RunRecorder:
 
     def __init__(self, path: Union[str, os.PathLike], layout: RunLayout,
                  parameters: Mapping[str, Any], *, head_type: str = HEAD_TYPES[0],
+                 frame_types: Optional[Sequence[str]] = None,
                  qos: Optional[Mapping[str, QoSProfile]] = None,
                  info: Optional[Mapping[str, str]] = None,
                  on_error: Optional[Callable[[str], None]] = None,
@@ -196,6 +230,12 @@ class RunRecorder:
             self._writer.write_metadata(RECORDING_METADATA, meta)
             self._writer.add_topic(layout.head_topic, head_type, qos.get(layout.head_topic,
                                                                          HEAD_QOS))
+            types = list(frame_types or [HEAD_TYPES[0]] * len(layout.frame_topics))
+            added = {layout.head_topic}
+            for topic, type_name in zip(layout.frame_topics, types):
+                if topic not in added:        # (two inputs on one topic: one channel)
+                    added.add(topic)
+                    self._writer.add_topic(topic, type_name, qos.get(topic, HEAD_QOS))
             for topic in layout.pose_topics:
                 self._writer.add_topic(topic, 'geometry_msgs/msg/PoseArray',
                                        qos.get(topic, 10))
@@ -241,6 +281,10 @@ class RunRecorder:
         """A head pose as received, at its receive time."""
         self.write(self.layout.head_topic, msg, log_time_ns)
 
+    def frame(self, frame_index: int, msg: Any, log_time_ns: int) -> None:
+        """A pose of frame ``frame_index`` as received, at its receive time."""
+        self.write(self.layout.frame_topics[frame_index], msg, log_time_ns)
+
     def poses(self, chain_index: int, msg: Any, log_time_ns: int) -> None:
         self.write(self.layout.pose_topics[chain_index], msg, log_time_ns)
 
@@ -278,12 +322,14 @@ class RunRecorder:
     @classmethod
     def for_node(cls, node, record_path: str, chains: Sequence[str], head_subscription,
                  pose_publishers: Sequence[Any], marker_publisher, diagnostics_publisher,
+                 frames: Sequence[str] = (), frame_subscriptions: Sequence[Any] = (),
                  ) -> Optional['RunRecorder']:
         """A recorder for a running ``PonytailNode``, or None (error logged) if the file cannot
         be created; the node then goes on without recording.
 
         Records every parameter of the node (``list_parameters``) as it is now, the topics as
-        resolved by the node, the publishers' QoS.
+        resolved by the node (the frames' from ``frame_subscriptions``, same order as
+        ``frames``), the publishers' QoS.
         """
         logger = node.get_logger()
         path = expand_record_path(record_path)
@@ -292,7 +338,8 @@ class RunRecorder:
             head_topic=head_subscription.topic_name,
             pose_topics=tuple(p.topic_name for p in pose_publishers),
             marker_topic=marker_publisher.topic_name,
-            diagnostics_topic=diagnostics_publisher.topic_name)
+            diagnostics_topic=diagnostics_publisher.topic_name,
+            frames=tuple(frames), frame_topics=tuple(s.topic_name for s in frame_subscriptions))
         names = node.list_parameters([], 0).names
         parameters = {p.name: _plain(p.value) for p in node.get_parameters(names)}
         qos = {p.topic_name: p.qos_profile

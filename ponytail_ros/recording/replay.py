@@ -14,6 +14,11 @@ written by the node (``record_path``) or by ``ros2 bag record -s mcap`` -- are p
 ``ChainRunner`` at their log times (receive times), the runner is ticked on the recorded clock
 and the output is written exactly as the node records a run (same topics, types, metadata).
 
+* Extra frames (``frames``): each frame's poses are read from the recorded node's topic for it
+  (``frame_topics`` in the recording's metadata), else from its ``<frame>.topic`` resolved in
+  the node's namespace (default ``/<frame>_pose``), and pushed like the head's, in file order.
+  A frame the scene uses whose topic is not in the file is an error.
+
 * Parameters: ``--params`` (a node params file, ``/**: ros__parameters:``), else the input's
   ``ponytail_ros/parameters`` metadata (then the live changes recorded on
   ``/parameter_events`` are applied at their times too), else the package's
@@ -41,10 +46,11 @@ differ (a nominal replay of a live run), at the nearest stamps within half a tic
 RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
 time and both tips' coordinates.
 
-Live: the head poses are published at the recorded pace (``--rate`` scales it) on the recorded
-head topic, with ``/clock`` from the recorded log times before each pose and at
-``--clock-rate`` Hz in between, for nodes with ``use_sim_time:=true``. For a node on the system
-clock use ``--no-clock --restamp`` (or its ``stamp_source:=receive``).
+Live: the head poses (and the recorded frames' poses, on their topics) are published at the
+recorded pace (``--rate`` scales it) on the recorded head topic, with ``/clock`` from the
+recorded log times before each pose and at ``--clock-rate`` Hz in between, for nodes with
+``use_sim_time:=true``. For a node on the system clock use ``--no-clock --restamp`` (or its
+``stamp_source:=receive``).
 
 Exit status: 0 on success, 2 on bad input (one line on stderr naming the file and topic: not an
 MCAP file, no such topic, not a head pose type, invalid parameters), 1 on an unexpected error. A
@@ -65,11 +71,13 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import yaml
 
-from ponytail_ros.ros.parameters import ParameterError
+from ponytail_ros.ros.parameters import ParameterError, frame_names
+from ponytail_ros.ros.parameters import frame_topics as topics_of
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
 from .params import IGNORED_NAMES, resolve_values, unknown_names, values_from_metadata
-from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns)
+from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, resolve_topic,
+                       stamp_ns)
 
 __all__ = ['main', 'replay', 'ReplayError', 'ReplayResult', 'ReplayInput', 'compare',
            'load_chain_runs', 'format_comparison', 'plot_comparison', 'live_replay']
@@ -133,6 +141,13 @@ class ReplayInput:
     def node(self) -> str:
         return self.layout.node if self.layout else '/ponytail'
 
+    def frame_topic(self, frame: str, configured: str) -> str:
+        """Where frame ``frame``'s poses are: the recorded node's topic for it, else
+        ``configured`` (``<frame>.topic``) resolved in the node's namespace."""
+        if self.layout is not None and frame in self.layout.frames:
+            return self.layout.frame_topics[self.layout.frames.index(frame)]
+        return resolve_topic(self.node, configured)
+
     def tick_topic(self) -> Optional[str]:
         """The node's first ``segment_poses`` topic, if this is a node recording with ticks."""
         if self.layout and self.layout.pose_topics[0] in self.topics:
@@ -188,12 +203,14 @@ class ReplayNode:
     messages recorded with ``RunRecorder`` instead of published. Times are integer ns of the
     recorded clock."""
 
-    def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str):
+    def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str,
+                 frame_types: Sequence[str] = ()):
         from ponytail_ros.ros.node_core import NodeCore
         self.core = NodeCore(values)
         self.runner = self.core.runner
         self._recorder = recorder
         self._head_type = head_type
+        self._frame_types = list(frame_types) or [HEAD_TYPES[0]] * len(self.core.frames)
         self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
         self._diag_next_ns = None
 
@@ -210,6 +227,12 @@ class ReplayNode:
         self._recorder.head(msg, log_time_ns)
         p, q = _head_pose(msg, self._head_type)
         self.core.push_head(msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
+
+    # PonytailNode._on_frame_pose
+    def frame(self, i: int, msg, log_time_ns: int) -> None:
+        self._recorder.frame(i, msg, log_time_ns)
+        p, q = _head_pose(msg, self._frame_types[i])
+        self.core.push_frame(i, msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
 
     # PonytailNode._on_tick
     def tick(self, t_ns: int):
@@ -266,6 +289,8 @@ class ReplayResult:
     output: Path
     ticks: int = 0
     head_samples: int = 0
+    #: Poses of the extra frames pushed (all frames).
+    frame_samples: int = 0
     parameter_changes: int = 0
     first_tick_ns: Optional[int] = None
     last_tick_ns: Optional[int] = None
@@ -393,6 +418,21 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             warn(f'{inp.path}: its {changes} live parameter change(s) are not applied over '
                  f'--params')
 
+    # The extra frames' topics (the recorded node's, else as configured) and types.
+    frames = tuple(frame_names(values))
+    frame_topics = tuple(inp.frame_topic(f, t) for f, t in zip(frames, topics_of(values)))
+    used = _used_frame_names(values)
+    for f, topic in zip(frames, frame_topics):
+        if topic not in inp.topics:
+            if f in used:
+                raise ReplayError(f'{inp.path} has no topic {topic} (the poses of frame {f}, '
+                                  f'which the scene uses)')
+            warn(f'{inp.path} has no topic {topic}: frame {f} gets no poses')
+        elif inp.topics[topic] not in HEAD_TYPES:
+            raise ReplayError(f'{inp.path}: topic {topic} (frame {f}) holds {inp.topics[topic]}, '
+                              f'not a pose ({" or ".join(HEAD_TYPES)})')
+    frame_types = [inp.topics.get(topic, HEAD_TYPES[0]) for topic in frame_topics]
+
     # The output: the node's layout (the recorded one when the chains are the same).
     chains = tuple(values['chains'])
     if inp.layout is not None and inp.layout.chains == chains:
@@ -400,16 +440,19 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                            pose_topics=inp.layout.pose_topics,
                            marker_topic=inp.layout.marker_topic,
                            diagnostics_topic=inp.layout.diagnostics_topic,
-                           parameter_events_topic=inp.layout.parameter_events_topic)
+                           parameter_events_topic=inp.layout.parameter_events_topic,
+                           frames=frames, frame_topics=frame_topics)
     else:
-        layout = RunLayout.for_node(inp.node, chains, head_topic=inp.head_topic)
+        layout = RunLayout.for_node(inp.node, chains, head_topic=inp.head_topic,
+                                    frames=frames, frame_topics=frame_topics)
     recorded_all = values_from_metadata(inp.recorded_parameters or {})
     # The node's other parameters (use_sim_time, ...) as recorded; ours as replayed.
     parameters = {**{k: v for k, v in recorded_all.items() if k in IGNORED_NAMES}, **values,
                   'record_path': str(output_path)}
     try:
         recorder = RunRecorder(
-            output_path, layout, parameters, head_type=inp.head_type, overwrite=overwrite,
+            output_path, layout, parameters, head_type=inp.head_type, frame_types=frame_types,
+            overwrite=overwrite,
             chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS,
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
                   'parameters_from': result.parameters_from})
@@ -419,11 +462,17 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             text = f'{output_path} already exists (use --overwrite to replace it)'
         raise ReplayError(text) from None
 
-    node = ReplayNode(values, recorder, inp.head_type)
+    node = ReplayNode(values, recorder, inp.head_type, frame_types)
     span = inp.span_ns() if progress is not None else None
     t_start = span[0] if span else None
     total_s = (span[1] - span[0]) * 1e-9 if span else None
     wanted = {inp.head_topic: inp.head_type}
+    #: topic -> the frames (indices) whose poses it carries
+    frame_index: Dict[str, List[int]] = {}
+    for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types)):
+        if topic in inp.topics and topic != inp.head_topic:
+            wanted[topic] = type_name
+            frame_index.setdefault(topic, []).append(i)
     if mode == 'recorded':
         wanted[tick_topic] = 'geometry_msgs/msg/PoseArray'
     if apply_events:
@@ -458,6 +507,15 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                     next_tick = log_ns + period_ns
                 if t_start is None:
                     t_start = log_ns
+            elif topic in frame_index:
+                for i in frame_index[topic]:
+                    node.frame(i, msg, log_ns)
+                result.frame_samples += 1
+                last_log = log_ns if last_log is None else max(last_log, log_ns)
+                if next_tick is None:
+                    next_tick = log_ns + period_ns
+                if t_start is None:
+                    t_start = log_ns
             elif topic == events_topic:
                 if msg.node == inp.layout.node:
                     changed = _event_values(msg)
@@ -468,7 +526,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                             period_ns = int(round(1e9 / node.values['rate']))
             else:
                 do_tick(stamp_ns(msg.header.stamp))
-        if mode == 'nominal' and next_tick is not None:
+        if mode == 'nominal' and next_tick is not None and last_log is not None:
             while next_tick <= last_log:
                 do_tick(next_tick)
                 next_tick += period_ns
@@ -491,6 +549,14 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and t_start is not None:
         progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
     return result
+
+
+def _used_frame_names(values) -> set:
+    """The frames some chain hangs from or some collider is fixed in."""
+    frames = set(frame_names(values))
+    used = {values[f'{c}.anchor'] for c in values['chains']}
+    used |= {values[f'{c}.frame'] for c in values.get('colliders', ())}
+    return frames & used
 
 
 def _event_values(event) -> Dict[str, Any]:
@@ -729,7 +795,8 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     """Publish a recording's head poses into the ROS graph at the recorded pace.
 
     ``rclpy`` must be initialised (``context``: the context to use). Publishes the head topic
-    (reliable, depth 10; same type as recorded) and, with ``clock``, ``/clock`` from the
+    (reliable, depth 10; same type as recorded), the recorded node's frame topics likewise
+    (``frames``, in file order with the head poses), and, with ``clock``, ``/clock`` from the
     recorded times (before each pose and at ``clock_hz`` in between), for ``use_sim_time``
     nodes. ``rate`` scales the pace; ``restamp`` rewrites the header stamps with this process's
     clock (for nodes on the system clock); ``loop`` starts again at the end with the times
@@ -753,24 +820,30 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
         warn(inp.note)
     if inp.truncated:
         warn(f'{inp.path} is truncated; playing what can be read')
+    topics = {inp.head_topic: inp.head_type}
+    if inp.layout is not None:
+        topics.update({t: inp.topics[t] for t in inp.layout.frame_topics
+                       if inp.topics.get(t) in HEAD_TYPES})
     try:
-        samples = [(msg, log_ns, stamp_ns(msg.header.stamp)) for _, _, msg, log_ns
-                   in inp.reader.messages({inp.head_topic: inp.head_type})]
+        samples = [(topic, msg, log_ns, stamp_ns(msg.header.stamp)) for topic, _, msg, log_ns
+                   in inp.reader.messages(topics)]
     except BagError as exc:
         raise ReplayError(str(exc)) from None
-    if not samples:
+    if not any(topic == inp.head_topic for topic, *_ in samples):
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
     node = rclpy.create_node('ponytail_replay', context=context)
     try:
-        pub = node.create_publisher(_message_class(inp.head_type), inp.head_topic,
-                                    QoSProfile(depth=10))
+        pubs = {topic: node.create_publisher(_message_class(type_name), topic,
+                                             QoSProfile(depth=10))
+                for topic, type_name in topics.items()}
+        pub = pubs[inp.head_topic]
         clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) if clock else None
         deadline = time.monotonic() + wait_for_subscribers
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.01)
         stop = stop or threading.Event()
-        l0 = samples[0][1]
-        duration = max(ns for _, ns, _ in samples) - l0
+        l0 = samples[0][2]
+        duration = max(ns for _, _, ns, _ in samples) - l0
         period = int(1e9 / clock_hz) if clock_hz > 0 else None
         offset = 0
         clock_ns = -1
@@ -786,7 +859,7 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
 
         while True:
             wall0 = time.monotonic()
-            for msg, log_ns, recorded_stamp_ns in samples:
+            for topic, msg, log_ns, recorded_stamp_ns in samples:
                 target = wall0 + (log_ns - l0) * 1e-9 / rate
                 while True:
                     now = time.monotonic()
@@ -805,8 +878,8 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
                 elif offset:
                     ns = recorded_stamp_ns + offset
                     msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-                pub.publish(msg)
-                sent += 1
+                pubs[topic].publish(msg)
+                sent += topic == inp.head_topic
             if not loop:
                 return sent
             offset += duration + (period or 10_000_000)

@@ -8,6 +8,9 @@ Topics (all relative, so a namespace per character scales out; no global state):
 
 * subscribes ``head_pose`` (``geometry_msgs/PoseStamped``), sensor-data QoS (best effort, so
   reliable and best-effort publishers both connect);
+* subscribes, per extra kinematic frame named in ``frames``, ``<frame>.topic`` (default
+  ``<frame>_pose``; ``geometry_msgs/PoseStamped``, sensor-data QoS): the pose of a body that
+  chains can hang from and colliders can be fixed in (a forearm), in the head poses' frame;
 * publishes ``segment_poses`` (``geometry_msgs/PoseArray``, reliable, depth 10) when there is one
   chain, ``segment_poses/<chain>`` per chain when there are several: one pose per segment, origin
   at the proximal joint, local +X along the segment; ``header.frame_id`` = the head pose's frame
@@ -18,7 +21,8 @@ Topics (all relative, so a namespace per character scales out; no global state):
   input, outputs, parameter changes, parameters in effect; replay it with ``ponytail_replay``);
 * publishes ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every
   ``diagnostics_period`` s of wall time): one status named ``ponytail: <node FQN>`` with the
-  solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state.
+  solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state
+  and each frame's (``frame <name>``: none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
   name carries the namespace.
 
@@ -48,13 +52,14 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from .node_core import NodeCore
-from .parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, GLOBAL_PARAMS,
-                         ParameterError, chain_param_name, check_names, definition)
+from .parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, FRAME_PARAMS,
+                         GLOBAL_PARAMS, ParameterError, chain_param_name, check_names, definition)
 from .spin import run_node
 
 __all__ = ['PonytailNode', 'main', 'OUTPUT_QOS', 'INPUT_QOS']
 
-#: ``head_pose`` subscription: the sensor-data preset (best effort, volatile, keep last 5).
+#: ``head_pose`` and frame subscriptions: the sensor-data preset (best effort, volatile, keep
+#: last 5).
 INPUT_QOS = qos_profile_sensor_data
 #: ``segment_poses`` and ``segment_markers``: reliable, volatile, keep last 10.
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -121,7 +126,8 @@ class _Timing:
 
 
 class PonytailNode(Node):
-    """Simulates the configured chains hanging from the head given on ``head_pose``.
+    """Simulates the configured chains hanging from the head given on ``head_pose`` (and from
+    the extra frames given on their own topics).
 
     ``node_name``/``context``/``**kwargs`` go to ``rclpy.node.Node`` (e.g. ``namespace``,
     ``parameter_overrides``, ``cli_args``). Raises ``ParameterError`` (or rclpy's
@@ -135,6 +141,7 @@ class PonytailNode(Node):
         #: What the node does, without rclpy (shared with ``ponytail_replay``).
         self.core = NodeCore(values)
         self.core.runner.on_drop = self._on_drop
+        self._check_input_topics()
 
         if len(self._chains) == 1:
             topics = ['segment_poses']
@@ -145,6 +152,14 @@ class PonytailNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_pose,
                                                   INPUT_QOS)
+        self._frame_subs = [
+            self.create_subscription(PoseStamped, topic,
+                                     lambda msg, i=i: self._on_frame_pose(i, msg), INPUT_QOS)
+            for i, topic in enumerate(self.core.frame_topics)]
+        #: Input name ('head' or a frame's) -> its resolved topic (log messages).
+        self._input_topics = {'head': self._head_sub.topic_name,
+                              **{f: sub.topic_name
+                                 for f, sub in zip(self._frames, self._frame_subs)}}
         self._timer = self.create_timer(1.0 / values['rate'], self._on_tick)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._diag_timer = self.create_timer(values['diagnostics_period'],
@@ -163,16 +178,30 @@ class PonytailNode(Node):
             from ponytail_ros.recording.recorder import RunRecorder
             self._recorder = RunRecorder.for_node(
                 self, values['record_path'], self._chains, self._head_sub,
-                self._pose_pubs, self._marker_pub, self._diag_pub)
+                self._pose_pubs, self._marker_pub, self._diag_pub,
+                frames=self._frames, frame_subscriptions=self._frame_subs)
         if self._recorder is not None:
             self._pose_pubs = [self._recorder.recording(p) for p in self._pose_pubs]
             self._marker_pub = self._recorder.recording(self._marker_pub)
             self._diag_pub = self._recorder.recording(self._diag_pub)
         scene = self.core.scene
+        inputs = ', '.join(['head_pose'] + list(self.core.frame_topics))
         self.get_logger().info(
             f'Simulating {len(self._chains)} chain(s) {self._chains} '
             f'({scene.n_segments} segments, {len(scene.colliders)} collider(s)) at '
-            f'{values["rate"]:g} Hz; head_pose -> {", ".join(topics)}, segment_markers')
+            f'{values["rate"]:g} Hz; {inputs} -> {", ".join(topics)}, segment_markers')
+
+    def _check_input_topics(self):
+        """Every frame reads its own topic, not the head's nor another frame's (as resolved
+        in this node's namespace, remappings applied)."""
+        seen = {self.resolve_topic_name('head_pose'): 'the head (head_pose)'}
+        for frame, topic in zip(self.core.frames, self.core.frame_topics):
+            resolved = self.resolve_topic_name(topic)
+            name = chain_param_name(frame, 'topic')
+            if resolved in seen:
+                raise ParameterError(name, f'{name} = {topic!r} is not allowed: it resolves to '
+                                           f'{resolved}, which {seen[resolved]} already reads')
+            seen[resolved] = f'frame {frame}'
 
     @property
     def runner(self):
@@ -205,21 +234,31 @@ class PonytailNode(Node):
             self._declare(pdef, pdef.name, pdef.default)
         self._chains = [str(c) for c in self.get_parameter('chains').value]
         self._colliders = [str(c) for c in self._value('colliders')]
-        check_names(self._chains, self._colliders)
+        self._frames = [str(f) for f in self._value('frames')]
+        check_names(self._chains, self._colliders, self._frames)
+        # (anchor/frame: described with the frame names among their choices)
         for i, chain in enumerate(self._chains):
             for pdef in CHAIN_PARAMS:
                 default = pdef.default
                 if pdef.name == 'color':
                     default = list(DEFAULT_COLORS[i % len(DEFAULT_COLORS)])
-                self._declare(pdef, chain_param_name(chain, pdef.name), default)
+                name = chain_param_name(chain, pdef.name)
+                self._declare(self._definition(name), name, default)
         for collider in self._colliders:
             for pdef in COLLIDER_PARAMS:
-                self._declare(pdef, chain_param_name(collider, pdef.name), pdef.default)
+                name = chain_param_name(collider, pdef.name)
+                self._declare(self._definition(name), name, pdef.default)
+        for frame in self._frames:
+            for pdef in FRAME_PARAMS:
+                self._declare(pdef, chain_param_name(frame, pdef.name), pdef.default)
+
+    def _definition(self, name):
+        return definition(name, self._chains, self._colliders, self._frames)
 
     def _pre_set_parameters(self, params):
         out = []
         for p in params:
-            pdef = definition(p.name, self._chains, self._colliders)
+            pdef = self._definition(p.name)
             out.append(_coerce(p, pdef.kind) if pdef is not None else p)
         return out
 
@@ -255,11 +294,20 @@ class PonytailNode(Node):
         self.core.push_head(msg.header.stamp, now_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w),
                             msg.header.frame_id)
 
-    def _on_drop(self, reason, t):
+    def _on_frame_pose(self, i, msg):
+        now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
+        if self._recorder is not None:
+            self._recorder.frame(i, msg, now_ns)
+        p, q = msg.pose.position, msg.pose.orientation
+        self.core.push_frame(i, msg.header.stamp, now_ns, (p.x, p.y, p.z),
+                             (q.x, q.y, q.z, q.w), msg.header.frame_id)
+
+    def _on_drop(self, reason, t, source='head'):
+        what = 'a head pose' if source == 'head' else f'a pose of frame {source}'
         self._log_throttled(
-            'drop:' + reason, 2.0, 'warning',
-            f'Dropped a head pose ({reason}, stamp {t}); {self.runner.dropped[reason]} dropped '
-            f'for this reason so far')
+            f'drop:{source}:{reason}', 2.0, 'warning',
+            f'Dropped {what} ({reason}, stamp {t}, {self._input_topics[source]}); '
+            f'{self.runner.dropped[reason]} inputs dropped for this reason so far')
 
     def _log_throttled(self, key, period, level, text):
         now = time.monotonic()
@@ -287,10 +335,13 @@ class PonytailNode(Node):
         tick = self.core.tick(now_ns)
         wall1 = time.perf_counter()
         if tick is None:
-            if now_ns != 0:
+            missing = self.runner.missing_inputs()
+            if now_ns != 0 and missing:
+                topics = ', '.join(self._input_topics[m] for m in missing)
+                what = ('No head pose received' if missing == ['head']
+                        else 'No pose received')
                 self._log_throttled('no_head', 5.0, 'warning',
-                                    f'No head pose received on {self._head_sub.topic_name} '
-                                    f'yet: nothing is published')
+                                    f'{what} on {topics} yet: nothing is published')
             return
         for pub, msg in zip(self._pose_pubs, tick.poses):
             pub.publish(msg)
@@ -309,6 +360,12 @@ class PonytailNode(Node):
                                 'Head pose stale (no pose accepted for over '
                                 f'{self.runner.settings.stale_timeout:g} s): holding the last '
                                 'pose')
+        for i, f in enumerate(self._frames):
+            if self.runner.needs_frame(i) and self.runner.frame_stale(i, out.t):
+                self._log_throttled(f'stale:{f}', 5.0, 'warning',
+                                    f'Frame {f} pose stale on {self._input_topics[f]} (no pose '
+                                    f'accepted for over {self.runner.settings.stale_timeout:g} '
+                                    's): holding its last pose')
         if rep.dropped_time > 0.0:
             self._log_throttled('dropped_time', 5.0, 'warning',
                                 f'Dropped {rep.dropped_time:.3f} s of simulation time '

@@ -1,6 +1,7 @@
-"""What the ponytail node does with a head pose, a tick, a parameter change and a diagnostics
-period, as messages and without an rclpy node: ``PonytailNode`` publishes what ``NodeCore``
-returns, ``ponytail_replay`` records it. One implementation, so a replay is the node's run.
+"""What the ponytail node does with a head pose, a frame's pose, a tick, a parameter change and
+a diagnostics period, as messages and without an rclpy node: ``PonytailNode`` publishes what
+``NodeCore`` returns, ``ponytail_replay`` records it. One implementation, so a replay is the
+node's run.
 
 Times are integer ns of the node clock (the recorded clock in a replay). The per-tick logic
 (input checks, head estimation, stepping) is ``ChainRunner``; the parameter table is
@@ -17,7 +18,7 @@ import numpy as np
 
 from .messages import ChainMessages, ColliderMarkers, delete_all_marker
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
-                         collider_names, definition)
+                         collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
 
 __all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'time_msg']
@@ -73,9 +74,12 @@ class NodeCore:
         self.values = dict(values)
         self.chains = [str(c) for c in self.values['chains']]
         self.colliders = collider_names(self.values)
-        check_names(self.chains, self.colliders)
+        #: Extra kinematic frames (bodies 1..F) and their topics as configured (relative).
+        self.frames = frame_names(self.values)
+        check_names(self.chains, self.colliders, self.frames)
         self.scene = check_values(self.values, self.chains)
-        self.runner = ChainRunner(self.scene, build_runner_settings(self.values))
+        self.frame_topics = frame_topics(self.values)
+        self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._collider_markers = ColliderMarkers()
@@ -85,17 +89,28 @@ class NodeCore:
         self._dropped_at_diag = dict(self.runner.dropped)
 
     def is_parameter(self, name: str) -> bool:
-        return definition(name, self.chains, self.colliders) is not None
+        return definition(name, self.chains, self.colliders, self.frames) is not None
+
+    def definition(self, name: str):
+        """The ``ParamDef`` of one of this node's parameters (None if not one)."""
+        return definition(name, self.chains, self.colliders, self.frames)
 
     # -- input ---------------------------------------------------------------------------------
+    def _stamp(self, stamp, receive_ns):
+        if self.stamp_source == 'receive' or (stamp.sec == 0 and stamp.nanosec == 0):
+            return receive_ns * 1e-9
+        return stamp.sec + stamp.nanosec * 1e-9
+
     def push_head(self, stamp, receive_ns: int, position, orientation, frame_id: str) -> None:
         """Queue a head pose: ``stamp`` its ``header.stamp`` (a zero stamp, or ``stamp_source:
         receive``, uses the receive time), ``position``/``orientation`` tuples."""
-        if self.stamp_source == 'receive' or (stamp.sec == 0 and stamp.nanosec == 0):
-            t = receive_ns * 1e-9
-        else:
-            t = stamp.sec + stamp.nanosec * 1e-9
-        self.runner.push(t, position, orientation, frame_id)
+        self.runner.push(self._stamp(stamp, receive_ns), position, orientation, frame_id)
+
+    def push_frame(self, i: int, stamp, receive_ns: int, position, orientation,
+                   frame_id: str) -> None:
+        """Queue a pose of frame ``i`` (``frames[i]``), as :meth:`push_head`."""
+        self.runner.push_frame(i, self._stamp(stamp, receive_ns), position, orientation,
+                               frame_id)
 
     # -- the tick ------------------------------------------------------------------------------
     def _make_chain_messages(self, scene):
@@ -105,7 +120,8 @@ class NodeCore:
         return msgs
 
     def tick(self, t_ns: int) -> Optional[NodeTick]:
-        """Advance to ``t_ns``; the tick's messages, or None (no clock yet, no head pose yet)."""
+        """Advance to ``t_ns``; the tick's messages, or None (no clock yet, no head pose yet, or
+        no pose yet of a frame the scene uses)."""
         if t_ns == 0:                    # sim time before the first /clock
             return None
         out = self.runner.tick(t_ns * 1e-9)
@@ -222,8 +238,18 @@ class NodeCore:
         elif head == 'ok' and age is not None and abs(age) > max(r.settings.stale_timeout, 0.5):
             flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
                                         f'(clocks differ? use_sim_time / stamp_source)')
+        frames = []
+        for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics)):
+            state = ('none' if not r.has_frame(i)
+                     else 'stale' if r.frame_stale(i, t) else 'ok')
+            frames.append((f'frame {f}', state))
+            if r.needs_frame(i) and state == 'none':
+                flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
+            elif r.needs_frame(i) and state == 'stale':
+                flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
         if dropped_window:
-            flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped')
+            flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped' if not self.frames
+                 else f'{dropped_window} input poses dropped')
         if win.dropped_time > 0.0:
             flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
         if win.guard_resets:
@@ -235,6 +261,10 @@ class NodeCore:
             ('head input age (s)', 'n/a' if age is None else f'{age:.4f}'),
             ('head poses accepted per s', f'{win.accepted / span:.1f}'),
             ('head poses accepted', str(r.accepted_total)),
+        ]
+        for (key, state), n in zip(frames, r.frame_accepted_total):
+            kv += [(key, state), (f'{key} poses accepted', str(n))]
+        kv += [
             ('ticks per s', f'{win.ticks / span:.1f}'),
         ]
         kv += [(k, timing[k]) for k in TIMING_KEYS]

@@ -5,14 +5,27 @@ Naming: global parameters are plain (``rate``, ``gravity``), groups use a dot (`
 ``head.window``, ``markers.style``), and every chain's parameters are prefixed with its name
 (``chains: [left, right]`` → ``left.n_segments``, ``right.attach``, ...), and so are every
 collider's (``colliders: [skull, floor]`` → ``skull.kind``, ``skull.radius``, ``floor.axis``,
-...; chain and collider names share one namespace). In a params file the dots are nested YAML
-keys.
+...) and every extra frame's (``frames: [left_forearm]`` → ``left_forearm.topic``); chain,
+collider and frame names share one namespace. In a params file the dots are nested YAML keys.
 
-Frames: a chain hangs from the head (``<chain>.anchor: head``, ``attach`` in the head frame) or
-from a static point (``anchor: world``, ``attach`` in the head pose's frame: a rope from a
-ceiling; a node whose chains all hang from the world needs no head pose at all). A collider is
-fixed in the head (``<collider>.frame: head``: ``center``/``axis`` are fixed offsets in the head
-frame) or in the world (``frame: world``: a floor, a wall).
+Frames (kinematic bodies): a chain hangs from, and a collider is fixed in, one of
+
+* ``head``: the pose on ``head_pose`` (``<chain>.attach``, ``<collider>.center``/``axis`` are
+  fixed offsets in the head frame);
+* a frame named in ``frames``: a kinematic body whose pose arrives on its own
+  ``geometry_msgs/PoseStamped`` topic, ``<frame>.topic`` (default ``<frame>_pose``, relative to
+  the node's namespace), e.g. a forearm carrying a capsule collider; its poses must be in the
+  same frame as the head's (``header.frame_id``), and offsets are in that body's frame; they
+  go through the same input checks and estimation settings as the head's (``head.*``,
+  ``stale_timeout``, ``input_queue_size``, ``stamp_source``);
+* ``world``: static, in the head pose's frame (a rope from a ceiling, a floor, a wall). A node
+  in which nothing uses the head needs no head pose at all.
+
+Kinematic body indices of the ``Scene``: 0 the head, 1..F the frames in the order of
+``frames``, then (only when some chain hangs from the world) the static world body F + 1. World
+colliders are static (``ColliderSpec.body`` None). ``<chain>.anchor`` and ``<collider>.frame``
+accept ``head``, ``world`` or a frame name; anything else is rejected naming the parameter and
+the allowed values.
 
 Live or not (``ParamDef.live``):
 
@@ -24,12 +37,13 @@ Live or not (``ParamDef.live``):
   the simulator is rebuilt from the new scene at rest at the
   current head pose on the next tick (a reset with reason ``'rebuild'``);
 * read-only (fixed at start-up): ``chains`` (it decides the topics), ``colliders`` (it decides
-  the parameters), ``stamp_source``,
+  the parameters), ``frames`` and every ``<frame>.topic`` (they decide the subscriptions),
+  ``stamp_source``,
   ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``, ``record_path``.
 
 This module does not import rclpy (the descriptors are built by the node).
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 import re
 
@@ -40,18 +54,24 @@ from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DA
                                      MAX_SEGMENTS, Scene, SceneError, SolverSpec)
 from .runner import RunnerSettings
 
-__all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'ParameterError',
-           'chain_param_name', 'check_values', 'build_scene', 'build_runner_settings',
-           'check_names', 'collider_names', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
-           'DEFAULT_COLORS', 'FRAMES']
+__all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',
+           'ParameterError', 'chain_param_name', 'check_values', 'build_scene',
+           'build_runner_settings', 'check_names', 'collider_names', 'frame_names',
+           'frame_topic', 'frame_topics', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
+           'DEFAULT_COLORS', 'FRAMES', 'MAX_FRAMES']
 
 MARKER_STYLES = ('capsules', 'line', 'off')
 STAMP_SOURCES = ('header', 'receive')
-#: What a chain hangs from, or a collider is fixed in: the head, or the head pose's frame.
+#: What a chain hangs from, or a collider is fixed in, besides the frames named in ``frames``:
+#: the head, or the head pose's frame (static).
 FRAMES = ('head', 'world')
-#: Group prefixes a chain or collider may not be named after.
+#: Most extra kinematic frames (each is a subscription and a pose estimator).
+MAX_FRAMES = 64
+#: Group prefixes a chain, collider or frame may not be named after.
 RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains', 'colliders',
-                  'world')
+                  'frames', 'world')
+#: A ROS topic name (relative, absolute or ``~/`` private; no substitutions).
+_TOPIC_NAME = re.compile(r'^(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
 _CHAIN_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 #: Marker colours cycled over the chains when ``<chain>.color`` is not set.
@@ -108,6 +128,11 @@ GLOBAL_PARAMS = (
     ParamDef('colliders', [], 'strings', 'Names of the colliders (each configured by '
              '<name>.* parameters; names distinct from the chains\'); [] = no collision code '
              f'runs at all. At most {MAX_COLLIDERS}.', live=False),
+    ParamDef('frames', [], 'strings', 'Names of extra kinematic frames (each configured by '
+             '<name>.topic; names distinct from the chains\' and colliders\'): bodies whose pose '
+             'arrives on their own PoseStamped topic, in the head pose\'s frame, which chains '
+             '(<chain>.anchor) and colliders (<collider>.frame) can be fixed in, e.g. a forearm. '
+             f'At most {MAX_FRAMES}.', live=False),
     ParamDef('interpolation_delay', 0.0, 'double', 'Minimum delay, s: the chain is driven by '
              'the head as it was delay = max(interpolation_delay, interpolation_delay_periods x '
              'input period) before the tick; samples on both sides of that time give smooth '
@@ -119,8 +144,9 @@ GLOBAL_PARAMS = (
              'attachment point\'s displacement over the delay (extrapolated head), so that its '
              'root stays on the current head; the swing itself still lags by the delay.'),
     ParamDef('stale_timeout', 0.25, 'double', 'No head pose accepted for this long (s): the '
-             'head is stale (last pose held, warning in diagnostics); a pose in a new frame is '
-             'then adopted.', 0.01, 60.0),
+             'head is stale (last pose held, warning in diagnostics); likewise for each of the '
+             'frames. A pose in a new frame_id is adopted once every input is stale.',
+             0.01, 60.0),
     ParamDef('teleport_distance', 0.5, 'double', 'A head pose farther than this (m) from the '
              'previous one is a teleport: the chain is reset at rest at the new pose.',
              1e-3, 1e3),
@@ -203,8 +229,9 @@ CHAIN_PARAMS = (
     ParamDef('rest_direction', [0.0, 0.0, 0.0], 'double3', 'Direction of the straight chain '
              'at rest in the anchor frame; [0, 0, 0]: along gravity.', -1e6, 1e6, rebuild=True),
     ParamDef('anchor', 'head', 'string', 'What the chain hangs from: head (attach and '
-             'rest_direction in the head frame) or world (a static point: attach and '
-             'rest_direction in the head pose\'s frame, e.g. a rope from a ceiling).',
+             'rest_direction in the head frame), world (a static point: attach and '
+             'rest_direction in the head pose\'s frame, e.g. a rope from a ceiling) or one of '
+             'the frames (attach and rest_direction in that frame).',
              choices=FRAMES, rebuild=True),
     ParamDef('swing_limit', 0.0, 'double', 'Cone limit of every joint, rad: the angle between '
              'a segment and its parent\'s axis (the first one: its rest direction) stays below '
@@ -232,8 +259,9 @@ COLLIDER_PARAMS = (
              'sphere) or plane (the segments stay on the side the axis points to).',
              choices=COLLIDER_KINDS, rebuild=True),
     ParamDef('frame', 'head', 'string', 'What the collider is fixed in: head (center and axis '
-             'are fixed offsets in the head frame; it moves with the head) or world (static, '
-             'in the head pose\'s frame: a floor, a wall).', choices=FRAMES, rebuild=True),
+             'are fixed offsets in the head frame; it moves with the head), one of the frames '
+             '(offsets in that frame: a forearm) or world (static, in the head pose\'s frame: a '
+             'floor, a wall).', choices=FRAMES, rebuild=True),
     ParamDef('center', list(_COLLIDER.center), 'double3', 'Sphere/capsule centre, or a point '
              'of the plane, m, in its frame.', -1e3, 1e3, rebuild=True),
     ParamDef('axis', list(_COLLIDER.axis), 'double3', 'Capsule axis, or the plane\'s normal '
@@ -247,9 +275,18 @@ COLLIDER_PARAMS = (
              'the segments; 0 = frictionless.', 0.0, 10.0, rebuild=True),
 )
 
+FRAME_PARAMS = (
+    ParamDef('topic', '', 'string', 'The frame\'s pose topic (geometry_msgs/PoseStamped, '
+             'sensor-data QoS, header.frame_id that of the head poses); "" = <frame>_pose. '
+             'Relative names are in the node\'s namespace.', live=False),
+)
+
 _GLOBAL = {p.name: p for p in GLOBAL_PARAMS}
 _CHAIN_DEFS = {p.name: p for p in CHAIN_PARAMS}
 _COLLIDER_DEFS = {p.name: p for p in COLLIDER_PARAMS}
+_FRAME_DEFS = {p.name: p for p in FRAME_PARAMS}
+#: Parameters naming a frame: their choices are FRAMES plus the names in ``frames``.
+_FRAME_CHOICE = {('chain', 'anchor'), ('collider', 'frame')}
 
 
 class ParameterError(ValueError):
@@ -264,16 +301,25 @@ def chain_param_name(chain, field):
     return f'{chain}.{field}'
 
 
-def definition(name, chains, colliders=()):
-    """The ``ParamDef`` of a full parameter name, or None if it is not one of ours."""
+def definition(name, chains, colliders=(), frames=()):
+    """The ``ParamDef`` of a full parameter name, or None if it is not one of ours. With
+    ``frames``, ``<chain>.anchor`` and ``<collider>.frame`` allow the frame names too."""
     if name in _GLOBAL:
         return _GLOBAL[name]
     group, _, field = name.partition('.')
     if group in chains and field in _CHAIN_DEFS:
-        return _CHAIN_DEFS[field]
+        return _with_frames(_CHAIN_DEFS[field], 'chain', frames)
     if group in colliders and field in _COLLIDER_DEFS:
-        return _COLLIDER_DEFS[field]
+        return _with_frames(_COLLIDER_DEFS[field], 'collider', frames)
+    if group in frames and field in _FRAME_DEFS:
+        return _FRAME_DEFS[field]
     return None
+
+
+def _with_frames(pdef, group, frames):
+    if frames and (group, pdef.name) in _FRAME_CHOICE:
+        return replace(pdef, choices=FRAMES + tuple(frames))
+    return pdef
 
 
 def collider_names(values):
@@ -281,14 +327,33 @@ def collider_names(values):
     return [str(c) for c in values.get('colliders', ())]
 
 
-def check_names(chains, colliders=()):
-    """Check the chain and collider names (valid, not reserved, all distinct)."""
+def frame_names(values):
+    """The extra frame names of a value set (``[]`` when it has none)."""
+    return [str(f) for f in values.get('frames', ())]
+
+
+def frame_topic(values, frame):
+    """The topic of ``frame`` as configured (``<frame>.topic``, default ``<frame>_pose``)."""
+    return values.get(chain_param_name(frame, 'topic')) or f'{frame}_pose'
+
+
+def frame_topics(values):
+    """The topic of every frame of a value set, in the order of ``frames``."""
+    return [frame_topic(values, f) for f in frame_names(values)]
+
+
+def check_names(chains, colliders=(), frames=()):
+    """Check the chain, collider and frame names (valid, not reserved, all distinct)."""
     if not chains:
         raise ParameterError('chains', 'chains: at least one chain name is needed')
     if len(colliders) > MAX_COLLIDERS:
         raise ParameterError('colliders', f'colliders: {len(colliders)} names, at most '
                                           f'{MAX_COLLIDERS} are allowed')
-    for param, names in (('chains', chains), ('colliders', colliders)):
+    if len(frames) > MAX_FRAMES:
+        raise ParameterError('frames', f'frames: {len(frames)} names, at most {MAX_FRAMES} are '
+                                       f'allowed')
+    groups = (('chains', chains), ('colliders', colliders), ('frames', frames))
+    for param, names in groups:
         for n in names:
             if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
                 raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
@@ -296,10 +361,29 @@ def check_names(chains, colliders=()):
                                      f'{", ".join(RESERVED_NAMES)})')
         if len(set(names)) != len(names):
             raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
-    shared = sorted(set(chains) & set(colliders))
-    if shared:
-        raise ParameterError(('chains', 'colliders'), f'chains and colliders share the '
-                             f'name(s) {shared}: every name prefixes its own parameters')
+    for i, (pa, a) in enumerate(groups):
+        for pb, b in groups[i + 1:]:
+            shared = sorted(set(a) & set(b))
+            if shared:
+                raise ParameterError((pa, pb), f'{pa} and {pb} share the name(s) {shared}: '
+                                               f'every name prefixes its own parameters')
+
+
+def _check_frame_topics(values, frames):
+    """Each frame's topic a valid ROS name, distinct from the head's and the others'."""
+    seen = {'head_pose': 'the head'}
+    for f in frames:
+        name = chain_param_name(f, 'topic')
+        topic = frame_topic(values, f)
+        if not _TOPIC_NAME.match(topic):
+            raise ParameterError(name, f'{name} = {values.get(name)!r} is not allowed: must be '
+                                       f'"" (= {f}_pose) or a ROS topic name (letters, digits, '
+                                       f'underscores and /, each part starting with a letter '
+                                       f'or _; absolute /..., private ~/... or relative)')
+        if topic in seen:
+            raise ParameterError(name, f'{name} = {topic!r} is not allowed: {seen[topic]} '
+                                       f'already reads that topic')
+        seen[topic] = f'frame {f}'
 
 
 def check_chain_names(names):
@@ -334,7 +418,9 @@ def _scene_error_name(err, chains, colliders=()):
     f = err.field
     m = re.match(r'^chains\[(\d+)\]\.(.*)$', f)
     if m:
-        return chain_param_name(chains[int(m.group(1))], m.group(2))
+        field = m.group(2)
+        return chain_param_name(chains[int(m.group(1))],
+                                'anchor' if field == 'anchor_body' else field)
     m = re.match(r'^colliders\[(\d+)\]\.(.*)$', f)
     if m:
         field = m.group(2)
@@ -350,10 +436,22 @@ def build_scene(values, chains):
     """The ``Scene`` of a full set of parameter ``values`` (dict name → value); raises
     ``ParameterError`` naming the offending parameter(s).
 
-    Kinematic bodies: 0 is the head; a static body 1 (identity pose, the head pose's frame) is
-    added only when some chain hangs from the world. World colliders are static (body None).
+    Kinematic bodies: 0 is the head, 1..F the frames (``frames``, in order); a static body F + 1
+    (identity pose, the head pose's frame) is added only when some chain hangs from the world.
+    World colliders are static (body None).
     """
     colliders = collider_names(values)
+    frames = frame_names(values)
+    bodies = {'head': 0, **{f: 1 + i for i, f in enumerate(frames)}}
+    world_body = 1 + len(frames)
+
+    def body_of(name, value, world):
+        if value in bodies:
+            return bodies[value]
+        if value == 'world':
+            return world
+        raise ParameterError(name, f'{name} = {value!r} is not allowed: must be one of '
+                                   f'{", ".join(FRAMES + tuple(frames))}')
     world_anchor = any(values[chain_param_name(c, 'anchor')] == 'world' for c in chains)
     specs = []
     for c in chains:
@@ -362,7 +460,7 @@ def build_scene(values, chains):
         specs.append(ChainSpec(
             name=c, n_segments=int(v['n_segments']), length=float(v['length']),
             mass=float(v['mass']), radius=float(v['radius']),
-            anchor_body=1 if v['anchor'] == 'world' else 0,
+            anchor_body=body_of(chain_param_name(c, 'anchor'), v['anchor'], world_body),
             attach=_vector(v['attach']),
             rest_direction=None if not any(rest) else rest,
             damping=float(v['damping']), stiffness=float(v['stiffness']),
@@ -374,7 +472,8 @@ def build_scene(values, chains):
     for c in colliders:
         v = {f: values[chain_param_name(c, f)] for f in _COLLIDER_DEFS}
         collider_specs.append(ColliderSpec(
-            kind=v['kind'], body=0 if v['frame'] == 'head' else None, center=_vector(v['center']),
+            kind=v['kind'], body=body_of(chain_param_name(c, 'frame'), v['frame'], None),
+            center=_vector(v['center']),
             axis=_vector(v['axis']), radius=float(v['radius']),
             half_length=float(v['half_length']), friction=float(v['friction'])))
     solver = SolverSpec(
@@ -388,7 +487,8 @@ def build_scene(values, chains):
         guard_max_speed=float(values['solver.guard_max_speed']),
         guard_max_gap=float(values['solver.guard_max_gap']))
     try:
-        return Scene(chains=tuple(specs), n_kinematic_bodies=2 if world_anchor else 1,
+        return Scene(chains=tuple(specs),
+                     n_kinematic_bodies=1 + len(frames) + (1 if world_anchor else 0),
                      gravity=_vector(values['gravity']), wind=_vector(values['wind']),
                      solver=solver, colliders=tuple(collider_specs))
     except SceneError as err:
@@ -418,10 +518,12 @@ def check_values(values, chains, changed=None):
     the cross-parameter consistency. Returns the ``Scene``; raises ``ParameterError``."""
     names = values.keys() if changed is None else changed
     colliders = collider_names(values)
+    frames = frame_names(values)
     for name in names:
-        pdef = definition(name, chains, colliders)
+        pdef = definition(name, chains, colliders, frames)
         if pdef is not None:
             _check_value(name, pdef, values[name])
+    _check_frame_topics(values, frames)
     scene = build_scene(values, chains)
     dt, steps, rate = (values['solver.dt'], values['solver.max_steps_per_call'], values['rate'])
     if steps * dt < 1.0 / rate * (1.0 - 1e-9):

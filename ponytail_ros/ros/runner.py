@@ -1,23 +1,25 @@
 """What the ponytail node does on each timer tick, without ROS: head pose samples in, chain out.
 
 ``ChainRunner`` owns the ``HeadEstimator`` (the head's velocity and acceleration from the pose
-samples) and the ``Simulator``. The node only converts messages: its subscription callback calls
-``push`` (O(1): the sample is queued), its timer callback calls ``tick(t)`` with the clock's time
-and publishes what comes back. Keeping this ROS-free makes it testable and benchmarkable in
-simulated time.
+samples), one more per extra kinematic frame (``frames``: a forearm carrying a collider, ...),
+and the ``Simulator``. The node only converts messages: its subscription callbacks call ``push``
+/ ``push_frame`` (O(1): the sample is queued), its timer callback calls ``tick(t)`` with the
+clock's time and publishes what comes back. Keeping this ROS-free makes it testable and
+benchmarkable in simulated time.
 
 Per tick, at node clock time ``t``:
 
-1. the queued samples (at most ``max_queue``; a flood overflows the queue, oldest first, and is
-   counted as ``'queue_overflow'``) are checked in arrival order: frame, teleport, then
+1. the queued samples (at most ``max_queue`` per input; a flood overflows the queue, oldest
+   first, and is counted as ``'queue_overflow'``) are checked in arrival order, the head's
+   first, then each frame's in the order of ``frames``: frame, teleport (the head only), then
    ``HeadEstimator.add`` (NaN/inf, zero or non-unit quaternion, stamps backwards or repeated);
-   every dropped sample is counted per reason in ``dropped``;
+   every dropped sample is counted per reason in ``dropped`` (one counter for all inputs);
 2. pending parameter changes are applied: tunable ones with ``Simulator.set_parameters``,
    structural ones by rebuilding the simulator at rest at the current head pose;
-3. the head state is estimated at ``t_head = t - delay`` and the chain advanced to it:
-   ``sim.advance_frame(t_head, estimator.state_at(t_head))``. The elapsed time is whatever the
-   clock says (late timers, skipped sim-time periods); at most ``solver.max_steps_per_call``
-   internal steps are taken, the rest is dropped and counted;
+3. the head state (and every frame's) is estimated at ``t_head = t - delay`` and the chain
+   advanced to it: ``sim.advance_frame(t_head, bodies_at(t_head))``. The elapsed time is
+   whatever the clock says (late timers, skipped sim-time periods); at most
+   ``solver.max_steps_per_call`` internal steps are taken, the rest is dropped and counted;
 4. latency compensation (``latency_compensation``, on by default): every chain of the output is
    translated rigidly so that its root lies on the attachment point of the head estimated at
    ``t`` (extrapolating the newest samples), i.e. by the displacement of the attachment point
@@ -26,7 +28,8 @@ Per tick, at node clock time ``t``:
    geometry is unchanged (joints stay closed); the swing itself still lags by ``delay``.
 
 Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input period)`` where
-the input period is the median interval of the stored head samples: a delay of a period or two
+the input period is the median interval of the stored head samples (the longest of the head's
+and those of the frames the scene uses, when there are frames): a delay of a period or two
 puts samples on both sides of the evaluation time, which is what makes the velocity and
 acceleration estimates smooth (measured by ``ponytail_ros/bench/node_bench.py``, trade part: at
 60 Hz the anchor acceleration error falls from ~50 % at delay 0 to ~25 % at one period and ~9 %
@@ -36,25 +39,36 @@ Decisions (documented for the node):
 
 * Stale: no sample accepted during the last ``stale_timeout`` s of clock time (measured on the
   node clock, not by the stamps, so that it works whatever the stamps' time base).
-* Frame: the frame of the first accepted pose is latched. A pose in another frame is dropped
-  (``'frame_changed'``) while the latched stream is live; once the head is stale a pose in a new
-  frame is adopted and the chain is reset at rest there (reset reason ``'frame_changed'``):
-  interleaved rogue publishers cannot poison the chain, a real switch recovers after
-  ``stale_timeout``.
+* Frame: the frame of the first accepted pose (head or extra frame) is latched: it is the
+  simulation's world frame, so every input must use it. A pose in another frame is dropped
+  (``'frame_changed'``) while any input stream is live; once every input is stale a pose in a
+  new frame is adopted, every input's history restarts and the chain is reset at rest there
+  (reset reason ``'frame_changed'``): interleaved rogue publishers cannot poison the chain, a
+  real switch recovers after ``stale_timeout``.
 * Teleport: a pose farther than ``teleport_distance`` m or ``teleport_angle`` rad from the
   previous accepted one restarts the head history and resets the chain at rest at the new pose.
 * Stale head: the estimator extrapolates for ``head.max_extrapolation``, braking to a stop, then
   holds the last pose; the chain keeps swinging and settles.
 * Clock going backwards (a restarted ``/clock``, a looped bag): everything restarts as if new
-  (reset reason ``'clock_backwards'``). A stream whose stamps went back for good (a publisher
-  restarted with another time base) is re-adopted once the head is stale: the head history
-  restarts, the chain carries on (counted in ``history_restarts``; before that, the samples are
-  dropped as ``'stamp_backwards'``).
+  (reset reason ``'clock_backwards'``), the frames' histories too. A stream whose stamps went
+  back for good (a publisher restarted with another time base) is re-adopted once the head is
+  stale: the head history restarts, the chain carries on (counted in ``history_restarts``;
+  before that, the samples are dropped as ``'stamp_backwards'``).
 * A change of the delay (a setting, or the input rate) is slewed at ±50 % of the elapsed time,
   so the simulated head time never runs backwards and never jumps.
+
+Extra frames (``frames``, kinematic bodies 1..F of the scene): each has its own queue
+(``push_frame``) and ``HeadEstimator`` with the head's settings, and the same checks (dropped
+samples counted in the same ``dropped`` by reason; a stream whose stamps went back for good is
+re-adopted once it is stale, as the head's). A scene that uses a frame (a chain anchored to it,
+a collider fixed in it) publishes nothing until that frame has a pose, as for the head; a stale
+frame is extrapolated, then held, by its estimator like the head. There is no teleport
+detection for frames (a frame's jump never resets the chain): a collider that jumps onto the
+segments is resolved by the contact position stage, which pushes them out of it at most
+0.25 rad per segment per pass, so a deep jump takes several steps to clear.
 """
 from collections import Counter, deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 import inspect
 import math
 
@@ -169,20 +183,31 @@ class ChainRunner:
     """Head samples → estimator → simulator, one ``tick`` at a time (see the module docstring).
 
     Args:
-        scene: a validated ``Scene``: kinematic body 0 is the head; a body 1, if the scene has
-            one, is the static world (identity pose in the head pose's frame: chains hanging
-            from a ceiling). A scene in which neither a chain nor a collider uses the head runs
-            without any head pose (frame ``''`` until one arrives).
-        settings: ``RunnerSettings``.
+        scene: a validated ``Scene``: kinematic body 0 is the head, bodies 1..F the extra
+            ``frames``; a body F + 1, if the scene has one, is the static world (identity pose
+            in the head pose's frame: chains hanging from a ceiling). A scene in which neither a
+            chain nor a collider uses the head runs without any head pose (frame ``''`` until
+            a pose arrives); one that uses a frame waits for that frame's first pose.
+        settings: ``RunnerSettings`` (the frames' estimators use them too).
+        frames: names of the extra kinematic frames (``push_frame(i, ...)`` feeds
+            ``frames[i]``, body ``1 + i``); a name is only used in messages.
     """
 
-    def __init__(self, scene, settings=None):
-        self.scene = scene
+    def __init__(self, scene, settings=None, frames=()):
         self.settings = settings or RunnerSettings()
+        self.frames = tuple(str(f) for f in frames)
+        self._check_bodies(scene)
+        self.scene = scene
         self.estimator = self.settings.estimator()
+        #: One ``HeadEstimator`` per extra frame.
+        self.frame_estimators = [self.settings.estimator() for _ in self.frames]
         self.sim = None
         self.frame_id = None
         self._queue = deque(maxlen=max(1, int(self.settings.max_queue)))
+        self._frame_queues = [deque(maxlen=self._queue.maxlen) for _ in self.frames]
+        self._frame_last_accept = [None] * len(self.frames)
+        #: Samples accepted per frame, since start.
+        self.frame_accepted_total = [0] * len(self.frames)
         self._pending_scene = None
         self._pending_reset = None
         self._delay = None
@@ -200,14 +225,22 @@ class ChainRunner:
         self.dropped_time_total = 0.0
         self.ticks = 0
         self.last_reset = None
-        #: Called as ``on_drop(reason, t_stamp)`` for every dropped sample (logging).
+        #: Called as ``on_drop(reason, t_stamp, source)`` for every dropped sample (logging);
+        #: ``source`` is ``'head'`` or the frame's name.
         self.on_drop = None
 
     # -- configuration ---------------------------------------------------------------------
     def set_scene(self, scene):
         """Use ``scene`` (validated) from the next tick: tunable differences are applied with
         ``Simulator.set_parameters``, anything else rebuilds the simulator at rest."""
+        self._check_bodies(scene)
         self._pending_scene = scene
+
+    def _check_bodies(self, scene):
+        if scene.n_kinematic_bodies < 1 + len(self.frames):
+            raise ValueError(f'the scene has {scene.n_kinematic_bodies} kinematic bodies; the '
+                             f'head and {len(self.frames)} frames need at least '
+                             f'{1 + len(self.frames)}')
 
     def update_settings(self, **changes):
         """Change settings live (not ``max_queue``/``max_samples``: fixed at construction)."""
@@ -215,10 +248,11 @@ class ChainRunner:
             if k in changes and changes[k] != getattr(self.settings, k):
                 raise ValueError(f'{k} cannot change while running')
         self.settings = replace(self.settings, **changes)
-        e, s = self.estimator, self.settings
-        e.window, e.degree, e.min_samples = float(s.window), int(s.degree), int(s.degree) + 3
-        e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
-        e.quat_tolerance = float(s.quat_tolerance)
+        s = self.settings
+        for e in (self.estimator, *self.frame_estimators):
+            e.window, e.degree, e.min_samples = float(s.window), int(s.degree), int(s.degree) + 3
+            e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
+            e.quat_tolerance = float(s.quat_tolerance)
 
     @property
     def delay(self):
@@ -226,10 +260,15 @@ class ChainRunner:
         return self.target_delay() if self._delay is None else self._delay
 
     def target_delay(self):
-        """``max(interpolation_delay, interpolation_delay_periods × input period)``, capped."""
+        """``max(interpolation_delay, interpolation_delay_periods × input period)``, capped; the
+        input period is the head's, or the longest of it and the used frames'."""
         s = self.settings
         d = s.interpolation_delay
         period = self.estimator.sample_period
+        for i in _used_frames(self.scene, len(self.frames)):
+            p = self.frame_estimators[i].sample_period
+            if p is not None and (period is None or p > period):
+                period = p
         if period is not None and s.interpolation_delay_periods > 0.0:
             d = max(d, s.interpolation_delay_periods * period)
         return min(d, s.max_delay)
@@ -241,14 +280,41 @@ class ChainRunner:
     @property
     def needs_head(self):
         """Whether some chain or collider of the scene is fixed in the head (body 0)."""
-        return _needs_head(self.scene)
+        return 0 in _used_bodies(self.scene)
+
+    def has_frame(self, i):
+        """Whether frame ``i`` has an accepted pose."""
+        return len(self.frame_estimators[i]) > 0
+
+    def needs_frame(self, i):
+        """Whether some chain or collider of the scene is fixed in frame ``i`` (body 1 + i)."""
+        return 1 + i in _used_bodies(self.scene)
+
+    def frame_stale(self, i, t):
+        """No sample of frame ``i`` accepted during the last ``stale_timeout`` s before ``t``."""
+        last = self._frame_last_accept[i]
+        return last is None or t - last > self.settings.stale_timeout
+
+    def missing_inputs(self, scene=None):
+        """The inputs ``scene`` (default: the current one) uses that have no pose yet:
+        ``'head'`` and/or frame names. The runner publishes nothing while there is one."""
+        used = _used_bodies(scene or self.scene)
+        missing = ['head'] if 0 in used and not self.has_head else []
+        return missing + [f for i, f in enumerate(self.frames)
+                          if 1 + i in used and not self.has_frame(i)]
 
     def bodies_at(self, t):
-        """The scene's kinematic bodies at head time ``t``: the estimated head (still at the
-        origin while there is none), then the static world if the scene has it."""
+        """The scene's kinematic bodies at head time ``t``: the estimated head, then each
+        frame's estimate (each still at the origin while it has no pose), then the static world
+        if the scene has it."""
         head = (self.estimator.state_at(t) if self.has_head
                 else KinematicState.still())
-        return head.with_static_bodies(self.scene.n_kinematic_bodies - 1)
+        if self.frames:
+            states = [head] + [e.state_at(t) if len(e) else KinematicState.still()
+                               for e in self.frame_estimators]
+            head = KinematicState(*(np.concatenate([getattr(st, f.name) for st in states])
+                                    for f in fields(KinematicState)))
+        return head.with_static_bodies(self.scene.n_kinematic_bodies - 1 - len(self.frames))
 
     @property
     def newest_stamp(self):
@@ -271,14 +337,24 @@ class ChainRunner:
             self._drop('queue_overflow', self._queue[0][0])
         self._queue.append((t, position, orientation, frame_id))
 
-    def _drop(self, reason, t):
+    def push_frame(self, i, t, position, orientation, frame_id=''):
+        """Queue a pose sample of frame ``i`` (``frames[i]``), as :meth:`push` does for the
+        head; its ``frame_id`` must be the head poses' one. Checked at the next tick; O(1)."""
+        queue = self._frame_queues[i]
+        if len(queue) == queue.maxlen:
+            self._drop('queue_overflow', queue[0][0], self.frames[i])
+        queue.append((t, position, orientation, frame_id))
+
+    def _drop(self, reason, t, source='head'):
         self.dropped[reason] += 1
         if self.on_drop is not None:
-            self.on_drop(reason, t)
+            self.on_drop(reason, t, source)
 
     def _restart(self, reason):
-        """Forget the head (history, frame) and the chain; the next sample starts anew."""
+        """Forget the head and the frames (histories, frame) and the chain; the next sample
+        starts anew."""
         self.estimator.reset()
+        self._reset_frames()
         self.sim = None
         self.frame_id = None
         self._newest_stamp = None
@@ -287,7 +363,24 @@ class ChainRunner:
         self.resets[reason] += 1
         self.last_reset = reason
 
+    def _reset_frames(self):
+        for e in self.frame_estimators:
+            e.reset()
+        self._frame_last_accept = [None] * len(self.frames)
+
+    def _all_quiet(self, t_tick):
+        """No input (head or frame) accepted a sample in the last ``stale_timeout`` s."""
+        timeout = self.settings.stale_timeout
+        return all(last is None or t_tick - last > timeout
+                   for last in (self._last_accept_tick, *self._frame_last_accept))
+
     def _drain(self, t_tick):
+        accepted = self._drain_head(t_tick)
+        for i in range(len(self.frames)):
+            self._drain_frame(i, t_tick)
+        return accepted
+
+    def _drain_head(self, t_tick):
         est, s = self.estimator, self.settings
         accepted = 0
         quiet = (self._last_accept_tick is None
@@ -297,10 +390,11 @@ class ChainRunner:
             valid = _valid_sample(t, p, q, s.quat_tolerance)
             restart = None
             if self.frame_id is not None and frame != self.frame_id:
-                if not (quiet and valid):
+                if not (valid and self._all_quiet(t_tick)):
                     self._drop('frame_changed', t)
                     continue
                 restart = 'frame_changed'
+                self._reset_frames()      # in the old frame (all stale)
             elif valid and est.detect_teleport(p, q, s.teleport_distance, s.teleport_angle):
                 restart = 'teleport'
             elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
@@ -326,10 +420,42 @@ class ChainRunner:
         self.accepted_total += accepted
         return accepted
 
+    def _drain_frame(self, i, t_tick):
+        """Frame ``i``'s queued samples, as :meth:`_drain_head` (no teleport detection)."""
+        est, s, name = self.frame_estimators[i], self.settings, self.frames[i]
+        queue = self._frame_queues[i]
+        while queue:
+            t, p, q, frame = queue.popleft()
+            valid = _valid_sample(t, p, q, s.quat_tolerance)
+            adopt = False
+            if self.frame_id is not None and frame != self.frame_id:
+                if not (valid and self._all_quiet(t_tick)):
+                    self._drop('frame_changed', t, name)
+                    continue
+                # Every input stale: the world frame changes. Every history restarts (all in
+                # the old frame) and the chain is reset at rest in the new one.
+                adopt = True
+                self.estimator.reset()
+                self._reset_frames()
+                self._newest_stamp = None
+                self._pending_reset = 'frame_changed'
+            elif (valid and self.frame_stale(i, t_tick) and est.last_stamp is not None
+                  and t < est.last_stamp):
+                est.reset()                   # the stream restarted with an earlier time base
+                self.history_restarts += 1
+            reason = est.add(t, p, q)
+            if reason is not None:
+                self._drop(reason, t, name)
+                continue
+            self._frame_last_accept[i] = t_tick
+            self.frame_accepted_total[i] += 1
+            if self.frame_id is None or adopt:
+                self.frame_id = frame
+
     # -- the tick ------------------------------------------------------------------------------
     def tick(self, t):
-        """Advance to node clock time ``t`` (s); ``TickOutput``, or None while no head pose has
-        been accepted yet."""
+        """Advance to node clock time ``t`` (s); ``TickOutput``, or None while an input the
+        scene uses (the head, a frame) has no accepted pose yet (``missing_inputs``)."""
         t = float(t)
         if self._last_tick is not None and t < self._last_tick:
             self._restart('clock_backwards')
@@ -337,7 +463,7 @@ class ChainRunner:
         elapsed = 0.0 if self._last_tick is None else t - self._last_tick
         self._last_tick = t
         accepted = self._drain(t)
-        if not self.has_head and _needs_head(self._pending_scene or self.scene):
+        if self.missing_inputs(self._pending_scene or self.scene):
             return None
         self.ticks += 1
 
@@ -421,9 +547,16 @@ class ChainRunner:
         self.scene = scene
 
 
-def _needs_head(scene):
-    return (any(c.anchor_body == 0 for c in scene.chains)
-            or any(c.body == 0 for c in scene.colliders))
+def _used_bodies(scene):
+    """Indices of the kinematic bodies some chain hangs from or some collider is fixed in."""
+    return ({c.anchor_body for c in scene.chains}
+            | {c.body for c in scene.colliders if c.body is not None})
+
+
+def _used_frames(scene, n_frames):
+    """Indices ``i`` of the extra frames (bodies ``1 + i``) the scene uses."""
+    used = _used_bodies(scene)
+    return [i for i in range(n_frames) if 1 + i in used]
 
 
 def _valid_sample(t, p, q, quat_tolerance):
