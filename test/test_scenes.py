@@ -6,13 +6,14 @@ the second runs each scene in a real node on an in-process executor, records it,
 the recording offline.
 """
 import time
+from dataclasses import fields
 
 import numpy as np
 import pytest
 
 from ponytail_ros.core import Simulator
-from ponytail_ros.core.head import WithStaticBodies
-from ponytail_ros.core.rotations import quat_rotate
+from ponytail_ros.core.head import HeadMotion, KinematicState, WithStaticBodies
+from ponytail_ros.core.rotations import quat_multiply, quat_rotate
 from ponytail_ros.recording.params import (complete_values, scene_and_settings,
                                            values_from_params_file)
 from ponytail_ros.resources import config_path
@@ -21,7 +22,7 @@ from test_core_collision import TOLERANCE, ShakeMotion
 from test_core_limits import ANGLE_TOLERANCE
 
 SCENES = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail.yaml',
-          'tail_and_ponytail.yaml')
+          'tail_and_ponytail.yaml', 'ponytail_arm.yaml')
 DT = 1.0 / 120.0            # frames: the node's default rate
 
 
@@ -56,6 +57,10 @@ def test_each_scene_enables_only_what_it_needs():
     tail = scenes['tail.yaml']
     (c,) = tail.chains
     assert c.stiffness > 0 and c.swing_limit > 0 and [k.kind for k in tail.colliders] == ['capsule']
+    arm = scenes['ponytail_arm.yaml']
+    assert arm.chains == pony.chains and arm.colliders[0] == pony.colliders[0]
+    assert arm.n_kinematic_bodies == 2 and arm.colliders[1].kind == 'capsule'
+    assert arm.colliders[1].body == 1                        # the left forearm frame
 
 
 def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
@@ -83,14 +88,46 @@ def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
     assert np.allclose(sim.joint_positions()[0][0], values['rope.attach'], atol=1e-12)
 
 
-@pytest.mark.parametrize('name', ['ponytail.yaml', 'pigtails.yaml', 'sword.yaml', 'tail.yaml'])
+#: Poses of the scenes' extra frames, relative to the head (position in the head frame,
+#: rotation): the left forearm across the back of the neck, just clear of the hanging ponytail
+#: (its +X, the forearm's axis, along the head's -Y), touched when the head swings.
+FRAME_OFFSETS = {'left_forearm': (np.array([-0.17, 0.13, -0.2]),
+                                  np.array([0.0, 0.0, -np.sqrt(0.5), np.sqrt(0.5)]))}
+
+
+class FramesOnHead(HeadMotion):
+    """``motion``'s head followed by the scene's frames carried rigidly by it
+    (``FRAME_OFFSETS``), then ``n_static`` static bodies: exact derivatives (Eq. 1-3)."""
+
+    def __init__(self, motion, frames, n_static=0):
+        self.motion, self.frames, self.n_static = motion, list(frames), n_static
+
+    def state_at(self, t):
+        head = self.motion.state_at(t)
+        states = [head]
+        for f in self.frames:
+            offset, rotation = FRAME_OFFSETS[f]
+            point = head.point_kinematics(np.array([0]), offset[None])
+            states.append(KinematicState(
+                point.position, quat_multiply(head.orientation, rotation[None]), point.velocity,
+                head.angular_velocity.copy(), point.acceleration,
+                head.angular_acceleration.copy()))
+        stacked = KinematicState(*(np.concatenate([getattr(st, f.name) for st in states])
+                                   for f in fields(KinematicState)))
+        return stacked.with_static_bodies(self.n_static)
+
+
+@pytest.mark.parametrize('name', ['ponytail.yaml', 'pigtails.yaml', 'sword.yaml', 'tail.yaml',
+                                  'ponytail_arm.yaml'])
 def test_colliders_and_limits_of_each_scene_hold_under_a_violent_shake(name):
     """The violent shake (±0.1 m at 3 Hz, ±1 rad of yaw at 2.5 Hz, ±0.3 rad of nod) for 6 s
     at the node's 120 Hz frames: no reset, joints closed, no segment deeper than TOLERANCE in
     a collider (a chain's rooted first segment on its outer half, as the solver treats it),
-    no joint beyond its swing or twist limit by more than ANGLE_TOLERANCE."""
-    _, scene = scene_of(name)
-    motion = ShakeMotion()
+    no joint beyond its swing or twist limit by more than ANGLE_TOLERANCE. Extra frames (the
+    forearm) are carried by the shaken head."""
+    values, scene = scene_of(name)
+    frames = list(values['frames'])
+    motion = FramesOnHead(ShakeMotion(), frames, scene.n_kinematic_bodies - 1 - len(frames))
     sim = Simulator(scene, motion)
     m = sim.model
     swing_max = np.concatenate([c.joint_limits('swing_limit') for c in scene.chains])
@@ -156,13 +193,20 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
     markers = []
     tester.create_subscription(MarkerArray, 'segment_markers', markers.append, 100)
     head_pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
+    frames = list(values['frames'])
+    frame_pubs = [tester.create_publisher(PoseStamped, values[f'{f}.topic'] or f'{f}_pose', 10)
+                  for f in frames]
     needs_head = node.runner.needs_head
     script, t0 = HeadScript(origin=np.array([0.0, 0.0, 1.0])), time.monotonic()
 
     def publish_head():
         state = script.state_at(time.monotonic() - t0)
-        head_pub.publish(pose_msg(tester.get_clock().now().nanoseconds * 1e-9,
-                                  state.position[0], state.orientation[0]))
+        t = tester.get_clock().now().nanoseconds * 1e-9
+        p, q = state.position[0], state.orientation[0]
+        head_pub.publish(pose_msg(t, p, q))
+        for f, pub in zip(frames, frame_pubs):     # each frame carried by the head
+            offset, rotation = FRAME_OFFSETS[f]
+            pub.publish(pose_msg(t, p + quat_rotate(q, offset), quat_multiply(q, rotation)))
     if needs_head:
         tester.create_timer(0.01, publish_head)
     executor = SingleThreadedExecutor(context=ros_context)
