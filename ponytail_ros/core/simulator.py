@@ -4,7 +4,8 @@ Stages of one internal step (as in a physics engine's pipeline):
     1. anchor kinematics at the stage times (exact motion, or interpolated between frames);
     2. applied forces (``forces``), then constraint forces by A f_c = b (``solver``);
     3. integration (``integrators``: RK4 or symplectic Euler);
-    4. stabilisation: positions and velocities put back on the joints (``stabilization``);
+    4. stabilisation: positions put back on the joints (``stabilization``), and for RK4 the
+       velocities too (symplectic Euler's step ends with its own, mass-weighted, projection);
     5. only if the scene has colliders or joint limits: one-sided constraints at the step's end
        (``collision``: positions, then inelastic velocities, then friction).
 
@@ -13,9 +14,11 @@ result does not depend on the frame rate; the chain's time lags the requested ti
 one step. At most ``max_steps_per_call`` steps are taken per call; the rest of the interval is
 dropped (the chain skips ahead with the anchor) and reported as ``dropped_time``.
 
-A guard checks the state after every call (finite, speeds below ``guard_max_speed``, joint gaps
-below ``guard_max_gap``); a blow-up resets the chains to rest at the current head pose and is
-reported, never propagated.
+A guard checks the state after every call: finite, the joint solve did not fail ('solver
+failure: ...'), speeds below ``guard_max_speed``, no joint turning more than
+``guard_max_step_angle`` per step (for RK4 also no segment's gyroscopic precession beyond
+``guard_max_step_angle / GYROSCOPIC_REACH_RATIO``), joint gaps below ``guard_max_gap``; a
+blow-up resets the chains to rest at the current head pose and is reported, never propagated.
 """
 from dataclasses import dataclass, field
 
@@ -26,8 +29,8 @@ from .head import AnchorTrack, HeadMotion, KinematicState
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
-from .rotations import (cross, quat_conjugate, quat_from_two_vectors, quat_integrate,
-                        quat_multiply, quat_rotate, quat_to_matrix)
+from .rotations import (cross, quat_axis_x, quat_conjugate, quat_from_two_vectors,
+                        quat_integrate, quat_multiply, quat_to_matrix)
 from .scene import SceneError, _check_range, _check_vector
 from .solver import Dynamics
 from .stabilization import project_positions, project_velocities
@@ -39,6 +42,10 @@ __all__ = ['Simulator', 'StepReport', 'TUNABLE_PARAMETERS']
 # (rad, at the start of the step) is split into sub-steps, at most MAX_SUBSTEPS.
 SUBSTEP_ANGLE = 0.25
 MAX_SUBSTEPS = 8
+# RK4 follows a thin segment's gyroscopic precession (its body-frame ω turning at ~ its axial
+# spin Ω) only to dt·Ω ≈ 1 (1.04 gains energy slowly, 1.25 blows up), a swing to ~2.5 (the
+# linear limit is 2.8): the guard holds the precession to guard_max_step_angle / this.
+GYROSCOPIC_REACH_RATIO = 2.5
 
 _X = np.array([1.0, 0.0, 0.0])
 
@@ -80,6 +87,11 @@ class Simulator:
         s = scene.solver
         self.dt = s.dt
         self._step = INTEGRATOR_STEPS[s.integrator]
+        # RK4's joint projection rebuilds v from ω; symplectic Euler's step ends with its own
+        # (M-orthogonal) velocity projection, which a rebuild would undo.
+        self._rebuild_velocities = s.integrator != 'symplectic_euler'
+        # RK4 integrates the gyroscopic term explicitly (symplectic Euler: see integrators).
+        self._explicit_gyroscopic = s.integrator == 'rk4'
         self.dynamics = Dynamics(self.model, s.linear_solver,
                                  (s.baumgarte_stiffness, s.baumgarte_damping))
         self.external = None
@@ -270,34 +282,34 @@ class Simulator:
         x, q, v, w = st.x, st.q, st.v, st.w
         project = self.scene.solver.projection
         implicit_damping = m.implicit_damping and m.active_terms['damping']
-        accel = self._accel_fn(anchor_at)
+        system = _System(self, anchor_at)
+        failure = None
         try:
             if self.unilateral is not None:
-                x, q, v, w = self._steps_unilateral(max(n_steps, 0), accel, anchor_at, bodies_at,
+                x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
                                                     x, q, v, w)
             else:
                 for _ in range(max(n_steps, 0)):
                     t = self._t_base + self._n_steps * self.dt
-                    x, q, v, w = self._step(accel, t, self.dt, x, q, v, w)
+                    x, q, v, w = self._step(system, t, self.dt, x, q, v, w)
                     self._n_steps += 1
                     t1 = self._t_base + self._n_steps * self.dt
                     if implicit_damping:
                         a1 = anchor_at(t1)
                         v, w = self.dynamics.implicit_damping(x, q, v, w, a1, self.dt)
                     if project:
-                        a1 = anchor_at(t1)
-                        h = half_vectors(m.length, q)
-                        x = project_positions(m, a1.position, h)
-                        v = project_velocities(m, a1.velocity, w, h)
+                        x, v = self._project(anchor_at(t1), x, q, v, w)
             report.steps = max(n_steps, 0)
-        except np.linalg.LinAlgError:
+        except np.linalg.LinAlgError as err:
+            # The state reached a configuration the joint solve cannot handle: reset, and say so.
+            failure = str(err)
             x = np.full_like(x, np.nan)
         self.t = self._t_base + self._n_steps * self.dt
         self.state = ChainState(x, q, v, w)
         anchor = anchor_at(self.t)
         self._last_anchor = (self.t, anchor)
         report.max_gap = float(np.max(self.joint_gaps(anchor))) if self.state.is_finite() else np.inf
-        reason = self._guard(report.max_gap)
+        reason = self._guard(report.max_gap, anchor, failure)
         if reason is not None:
             self.total_resets += 1
             report.reset_reason = reason
@@ -305,7 +317,16 @@ class Simulator:
             report.max_gap = float(np.max(self.joint_gaps(self.anchors(head_at(self.t)))))
         return report
 
-    def _steps_unilateral(self, n_steps, accel, anchor_at, bodies_at, x, q, v, w):
+    def _project(self, anchor, x, q, v, w):
+        """Positions (and for RK4 velocities) put back on the joints at the step's end."""
+        m = self.model
+        h = half_vectors(m.length, q)
+        x = project_positions(m, anchor.position, h)
+        if self._rebuild_velocities:
+            v = project_velocities(m, anchor.velocity, w, h)
+        return x, v
+
+    def _steps_unilateral(self, n_steps, system, anchor_at, bodies_at, x, q, v, w):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
         above, then its contacts and limits are resolved (``collision``). A step in which some
         joint turns faster than ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is
@@ -315,44 +336,62 @@ class Simulator:
         implicit_damping = m.implicit_damping and m.active_terms['damping']
         for _ in range(n_steps):
             t0 = self._t_base + self._n_steps * self.dt
-            w_rel = w - m.parent_side(anchor_at(t0).angular_velocity, w)
-            rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
-            n_sub = min(MAX_SUBSTEPS, max(1, int(np.ceil(rate * self.dt / SUBSTEP_ANGLE))))
+            n_sub = self._substeps(w - m.parent_side(anchor_at(t0).angular_velocity, w))
             h = self.dt / n_sub
             for k in range(n_sub):
                 t = t0 + k * h
-                x, q, v, w = self._step(accel, t, h, x, q, v, w)
+                x, q, v, w = self._step(system, t, h, x, q, v, w)
                 t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
                     self._t_base + (self._n_steps + 1) * self.dt
                 a1 = anchor_at(t1)
                 if implicit_damping:
                     v, w = dyn.implicit_damping(x, q, v, w, a1, h)
                 if project:
-                    hv = half_vectors(m.length, q)
-                    x = project_positions(m, a1.position, hv)
-                    v = project_velocities(m, a1.velocity, w, hv)
+                    x, v = self._project(a1, x, q, v, w)
                 pose = uni.pose(bodies_at(t1) if bodies_at else None)
                 x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
             self._n_steps += 1
         return x, q, v, w
 
-    def _accel_fn(self, anchor_at):
-        m, dyn = self.model, self.dynamics
+    def _substeps(self, w_rel):
+        """Sub-steps of a step of a scene with colliders or limits, given the joints' relative
+        angular velocities ``w_rel`` ``(n, 3)`` (rad/s) at its start (1 for other scenes)."""
+        if self.unilateral is None:
+            return 1
+        rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
+        return min(MAX_SUBSTEPS, max(1, int(np.ceil(rate * self.dt / SUBSTEP_ANGLE))))
 
-        def accel(t, x, q, v, w):
-            anchor = anchor_at(t)
-            F, T = applied_forces(m, x, q, v, w, anchor.orientation, anchor.angular_velocity,
-                                  self.external)
-            return dyn.accelerations(x, q, v, w, anchor, F, T)
-        return accel
-
-    def _guard(self, max_gap):
-        s = self.scene.solver
-        if not self.state.is_finite():
+    def _guard(self, max_gap, anchor=None, failure=None):
+        """Why the state after a call is a blow-up (a reset reason), or None."""
+        s, m, st = self.scene.solver, self.model, self.state
+        if failure is not None:
+            return f'solver failure: {failure}'
+        if not st.is_finite():
             return 'non-finite state'
-        speed = float(np.max(np.linalg.norm(self.state.v, axis=1)))
+        speed = float(np.max(np.linalg.norm(st.v, axis=1)))
         if speed > s.guard_max_speed:
             return f'speed {speed:.3g} m/s > guard_max_speed {s.guard_max_speed:g}'
+        # Rotations faster than the integrator follows within one (sub-)step: a spin-up the
+        # speed check misses when the segment is short (a thin segment's spurious spin).
+        anchor = self._last_anchor[1] if anchor is None else anchor
+        w_rel = st.w - m.parent_side(anchor.angular_velocity, st.w)
+        h = self.dt / self._substeps(w_rel)
+        if not self._explicit_gyroscopic and self.dynamics.axisymmetric:
+            # Symplectic Euler turns a segment about its own axis exactly, at any rate: only
+            # the rates that swing the axes count (twist about the child's axis left out).
+            e = quat_axis_x(st.q)
+            w_rel = w_rel - np.einsum('ij,ij->i', w_rel, e)[:, None] * e
+        rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
+        if h * rate > s.guard_max_step_angle:
+            return (f'joint angular speed {rate:.3g} rad/s: {h * rate:.3g} rad per step > '
+                    f'guard_max_step_angle {s.guard_max_step_angle:g}')
+        if self._explicit_gyroscopic:
+            gyro = float(np.max(self.dynamics.gyroscopic_rates(st.q, st.w)))
+            limit = s.guard_max_step_angle / GYROSCOPIC_REACH_RATIO
+            if h * gyro > limit:
+                return (f'gyroscopic precession at {gyro:.3g} rad/s (a segment spinning about its '
+                        f'axis): {h * gyro:.3g} rad per step > guard_max_step_angle / '
+                        f'{GYROSCOPIC_REACH_RATIO:g} = {limit:.3g}')
         if max_gap > s.guard_max_gap:
             return f'joint gap {max_gap:.3g} m > guard_max_gap {s.guard_max_gap:g}'
         return None
@@ -438,6 +477,29 @@ class Simulator:
     def constraint_forces(self):
         """Joint forces f_c ``(n, 3)`` on each child at the last stage solved, N."""
         return self.dynamics.last_f_c
+
+
+class _System:
+    """The chains' dynamics for the integrators (``integrators`` module docstring): applied
+    forces and the joint solve at any time of the step, with the anchors of ``anchor_at``."""
+
+    def __init__(self, sim, anchor_at):
+        self.model, self.dynamics, self.anchor = sim.model, sim.dynamics, anchor_at
+        self.external = sim.external
+        self.projection = sim.scene.solver.projection
+
+    def applied(self, t, x, q, v, w):
+        """Applied forces and torques ``(n, 3)`` each (N, N·m, world) at time ``t``."""
+        anchor = self.anchor(t)
+        return applied_forces(self.model, x, q, v, w, anchor.orientation,
+                              anchor.angular_velocity, self.external)
+
+    def accel(self, t, x, q, v, w):
+        """Accelerations ``(a, α)`` ``(n, 3)`` each (m/s², rad/s², world), joints enforced."""
+        anchor = self.anchor(t)
+        F, T = applied_forces(self.model, x, q, v, w, anchor.orientation,
+                              anchor.angular_velocity, self.external)
+        return self.dynamics.accelerations(x, q, v, w, anchor, F, T)
 
 
 def _memo_last(f, size=2):

@@ -26,11 +26,11 @@ axis) and ``G = (h hᵀ - |h|² 1)/I_p``: no rotation matrices are formed. Other
 first joint that reaction is the one the kinematic head never feels).
 """
 import numpy as np
-from scipy.linalg import lapack
+from scipy.linalg import cho_factor, cho_solve, lapack
 
 from .rotations import cross, quat_axis_x, quat_to_matrix, skew
 
-__all__ = ['Dynamics']
+__all__ = ['Dynamics', 'JointResponse']
 
 _KD = 5  # half-bandwidth of a block-tridiagonal matrix with 3×3 blocks
 
@@ -72,10 +72,16 @@ class Dynamics:
         self._inv_Ia, self._inv_Ip = 1.0 / I[:, 0], 1.0 / I[:, 1]
         self._half = 0.5 * m.length
         self.last_f_c = np.zeros((n, 3))
+        self._response = None                   # the last ``joint_response``, reused while q holds
 
     # -- mass properties in the world frame -------------------------------------------------
     def mass_terms(self, q, w):
         """Half-vectors ``h``, ``G = [h]× I⁻¹ [h]×``, ``I⁻¹·`` and the gyroscopic ω × Iω."""
+        h, G, inv_I, gyroscopic = self.inertia_terms(q)
+        return h, G, inv_I, gyroscopic(w)
+
+    def inertia_terms(self, q):
+        """Half-vectors ``h``, ``G``, ``I⁻¹·`` and ``ω ↦ ω × Iω`` at orientations ``q`` (world)."""
         m = self.model
         if self.axisymmetric:
             e = quat_axis_x(q)
@@ -89,9 +95,11 @@ class Dynamics:
 
             def inv_I(v):
                 return v * inv_Ip + (k * np.sum(e * v, axis=1, keepdims=True)) * e
-            # L = I_p ω + (I_a - I_p)(e·ω) e, so ω × L = (I_a - I_p)(e·ω) ω × e.
-            gyro = ((m.inertia[:, 0] - m.inertia[:, 1]) * np.sum(e * w, axis=1))[:, None] * cross(w, e)
-            return h, G, inv_I, gyro
+
+            def gyroscopic(w):
+                # L = I_p ω + (I_a - I_p)(e·ω) e, so ω × L = (I_a - I_p)(e·ω) ω × e.
+                return ((m.inertia[:, 0] - m.inertia[:, 1]) * np.sum(e * w, axis=1))[:, None] * cross(w, e)
+            return h, G, inv_I, gyroscopic
         R = quat_to_matrix(q)
         h = self._half[:, None] * R[:, :, 0]
         inv_I_world = (R * m.inv_inertia[:, None, :]) @ R.transpose(0, 2, 1)
@@ -100,9 +108,29 @@ class Dynamics:
 
         def inv_I(v):
             return (inv_I_world @ v[:, :, None])[:, :, 0]
-        w_body = (w[:, None, :] @ R)[:, 0, :]                  # Rᵀ ω
-        L_ang = (R @ (m.inertia * w_body)[:, :, None])[:, :, 0]
-        return h, G, inv_I, cross(w, L_ang)
+
+        def gyroscopic(w):
+            w_body = (w[:, None, :] @ R)[:, 0, :]                  # Rᵀ ω
+            L_ang = (R @ (m.inertia * w_body)[:, :, None])[:, :, 0]
+            return cross(w, L_ang)
+        return h, G, inv_I, gyroscopic
+
+    def gyroscopic_rates(self, q, w):
+        """Rate (rad/s) ``(n,)`` at which the gyroscopic term turns each segment's body-frame ω:
+        the spectral radius of I⁻¹([ω]× I - [Iω]×), the Jacobian of I⁻¹(ω × Iω).
+
+        Axisymmetric segments: |ω·e| |1 - I_a/I_p| (a thin segment spinning about its own axis
+        at Ω: ≈ Ω). An explicit integrator must resolve it like any other rotation.
+        """
+        m = self.model
+        I = m.inertia
+        if self.axisymmetric:
+            e = quat_axis_x(q)
+            return np.abs(np.sum(w * e, axis=1) * (1.0 - I[:, 0] / I[:, 1]))
+        R = quat_to_matrix(q)
+        wb = (w[:, None, :] @ R)[:, 0, :]
+        K = (skew(wb) * I[:, None, :] - skew(I * wb)) / I[:, :, None]
+        return np.max(np.abs(np.linalg.eigvals(K)), axis=1)
 
     def world_inertia(self, q):
         """World-frame inertia tensors ``(n, 3, 3)``, kg·m²."""
@@ -133,16 +161,22 @@ class Dynamics:
 
     def solve_banded(self, D, L, b):
         n = self.model.n
+        _, x, info = lapack.dpbsv(self.band(D, L), b.reshape(-1), lower=0, overwrite_ab=1,
+                                  overwrite_b=0)
+        if info != 0:
+            raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbsv info={info})')
+        return x.reshape(n, 3)
+
+    def band(self, D, L):
+        """``A`` in LAPACK's upper banded storage ``(6, 3n)``."""
+        n = self.model.n
         ab = np.zeros((_KD + 1, 3 * n))
         da, db, dflat = self._diag_idx
         ab.flat[dflat] = D[:, da, db].ravel()
         ca, cb, oflat = self._off_idx
         # A[i-1, i][a, b] = L[i][b, a]; the row for i = 0 falls outside and stays zero.
         ab.flat[oflat[9:]] = L[1:, cb, ca].ravel()
-        _, x, info = lapack.dpbsv(ab, b.reshape(-1), lower=0, overwrite_ab=1, overwrite_b=0)
-        if info != 0:
-            raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbsv info={info})')
-        return x.reshape(n, 3)
+        return ab
 
     def assemble_dense(self, D, L):
         n = self.model.n
@@ -268,3 +302,53 @@ class Dynamics:
         D, L = self.blocks(G)
         _, c_dot = self.constraint_error(x, v, h, cross(w, h), anchor)
         return self._apply_joint_forces(self.solve(D, L, c_dot), h, inv_I)
+
+    # -- joint impulses on a factorised A (symplectic Euler) ------------------------------
+    def joint_response(self, q):
+        """``JointResponse`` of the chains at orientations ``q``: ``A = J M⁻¹ Jᵀ`` factorised once.
+
+        ``A`` depends on the orientations only, and the projection keeps them: the velocity
+        projection that ends one symplectic Euler step and the joint correction that starts the
+        next see the same ``A``, so the factorisation is kept for the last ``q`` (compared by
+        value: contacts and limits turn segments in between).
+        """
+        r = self._response
+        if r is not None and np.array_equal(r.q, q):
+            return r
+        h, G, inv_I, _ = self.inertia_terms(q)
+        D, L = self.blocks(G)
+        if self.linear_solver == 'banded':
+            c, info = lapack.dpbtrf(self.band(D, L), lower=0, overwrite_ab=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbtrf info={info})')
+
+            def solve(b):
+                x, info = lapack.dpbtrs(c, b.reshape(-1, 1), lower=0)
+                if info != 0:
+                    raise np.linalg.LinAlgError(f'banded triangular solve failed (pbtrs info={info})')
+                return x.reshape(-1, 3)
+        else:
+            factor = cho_factor(self.assemble_dense(D, L))
+
+            def solve(b):
+                return cho_solve(factor, b.reshape(-1)).reshape(-1, 3)
+        self._response = JointResponse(self, q.copy(), h, inv_I, solve)
+        return self._response
+
+
+class JointResponse:
+    """The chains' response to joint impulses at one configuration (orientations ``q``).
+
+    ``impulse(r)`` solves ``A λ = r`` (λ: an impulse per joint, N·s, on the child; minus on
+    the parent) and returns ``λ`` and the velocity change ``M⁻¹ Jᵀ λ`` it causes,
+    ``(Δv, Δω)`` (m/s, rad/s, world). With ``r`` the joints' velocity error (parent side minus
+    child side, m/s) that change cancels it, and it is the M-orthogonal (smallest in kinetic
+    energy) change that does: on a still anchor it never adds kinetic energy.
+    """
+
+    def __init__(self, dynamics, q, h, inv_I, solve):
+        self.dynamics, self.q, self.h, self.inv_I, self._solve = dynamics, q, h, inv_I, solve
+
+    def impulse(self, r):
+        lam = self._solve(r)
+        return lam, self.dynamics._apply_joint_forces(lam, self.h, self.inv_I)
