@@ -30,17 +30,18 @@ Quaternions are renormalised. ``system`` provides:
 """
 import numpy as np
 
-from .rotations import (cross, quat_axis_x, quat_conjugate, quat_from_rotvec, quat_integrate,
-                        quat_multiply, quat_normalize, quat_rotate)
+from .rotations import (cross, quat_axis_x, quat_conjugate, quat_integrate, quat_multiply,
+                        quat_normalize, quat_rotate)
 
 __all__ = ['symplectic_euler', 'rk4', 'rotation_kick', 'drift', 'INTEGRATOR_STEPS',
            'SOLVES_PER_STEP']
 
 
 # -- symplectic Euler ------------------------------------------------------------------------
-def rotation_kick(dynamics, q, w, T, h):
+def rotation_kick(dynamics, q, w, T, h, e=None):
     """Angular velocities ``(n, 3)`` (rad/s, world) after a step ``h`` of the free rotation
     I ω̇ + ω × Iω = T (applied torques ``T``, N·m, world), the gyroscopic term implicit.
+    ``e``: the segment axes of ``q`` if already at hand.
 
     Axisymmetric segments (principal moments I_a about the axis e, I_p across it), with
     ω = ω_a e + ω⊥: the Euler equation splits exactly into
@@ -62,7 +63,7 @@ def rotation_kick(dynamics, q, w, T, h):
     dyn, m = dynamics, dynamics.model
     I = m.inertia
     if dyn.axisymmetric:
-        e = quat_axis_x(q)
+        e = quat_axis_x(q) if e is None else e
         w_a = np.sum(w * e, axis=1)
         T_a = np.sum(T * e, axis=1)
         w_perp = w - w_a[:, None] * e
@@ -89,15 +90,27 @@ def _skew(v):
     return S
 
 
-def _swing_rate(dynamics, q, w):
-    """The part of ω that turns each segment's axis: ω⊥ for axisymmetric segments, else ω."""
+def _swing_rate(dynamics, w, e):
+    """The part of ω that turns the segment axes ``e``: ω⊥ for axisymmetric segments (``drift``
+    turns them about their own axis separately), else ω."""
     if not dynamics.axisymmetric:
         return w
-    e = quat_axis_x(q)
     return w - np.sum(w * e, axis=1, keepdims=True) * e
 
 
-def drift(dynamics, x, q, v, w, h):
+def _turned(u, w, h):
+    """Vectors ``u`` ``(n, 3)`` turned by the rotation vectors ``h w`` (Rodrigues)."""
+    rate = np.sqrt(np.sum(w * w, axis=1, keepdims=True))
+    angle = h * rate
+    small = angle < 1e-6
+    r = np.where(small, 1.0, rate)
+    s = np.where(small, h * (1.0 - angle * angle / 6.0), np.sin(angle) / r)       # sin(hω)/ω
+    c = np.where(small, 0.5 * h * h, (1.0 - np.cos(angle)) / (r * r))            # (1-cos)/ω²
+    w_x_u = cross(w, u)
+    return u + s * w_x_u + c * cross(w, w_x_u)
+
+
+def drift(dynamics, x, q, v, w, h, e=None):
     """Positions, orientations and ω after moving for ``h`` s at the velocities ``v``, ``ω``.
 
     Axisymmetric segments turn about their own axis by h ω_a, then swing by h ω⊥
@@ -107,7 +120,7 @@ def drift(dynamics, x, q, v, w, h):
     """
     if not dynamics.axisymmetric:
         return x + h * v, quat_normalize(quat_integrate(q, w, h)), w
-    e = quat_axis_x(q)
+    e = quat_axis_x(q) if e is None else e
     w_a = np.sum(w * e, axis=1)
     w_perp = w - w_a[:, None] * e
     half = 0.5 * h * w_a
@@ -117,15 +130,13 @@ def drift(dynamics, x, q, v, w, h):
     return x + h * v, q1, w_a[:, None] * quat_axis_x(q1) + w_perp
 
 
-def _joint_gaps(model, anchor_position, x, e):
-    """Parent side minus child side of every joint (m), segment axes ``e``."""
-    hv = (0.5 * model.length)[:, None] * e
+def _joint_gaps(model, anchor_position, x, hv):
+    """Parent side minus child side of every joint (m), half-vectors ``hv`` (m, world)."""
     return model.parent_side(anchor_position, x + hv) - (x - hv)
 
 
-def _joint_velocity_errors(model, anchor_velocity, v, w, e):
-    """Parent side minus child side of every joint's velocity (m/s), segment axes ``e``."""
-    hv = (0.5 * model.length)[:, None] * e
+def _joint_velocity_errors(model, anchor_velocity, v, w, hv):
+    """Parent side minus child side of every joint's velocity (m/s), half-vectors ``hv``."""
     w_x_h = cross(w, hv)
     return model.parent_side(anchor_velocity, v + w_x_h) - (v - w_x_h)
 
@@ -163,37 +174,35 @@ def symplectic_euler(system, t, h, x, q, v, w):
     """
     dyn = system.dynamics
     m = dyn.model
+    K = dyn.joint_response(q)              # A at the start: the previous step's end, cached
+    e, hv = K.axes, K.h
     F, T = system.applied(t, x, q, v, w)
     v_free = v + h * F * m.inv_mass[:, None]
-    w_free = rotation_kick(dyn, q, w, T, h)
+    w_free = rotation_kick(dyn, q, w, T, h, e)
     a1 = system.anchor(t + h)
-    K = dyn.joint_response(q)
-    e = quat_axis_x(q)
     if system.projection:
         # Where the free velocities would take the joints: only the segment axes matter.
-        w_swing = _swing_rate(dyn, q, w_free)
-        e_free = quat_rotate(quat_from_rotvec(h * w_swing), e)
-        gaps = _joint_gaps(m, a1.position, x + h * v_free, e_free)
+        hv_free = _turned(hv, _swing_rate(dyn, w_free, e), h)
+        gaps = _joint_gaps(m, a1.position, x + h * v_free, hv_free)
         lam, (dv, dw) = K.impulse(gaps / h)
     else:
-        w_swing = _swing_rate(dyn, q, w)
-        hv = K.h
+        w_swing = _swing_rate(dyn, w, e)
         curvature = cross(w_swing, cross(w_swing, hv))
         a0 = system.anchor(t)
-        c_dot0 = _joint_velocity_errors(m, a0.velocity, v, w, e)
+        c_dot0 = _joint_velocity_errors(m, a0.velocity, v, w, hv)
         target = c_dot0
         if dyn.baumgarte_stiffness or dyn.baumgarte_damping:
-            gaps0 = _joint_gaps(m, a0.position, x, e)
+            gaps0 = _joint_gaps(m, a0.position, x, hv)
             target = c_dot0 - h * (dyn.baumgarte_damping * c_dot0 + dyn.baumgarte_stiffness * gaps0)
-        c_dot = _joint_velocity_errors(m, a1.velocity, v_free, w_free, e)
+        c_dot = _joint_velocity_errors(m, a1.velocity, v_free, w_free, hv)
         r = c_dot + h * (m.parent_side(np.zeros_like(a1.velocity), curvature) + curvature) - target
         lam, (dv, dw) = K.impulse(r)
     dyn.last_f_c = lam / h
-    x1, q1, w1 = drift(dyn, x, q, v_free + dv, w_free + dw, h)
     v1 = v_free + dv
+    x1, q1, w1 = drift(dyn, x, q, v1, w_free + dw, h, e)
     if system.projection:
         K1 = dyn.joint_response(q1)
-        _, (dv, dw) = K1.impulse(_joint_velocity_errors(m, a1.velocity, v1, w1, quat_axis_x(q1)))
+        _, (dv, dw) = K1.impulse(_joint_velocity_errors(m, a1.velocity, v1, w1, K1.h))
         v1, w1 = v1 + dv, w1 + dw
     return x1, q1, v1, w1
 

@@ -332,7 +332,7 @@ class Dynamics:
 
             def solve(b):
                 return cho_solve(factor, b.reshape(-1)).reshape(-1, 3)
-        self._response = JointResponse(self, q.copy(), h, inv_I, solve)
+        self._response = JointResponse(self, q.copy(), h, h / self._half[:, None], inv_I, solve)
         return self._response
 
 
@@ -346,8 +346,9 @@ class JointResponse:
     energy) change that does: on a still anchor it never adds kinetic energy.
     """
 
-    def __init__(self, dynamics, q, h, inv_I, solve):
-        self.dynamics, self.q, self.h, self.inv_I, self._solve = dynamics, q, h, inv_I, solve
+    def __init__(self, dynamics, q, h, axes, inv_I, solve):
+        self.dynamics, self.q, self.inv_I, self._solve = dynamics, q, inv_I, solve
+        self.h, self.axes = h, axes          # half-vectors (m) and unit axes, world, ``(n, 3)``
 
     def impulse(self, r):
         lam = self._solve(r)
