@@ -179,9 +179,12 @@ def still(p=P_HEAD, q=Q_TILT, frame='world'):
 # -- geometry and following ------------------------------------------------------------------
 
 def test_head_demo_drives_the_chain_which_follows_the_head(harness, ros_context):
-    # Enough steps per tick to catch up after any stall of a loaded test machine.
+    # Enough steps per tick to catch up after any stall of a loaded test machine; and no
+    # teleport reset when such a stall lets the yaw (±0.6 rad) move by more than the default
+    # teleport_angle between two accepted samples (tested elsewhere).
     h = harness(overrides(interpolation_delay=0.01, interpolation_delay_periods=0.0,
-                          latency_compensation=False, solver__max_steps_per_call=2400))
+                          latency_compensation=False, solver__max_steps_per_call=2400,
+                          teleport_angle=3.0))
     origin = [0.5, -0.3, 1.6]
     demo = h.add(HeadDemoNode(context=ros_context, parameter_overrides=[
         Parameter('motion', value='sway'), Parameter('origin', value=origin),

@@ -213,6 +213,9 @@ GLOBAL_PARAMS = (
              'than this (m/s) is a blow-up: the chain is reset.', 1e-3, 1e6, rebuild=True),
     ParamDef('solver.guard_max_gap', _SOLVER.guard_max_gap, 'double', 'A joint gap larger '
              'than this (m) is a blow-up: the chain is reset.', 1e-9, 10.0, rebuild=True),
+    ParamDef('solver.guard_max_step_angle', _SOLVER.guard_max_step_angle, 'double', 'A joint '
+             'turning more than this (rad) in one internal step is beyond what the integrator '
+             'can follow: the chain is reset (100 = off).', 1e-3, 100.0, rebuild=True),
 )
 
 CHAIN_PARAMS = (
@@ -485,7 +488,8 @@ def build_scene(values, chains):
         baumgarte_damping=float(values['solver.baumgarte_damping']),
         damping_method=values['solver.damping_method'],
         guard_max_speed=float(values['solver.guard_max_speed']),
-        guard_max_gap=float(values['solver.guard_max_gap']))
+        guard_max_gap=float(values['solver.guard_max_gap']),
+        guard_max_step_angle=float(values['solver.guard_max_step_angle']))
     try:
         return Scene(chains=tuple(specs),
                      n_kinematic_bodies=1 + len(frames) + (1 if world_anchor else 0),
