@@ -157,19 +157,13 @@ from rclpy.parameter import Parameter  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from ponytail_ros.recording.bag import BagReader  # noqa: E402
 from ponytail_ros.recording.replay import replay  # noqa: E402
 from ponytail_ros.ros.head_script import HeadScript  # noqa: E402
 from ponytail_ros.ros.node import PonytailNode  # noqa: E402
 from test_node import TIMEOUT_SCALE, pose_msg  # noqa: E402
+from test_replay import poses_by_stamp  # noqa: E402
 
 TICKS = 60
-
-
-def poses_by_stamp(path, topic):
-    return {(m.header.stamp.sec, m.header.stamp.nanosec): m
-            for t, _, m, _ in BagReader(path).messages({topic: 'geometry_msgs/msg/PoseArray'})
-            if t == topic}
 
 
 @pytest.mark.parametrize('name', SCENES)
