@@ -379,11 +379,16 @@ def test_idle_writer_flushes_its_partial_chunk(tmp_path):
         writer.add_topic('/pose', PoseStamped)
         for i in range(3):
             writer.write('/pose', pose_stamped(i), i)
-        time.sleep(0.3)
+        # No further message comes; the writer must write the partial chunk out on its own
+        # (after ~50 ms idle). Poll rather than sleep a fixed time: CI machines are loaded.
         snapshot = tmp_path / 'snapshot.mcap'
-        shutil.copyfile(path, snapshot)  # what a SIGKILL at this moment would leave
-        assert [m for _, _, m, _ in BagReader(snapshot).messages()] == [
-            pose_stamped(i) for i in range(3)]
+        deadline = time.monotonic() + 20
+        recovered = []
+        while not recovered and time.monotonic() < deadline:
+            time.sleep(0.05)
+            shutil.copyfile(path, snapshot)  # what a SIGKILL at this moment would leave
+            recovered = [m for _, _, m, _ in BagReader(snapshot).messages()]
+        assert recovered == [pose_stamped(i) for i in range(3)]
 
 
 CHUNK_DURATION_NS = 500_000_000
@@ -412,28 +417,37 @@ CHILD = textwrap.dedent(f'''
 ''')
 
 
-def run_child(path, mode, seconds, signum):
-    """Run CHILD until it has written for ``seconds``, send ``signum``; return (last i, last t)."""
+def run_child(path, mode, until_log_ns, signum):
+    """Run CHILD until it has queued messages up to ``until_log_ns`` of log time, then send
+    ``signum``; return (last index, last log time) the child reported as queued.
+
+    The wait is on the child's own progress, not on wall time: on a loaded machine its 1 ms
+    loop may run several times slower, and a fixed wait could end before a chunk is due.
+    """
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
     child = subprocess.Popen([sys.executable, '-c', CHILD, str(path), mode],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
-        first = child.stdout.readline()  # blocks until the child writes
-        assert first, child.stderr.read()
-        time.sleep(seconds)
+        lines = []
+        while True:
+            line = child.stdout.readline()  # blocks until the child writes
+            assert line, child.stderr.read()
+            lines.append(line)
+            if int(line.split()[1]) >= until_log_ns:
+                break
         child.send_signal(signum)
-        out, err = child.communicate(timeout=20)
+        out, err = child.communicate(timeout=60)
     finally:
         child.kill()
     assert child.returncode == -signum, err
-    index, log_time_ns = map(int, (first + out).split('\n')[-2].split())
+    index, log_time_ns = map(int, (''.join(lines) + out).split('\n')[-2].split())
     return index, log_time_ns
 
 
 def test_sigkill_loses_at_most_the_documented_bound(tmp_path):
     path = tmp_path / 'killed.mcap'
-    _, last_written_ns = run_child(path, 'kill', 1.5, signal.SIGKILL)
+    _, last_written_ns = run_child(path, 'kill', 3 * CHUNK_DURATION_NS, signal.SIGKILL)
     got = list(BagReader(path).messages())
     assert got, 'nothing recovered'
     assert [m.pose.position.x for _, _, m, _ in got] == [float(i) for i in range(len(got))]
@@ -445,7 +459,7 @@ def test_sigkill_loses_at_most_the_documented_bound(tmp_path):
 
 def test_sigterm_finalises_the_file(tmp_path):
     path = tmp_path / 'terminated.mcap'
-    last_index, _ = run_child(path, 'term', 0.5, signal.SIGTERM)
+    last_index, _ = run_child(path, 'term', CHUNK_DURATION_NS // 2, signal.SIGTERM)
     with open(path, 'rb') as f:
         summary = make_reader(f).get_summary()  # needs the footer and summary
     assert summary is not None
