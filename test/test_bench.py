@@ -102,7 +102,7 @@ def test_reference_checks_agree_with_the_shared_files(tiny_run):
 def test_scaling_batch_energy_tables(tiny_run):
     sc = read_json(tiny_run / 'scaling.json')['rows']
     series = {r['series'] for r in sc}
-    assert {'RK4 banded', 'SE banded', 'RK4 dense'} <= series
+    assert {'RK4 banded', 'SE banded', 'RATTLE banded', 'RK4 dense'} <= series
     assert all(r['cpu_us_per_step'] > 0 for r in sc)
     batch = read_json(tiny_run / 'batch.json')['rows']
     batched = [r for r in batch if r['mode'] == 'one scene (batched)']
@@ -111,7 +111,7 @@ def test_scaling_batch_energy_tables(tiny_run):
         if r['chains'] > 1:
             assert r['max_dev_from_solo_m'] < 1e-9     # chains in one solve do not interact
     energy = read_json(tiny_run / 'energy.json')['rows']
-    assert {r['integrator'] for r in energy} == {'rk4', 'symplectic_euler'}
+    assert {r['integrator'] for r in energy} == {'rk4', 'symplectic_euler', 'rattle'}
     for r in energy:
         assert r['releasable_J'] > 0 and r['drift_max_abs'] >= 0
 

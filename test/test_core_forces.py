@@ -99,7 +99,7 @@ def test_chain_fields_are_validated_with_name_value_and_range(field, value, frag
 
 
 @pytest.mark.parametrize('field, value, fragment', [
-    ('integrator', 'euler', "one of ('rk4', 'symplectic_euler')"),
+    ('integrator', 'euler', "one of ('rk4', 'symplectic_euler', 'rattle')"),
     ('dt', 0.5, '[1e-06, 0.1]'),
     ('max_steps_per_call', 0, '[1, 1000000]'),
     ('linear_solver', 'lu', 'banded'),

@@ -62,13 +62,14 @@ from .motions import crowd_motion, reference_motion  # noqa: E402
 from .scenes import (EXTRA_SCENES, REFERENCE_DIR, SCENES, BenchScene, make_scene,  # noqa: E402
                      ponytail_chain)
 
-RK4, SE = 'rk4', 'symplectic_euler'
+RK4, SE, RATTLE = 'rk4', 'symplectic_euler', 'rattle'
 S = M.Setting
 
 
 def _settings_quick():
     return ([S(RK4, 1 / hz) for hz in (60, 120, 240, 480, 960)]
             + [S(SE, 1 / hz) for hz in (240, 960, 1920)]
+            + [S(RATTLE, 1 / hz) for hz in (240, 480, 960)]
             + [S(RK4, 1 / 240, linear_solver='dense'),
                S(RK4, 1 / 240, projection=False),
                S(RK4, 1 / 240, projection=False, baumgarte_stiffness=1e4, baumgarte_damping=200.0),
@@ -78,6 +79,7 @@ def _settings_quick():
 def _settings_full():
     return ([S(RK4, 1 / hz) for hz in (30, 60, 120, 240, 360, 480, 960, 2000)]
             + [S(SE, 1 / hz) for hz in (120, 240, 480, 960, 1920, 3840, 7680)]
+            + [S(RATTLE, 1 / hz) for hz in (120, 240, 480, 960, 1920, 3840)]
             + [S(RK4, 1 / 240, linear_solver='dense'), S(SE, 1 / 960, linear_solver='dense'),
                S(RK4, 1 / 240, projection=False), S(SE, 1 / 960, projection=False),
                S(RK4, 1 / 240, projection=False, baumgarte_stiffness=1e4, baumgarte_damping=200.0),
@@ -88,7 +90,8 @@ def _settings_full():
 
 
 def _settings_tiny():
-    return [S(RK4, 1 / 240), S(SE, 1 / 480), S(RK4, 1 / 240, linear_solver='dense'),
+    return [S(RK4, 1 / 240), S(SE, 1 / 480), S(RATTLE, 1 / 480),
+            S(RK4, 1 / 240, linear_solver='dense'),
             S(RK4, 1 / 240, tick_rate=60.0)]
 
 
@@ -101,7 +104,7 @@ PROFILES = {
         mujoco_n=(3,), mujoco_dts=(1 / 240, 1 / 960), mujoco_duration=0.1, mujoco_dt_ref=1 / 1920,
         mujoco_crosscheck_max=10, mujoco_scaling_max=10, mujoco_budget_s=5.0, long_run_s=0.5,
         batch_c=(1, 3), batch_segments=5, batch_steps=2, batch_loop_max=3, batch_repeats=1,
-        energy_T=0.2, energy_settings=[S(RK4, 1 / 240), S(SE, 1 / 480)],
+        energy_T=0.2, energy_settings=[S(RK4, 1 / 240), S(SE, 1 / 480), S(RATTLE, 1 / 480)],
         terms_seconds=0.05, terms_repeats=1),
     'quick': dict(
         scenes=SCENES, durations=dict(moving=3.0, release=1.5, shake=2.0, rope=1.5, damped=3.0),
@@ -115,7 +118,8 @@ PROFILES = {
         batch_c=(1, 10, 100, 1000), batch_segments=20, batch_steps=6, batch_loop_max=100,
         batch_repeats=3,
         energy_T=10.0, energy_settings=[S(RK4, 1 / hz) for hz in (60, 120, 240, 480)]
-        + [S(SE, 1 / hz) for hz in (240, 480, 960, 1920)],
+        + [S(SE, 1 / hz) for hz in (240, 480, 960, 1920)]
+        + [S(RATTLE, 1 / hz) for hz in (240, 480, 960, 1920)],
         terms_seconds=2.0, terms_repeats=3),
     'full': dict(
         scenes=SCENES + ('damped',),
@@ -123,7 +127,7 @@ PROFILES = {
         dt_ref=1 / 8000, repeats=5, timing_window=1.0, settings=_settings_full,
         seg_counts=(2, 5, 20, 40),
         seg_settings=[S(RK4, 1 / 240), S(RK4, 1 / 480), S(RK4, 1 / 960), S(SE, 1 / 960),
-                      S(SE, 1 / 3840)],
+                      S(SE, 1 / 3840), S(RATTLE, 1 / 960)],
         scaling_n=(1, 2, 5, 10, 20, 50, 100, 200, 500, 1000), dense_max=300,
         scaling_steps_budget=1e5, scaling_repeats=5,
         mujoco_n=(10, 20, 50, 100, 200), mujoco_dts=(1 / 60, 1 / 120, 1 / 240, 1 / 500, 1 / 1000,
@@ -134,6 +138,7 @@ PROFILES = {
         batch_repeats=5,
         energy_T=10.0, energy_settings=[S(RK4, 1 / hz) for hz in (30, 60, 120, 240, 480, 960)]
         + [S(SE, 1 / hz) for hz in (120, 240, 480, 960, 1920, 3840)]
+        + [S(RATTLE, 1 / hz) for hz in (120, 240, 480, 960, 1920, 3840)]
         + [S(RK4, 1 / 240, projection=False), S(SE, 1 / 960, projection=False)],
         terms_seconds=5.0, terms_repeats=5),
 }
@@ -453,6 +458,7 @@ def cmd_scaling(prof, out, meta, log=print):
         chain = ponytail_chain(n)
         steps = int(max(5, min(400, prof['scaling_steps_budget'] / (30.0 * n + 300.0))))
         for series, integ, solver in (('RK4 banded', RK4, 'banded'), ('SE banded', SE, 'banded'),
+                                      ('RATTLE banded', RATTLE, 'banded'),
                                       ('RK4 dense', RK4, 'dense')):
             if solver == 'dense' and n > prof['dense_max']:
                 continue

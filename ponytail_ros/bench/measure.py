@@ -66,7 +66,8 @@ class Setting:
 
     @property
     def label(self):
-        s = f'{"RK4" if self.integrator == "rk4" else "SE"} {fmt_dt(self.dt)}'
+        short = {'rk4': 'RK4', 'symplectic_euler': 'SE', 'rattle': 'RATTLE'}[self.integrator]
+        s = f'{short} {fmt_dt(self.dt)}'
         if self.linear_solver != 'banded':
             s += ' dense'
         if not self.projection:

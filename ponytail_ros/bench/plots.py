@@ -25,7 +25,7 @@ def pareto_front(points):
 
 
 def _style(row):
-    color = 'tab:blue' if row.get('integrator') == 'rk4' else 'tab:orange'
+    color = {'rk4': 'tab:blue', 'rattle': 'tab:green'}.get(row.get('integrator'), 'tab:orange')
     marker = 'o'
     if row.get('linear_solver') == 'dense':
         marker = 's'
@@ -85,9 +85,9 @@ def pareto_plot(rows, path, scenes, mujoco_rows=(), recommended=None, title=None
         for r in mj:
             x = r['cpu_s_per_sim_s']
             y = r['tip_rms_mm'] if r['stable'] else top
-            ax.scatter([x], [y], c='tab:green' if r['stable'] else 'red', marker='P', s=50, zorder=3)
+            ax.scatter([x], [y], c='tab:purple' if r['stable'] else 'red', marker='P', s=50, zorder=3)
             ax.annotate(f'MuJoCo {r["dt_label"]}' + ('' if r['stable'] else ' (unstable)'), (x, y),
-                        textcoords='offset points', xytext=(4, -9), fontsize=6.5, color='tab:green')
+                        textcoords='offset points', xytext=(4, -9), fontsize=6.5, color='tab:purple')
         ax.set_xscale('log')
         ax.set_yscale('log')
         ax.set_xlabel('CPU seconds per simulated second')
@@ -97,6 +97,7 @@ def pareto_plot(rows, path, scenes, mujoco_rows=(), recommended=None, title=None
         handles = [
             plt.Line2D([], [], color='tab:blue', marker='o', ls='', label='RK4'),
             plt.Line2D([], [], color='tab:orange', marker='o', ls='', label='symplectic Euler'),
+            plt.Line2D([], [], color='tab:green', marker='o', ls='', label='RATTLE'),
             plt.Line2D([], [], color='gray', marker='s', ls='', label='dense solve'),
             plt.Line2D([], [], color='gray', marker='x', ls='', label='no projection'),
             plt.Line2D([], [], color='gray', marker='D', ls='', label='Baumgarte, no projection'),
@@ -105,7 +106,7 @@ def pareto_plot(rows, path, scenes, mujoco_rows=(), recommended=None, title=None
             plt.Line2D([], [], color='k', ls='--', label='Pareto front'),
         ]
         if mj:
-            handles.append(plt.Line2D([], [], color='tab:green', marker='P', ls='', label='MuJoCo RK4'))
+            handles.append(plt.Line2D([], [], color='tab:purple', marker='P', ls='', label='MuJoCo RK4'))
         ax.legend(handles=handles, fontsize=6.5, loc='lower left')
     for ax in axes.ravel()[n:]:
         ax.axis('off')
@@ -123,7 +124,8 @@ def scaling_plot(rows, path, title=None):
     for r in rows:
         series.setdefault(r['series'], []).append((r['n_segments'], r['cpu_us_per_step']))
     styles = {'RK4 banded': ('tab:blue', 'o'), 'SE banded': ('tab:orange', 'o'),
-              'RK4 dense': ('tab:red', 's'), 'MuJoCo RK4': ('tab:green', 'P')}
+              'RATTLE banded': ('tab:green', 'o'), 'RK4 dense': ('tab:red', 's'),
+              'MuJoCo RK4': ('tab:purple', 'P')}
     for name, pts in series.items():
         pts.sort()
         c, m = styles.get(name, ('gray', 'o'))

@@ -87,10 +87,10 @@ class Simulator:
         s = scene.solver
         self.dt = s.dt
         self._step = INTEGRATOR_STEPS[s.integrator]
-        # RK4's joint projection rebuilds v from ω; symplectic Euler's step ends with its own
-        # (M-orthogonal) velocity projection, which a rebuild would undo.
-        self._rebuild_velocities = s.integrator != 'symplectic_euler'
-        # RK4 integrates the gyroscopic term explicitly (symplectic Euler: see integrators).
+        # RK4's joint projection rebuilds v from ω; symplectic Euler's and RATTLE's steps end
+        # with their own (M-orthogonal) velocity projection, which a rebuild would undo.
+        self._rebuild_velocities = s.integrator == 'rk4'
+        # RK4 integrates the gyroscopic term explicitly (the others: ``rotation_kick``).
         self._explicit_gyroscopic = s.integrator == 'rk4'
         self.dynamics = Dynamics(self.model, s.linear_solver,
                                  (s.baumgarte_stiffness, s.baumgarte_damping))
