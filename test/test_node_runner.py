@@ -272,6 +272,12 @@ def _values(**changes):
     ({'ponytail.length': 0.0}, 'ponytail.length'),
     ({'gravity': [0.0, 0.0, -1e5]}, 'gravity'),
     ({'ponytail.color': [1.0, 0.0, 0.0]}, 'ponytail.color'),
+    ({'ponytail.n_segments': 3, 'ponytail.segment_lengths': [0.1, 0.2]}, 'ponytail.segment_lengths'),
+    ({'ponytail.segment_masses': [0.01] * 9 + [-0.01]}, 'ponytail.segment_masses'),
+    ({'ponytail.segment_masses': ['heavy'] * 10}, 'ponytail.segment_masses'),
+    ({'ponytail.inertia': [1e-6] * 29}, 'ponytail.inertia'),
+    ({'ponytail.swing_limits': [0.5] * 10 + [0.4]}, 'ponytail.swing_limits'),
+    ({'ponytail.twist_limits': [0.5] * 9 + [4.0]}, 'ponytail.twist_limits'),
 ])
 def test_parameter_checks_name_the_offending_parameter(changes, names):
     vals = _values(**changes)
@@ -283,6 +289,25 @@ def test_parameter_checks_name_the_offending_parameter(changes, names):
 def test_default_parameters_make_a_valid_scene():
     s = check_values(_values(), ['ponytail'])
     assert s.chains[0].rest_direction is None
+
+
+def test_per_segment_parameters_reach_the_scene():
+    """A tapered 3-segment tail: lengths, masses, inertias and per-joint limits given per
+    segment override the uniform ones; [] (the default) leaves them uniform."""
+    s = check_values(_values(**{
+        'ponytail.n_segments': 3, 'ponytail.segment_lengths': [0.2, 0.15, 0.1],
+        'ponytail.segment_masses': [0.3, 0.2, 0.1],
+        'ponytail.inertia': [1e-5, 1e-3, 1e-3, 5e-6, 4e-4, 4e-4, 1e-6, 1e-4, 1e-4],
+        'ponytail.swing_limit': 1.0, 'ponytail.swing_limits': [0.3, 0.6, 0.9],
+        'ponytail.twist_limits': [0.2, 0.2, 0.4]}), ['ponytail'])
+    c = s.chains[0]
+    assert np.allclose(c.lengths(), [0.2, 0.15, 0.1]) and np.allclose(c.masses(), [0.3, 0.2, 0.1])
+    assert np.allclose(c.principal_inertia()[1], [5e-6, 4e-4, 4e-4])
+    assert np.allclose(c.joint_limits('swing_limit'), [0.3, 0.6, 0.9])
+    assert np.allclose(c.joint_limits('twist_limit'), [0.2, 0.2, 0.4])
+    uniform = check_values(_values(**{'ponytail.swing_limit': 1.0}), ['ponytail']).chains[0]
+    assert np.allclose(uniform.lengths(), 0.04) and np.allclose(uniform.joint_limits('swing_limit'), 1.0)
+    assert np.all(np.isinf(uniform.joint_limits('twist_limit')))
 
 
 def test_head_script_is_smooth_and_loops():

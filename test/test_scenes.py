@@ -56,7 +56,8 @@ def test_each_scene_enables_only_what_it_needs():
     assert [k.kind for k in sword.colliders] == ['capsule']
     tail = scenes['tail.yaml']
     (c,) = tail.chains
-    assert c.stiffness > 0 and c.swing_limit > 0 and [k.kind for k in tail.colliders] == ['capsule']
+    assert c.stiffness > 0 and [k.kind for k in tail.colliders] == ['capsule']
+    assert np.all(np.diff(c.joint_limits('swing_limit')) > 0) and c.twist_limit is None
     arm = scenes['ponytail_arm.yaml']
     assert arm.chains == pony.chains and arm.colliders[0] == pony.colliders[0]
     assert arm.n_kinematic_bodies == 2 and arm.colliders[1].kind == 'capsule'
@@ -279,5 +280,40 @@ def test_collider_and_limit_parameters_are_checked_named_and_applied_live(ros_co
         assert node.core.scene.chains[0].swing_limit == 0.5
         (colliders,) = [p.value for p in node.get_parameters(['colliders'])]
         assert list(colliders) == ['skull']
+    finally:
+        node.destroy_node()
+
+
+def test_per_segment_parameters_in_the_node(ros_context):
+    """Per-segment lengths and masses and per-joint limits as node parameters: integers are
+    taken for doubles, a list of the wrong size is refused naming it (the running value stays),
+    a good live change rebuilds the chain with it, and [] goes back to the uniform chain."""
+    from ponytail_ros.ros.parameters import ParameterError
+    lengths = [0.2, 0.1, 0.05]
+
+    def make(**p):
+        base = {'ponytail.n_segments': 3, 'ponytail.segment_lengths': lengths}
+        return PonytailNode(context=ros_context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in {**base, **p}.items()])
+    with pytest.raises(ParameterError, match=r'ponytail\.segment_masses = .* must be 3 positive'):
+        make(**{'ponytail.segment_masses': [0.1, 0.1]})
+    node = make(**{'ponytail.segment_masses': [1, 1, 1]})
+    try:
+        (c,) = node.core.scene.chains
+        assert np.allclose(c.lengths(), lengths) and np.allclose(c.masses(), 1.0)
+        bad = node.set_parameters([Parameter('ponytail.segment_lengths', value=[0.1, 0.1]),
+                                   Parameter('ponytail.swing_limits', value=[0.5, 0.5, 9.0])])
+        assert not any(r.successful for r in bad)
+        assert 'ponytail.segment_lengths' in bad[0].reason and '3 positive' in bad[0].reason
+        assert 'ponytail.swing_limits' in bad[1].reason and '3.1' in bad[1].reason
+        assert np.allclose(node.core.scene.chains[0].lengths(), lengths)
+        good = node.set_parameters([Parameter('ponytail.swing_limits', value=[0.2, 0.4, 0.6]),
+                                    Parameter('ponytail.segment_lengths', value=[0.1, 0.1, 0.1])])
+        assert all(r.successful for r in good), [r.reason for r in good]
+        c = node.core.scene.chains[0]
+        assert np.allclose(c.joint_limits('swing_limit'), [0.2, 0.4, 0.6])
+        assert np.allclose(c.lengths(), 0.1)
+        assert node.set_parameters([Parameter('ponytail.segment_lengths', value=[])])[0].successful
+        assert np.allclose(node.core.scene.chains[0].lengths(), 0.4 / 3)
     finally:
         node.destroy_node()

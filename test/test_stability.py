@@ -53,7 +53,7 @@ import warnings
 import numpy as np
 import pytest
 
-from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator,
+from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, SceneError, Simulator,
                                SolverSpec, StillMotion)
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
 from ponytail_ros.core.stabilization import project_velocities
@@ -532,6 +532,61 @@ def test_jump_in_time_is_capped_and_reported():
     r = sim.advance_to(1000.0, motion)
     assert r.steps == 240 and r.dropped_time == pytest.approx(1000.0 - 1.0, abs=1 / 240)
     assert r.reset_reason is None and sim.state.is_finite()
+
+
+@pytest.mark.parametrize('integrator', [RK4, SE, RATTLE])
+def test_a_hitch_carries_the_chain_with_the_head(integrator):
+    """A 0.3 s hitch on a head moving at 1 m/s and yawing at 3 rad/s, with at most 12 steps per
+    call: the 0.25 s beyond the cap are dropped and the chain skips ahead carried by the head,
+    its shape and motion relative to the head kept, so the next steps go on without a jolt: no
+    reset, joints closed, and the chain no faster relative to the head than before the hitch.
+    (Not carried, the first step after the skip had to close the head's 0.25 s of motion at
+    once: symplectic Euler and RATTLE then fail the speed bound; RK4's velocity rebuild from ω
+    happened to absorb it here.)"""
+    motion = SinusoidHead(p0=HEAD, amplitude=(0.2, 0.0, 0.0), frequency=(0.8, 0.0, 0.0),
+                          yaw_amplitude=0.6, yaw_frequency=0.8)
+    sim = make_sim(ponytail(damping=1e-3), motion, integrator, 1 / 240, max_steps_per_call=12)
+    for k in range(1, 61):
+        assert sim.advance_to(k / 120, motion).reset_reason is None
+
+    def relative_speeds():
+        head = motion.state_at(sim.t)
+        a = sim.anchors(head)
+        st = sim.state
+        return np.linalg.norm(st.v - a.velocity[0] - np.cross(a.angular_velocity[0],
+                                                             st.x - a.position[0]), axis=1)
+    before = relative_speeds()
+    r = sim.advance_to(0.5 + 0.3, motion)
+    assert r.dropped_time == pytest.approx(0.25, abs=1e-9) and r.steps == 12
+    assert r.reset_reason is None and r.max_gap < 1e-12
+    assert np.max(relative_speeds()) < 2.0 * np.max(before) + 0.1
+    for k in range(97, 121):
+        r = sim.advance_to(k / 120, motion)
+        assert r.reset_reason is None and r.max_gap < 1e-12
+
+
+def test_carry_with_anchors_keeps_the_chain_relative_to_its_anchor():
+    """The carry itself: the chain's positions, orientations and velocities seen from the anchor
+    body are the same before and after, so closed joints stay closed (position and velocity)."""
+    from ponytail_ros.core.simulator import carry_with_anchors
+    from ponytail_ros.core.rotations import quat_conjugate, quat_multiply, quat_rotate
+    motion = reference_motion()
+    sim = make_sim(ponytail(), motion, RK4, 1 / 240)
+    sim.advance_to(0.7, motion)
+    st = sim.state
+    a0, a1 = sim.anchors(motion.state_at(0.7)), sim.anchors(motion.state_at(2.3))
+    x, q, v, w = carry_with_anchors(sim.model, a0, a1, st.x, st.q, st.v, st.w)
+
+    def seen_from(a, x, q, v, w):
+        qc = quat_conjugate(a.orientation[0])
+        r = x - a.position[0]
+        return (quat_rotate(qc, r), quat_multiply(qc, q),
+                quat_rotate(qc, v - a.velocity[0] - np.cross(a.angular_velocity[0], r)),
+                quat_rotate(qc, w - a.angular_velocity[0]))
+    for before, after in zip(seen_from(a0, st.x, st.q, st.v, st.w), seen_from(a1, x, q, v, w)):
+        assert np.allclose(before, after, rtol=0, atol=1e-12)
+    sim.reset(motion.state_at(2.3), 2.3, state=ChainState(x, q, v, w))
+    assert np.max(sim.joint_gaps()) < 1e-12
 
 
 def test_non_finite_head_never_reaches_the_chain():

@@ -12,7 +12,8 @@ Stages of one internal step (as in a physics engine's pipeline):
 Time: any frame time is advanced in steps of exactly ``solver.dt`` (an accumulator), so the
 result does not depend on the frame rate; the chain's time lags the requested time by less than
 one step. At most ``max_steps_per_call`` steps are taken per call; the rest of the interval is
-dropped (the chain skips ahead with the anchor) and reported as ``dropped_time``.
+dropped and reported as ``dropped_time``: the chains skip ahead carried rigidly by their
+anchors (``carry_with_anchors``), their motion relative to the anchor kept.
 
 A guard checks the state after every call: finite, the joint solve did not fail ('solver
 failure: ...'), speeds below ``guard_max_speed``, no joint turning more than
@@ -30,7 +31,8 @@ from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
 from .rotations import (cross, quat_axis_x, quat_conjugate, quat_from_two_vectors,
-                        quat_integrate, quat_multiply, quat_to_matrix)
+                        quat_integrate, quat_multiply, quat_normalize, quat_rotate,
+                        quat_to_matrix)
 from .scene import SceneError, _check_range, _check_vector
 from .solver import Dynamics
 from .stabilization import project_positions, project_velocities
@@ -273,13 +275,19 @@ class Simulator:
         n_target = int(np.floor((t_target - self._t_base) / self.dt + 1e-9))
         n_steps = n_target - self._n_steps
         cap = self.scene.solver.max_steps_per_call
-        if n_steps > cap:
-            # Skip ahead: drop the time beyond the cap, keeping the step grid.
-            report.dropped_time = (n_steps - cap) * self.dt
-            self._n_steps += n_steps - cap
-            n_steps = cap
         m, st = self.model, self.state
         x, q, v, w = st.x, st.q, st.v, st.w
+        if n_steps > cap:
+            # Skip ahead: drop the time beyond the cap, keeping the step grid, and carry the
+            # chains with their anchors over the skipped time (else the first step would have
+            # to close the whole displacement at once: a whip, or a blow-up).
+            report.dropped_time = (n_steps - cap) * self.dt
+            t_from = self._t_base + self._n_steps * self.dt
+            self._n_steps += n_steps - cap
+            n_steps = cap
+            x, q, v, w = carry_with_anchors(m, anchor_at(t_from),
+                                            anchor_at(self._t_base + self._n_steps * self.dt),
+                                            x, q, v, w)
         project = self.scene.solver.projection
         implicit_damping = m.implicit_damping and m.active_terms['damping']
         system = _System(self, anchor_at)
@@ -500,6 +508,20 @@ class _System:
         F, T = applied_forces(self.model, x, q, v, w, anchor.orientation,
                               anchor.angular_velocity, self.external)
         return self.dynamics.accelerations(x, q, v, w, anchor, F, T)
+
+
+def carry_with_anchors(model, a0, a1, x, q, v, w):
+    """The chains' state ``(x, q, v, w)`` moved rigidly with their anchor bodies from the
+    ``AnchorKinematics`` ``a0`` to ``a1``: positions and orientations transformed with the
+    anchor, velocities so that the motion relative to the anchor body is kept. Joints that were
+    closed (in position and velocity) stay closed; a static anchor moves nothing."""
+    c = model.chain_of
+    dq = quat_multiply(a1.orientation, quat_conjugate(a0.orientation))[c]
+    p0, w0, w1 = a0.position[c], a0.angular_velocity[c], a1.angular_velocity[c]
+    r = quat_rotate(dq, x - p0)
+    v_rel = v - a0.velocity[c] - cross(w0, x - p0)         # relative to the anchor body
+    return (a1.position[c] + r, quat_normalize(quat_multiply(dq, q)),
+            a1.velocity[c] + cross(w1, r) + quat_rotate(dq, v_rel), w1 + quat_rotate(dq, w - w0))
 
 
 def _memo_last(f, size=2):

@@ -81,7 +81,7 @@ def _coerce(name, kind, value):
         if not isinstance(value, str):
             raise bad('a string')
         return value
-    if kind in ('double3', 'double4'):
+    if kind in ('double3', 'double4', 'doubles'):
         if not isinstance(value, (list, tuple)) or not all(_is_number(v) for v in value):
             raise bad('a list of numbers')
         return [float(v) for v in value]

@@ -69,6 +69,7 @@ _PARAM_TYPES = {
     'double': Parameter.Type.DOUBLE, 'int': Parameter.Type.INTEGER,
     'bool': Parameter.Type.BOOL, 'string': Parameter.Type.STRING,
     'double3': Parameter.Type.DOUBLE_ARRAY, 'double4': Parameter.Type.DOUBLE_ARRAY,
+    'doubles': Parameter.Type.DOUBLE_ARRAY,
     'strings': Parameter.Type.STRING_ARRAY,
 }
 
@@ -99,7 +100,7 @@ def _coerce(param, kind):
     t, v = param.type_, param.value
     if kind == 'double' and t == Parameter.Type.INTEGER:
         return Parameter(param.name, Parameter.Type.DOUBLE, float(v))
-    if kind in ('double3', 'double4') and t == Parameter.Type.INTEGER_ARRAY:
+    if kind in ('double3', 'double4', 'doubles') and t == Parameter.Type.INTEGER_ARRAY:
         return Parameter(param.name, Parameter.Type.DOUBLE_ARRAY, [float(x) for x in v])
     if kind == 'int' and t == Parameter.Type.DOUBLE and float(v).is_integer():
         return Parameter(param.name, Parameter.Type.INTEGER, int(v))
@@ -219,8 +220,9 @@ class PonytailNode(Node):
             self._parameter_overrides[name] = _coerce(override, pdef.kind)
         descriptor = _descriptor(pdef)
         if isinstance(default, list) and not default:
-            # rclpy types an empty list as BYTE_ARRAY, which would refuse a list of strings:
-            # such a parameter (``colliders``, read-only) is declared dynamically typed.
+            # rclpy types an empty list as BYTE_ARRAY, which would refuse a list of strings or
+            # doubles: such a parameter (``colliders``, ``<chain>.segment_lengths``) is
+            # declared dynamically typed (its values are type-checked in ``check_values``).
             descriptor.dynamic_typing = True
         self.declare_parameter(name, default, descriptor)
         self._param_names.append(name)

@@ -83,7 +83,8 @@ DEFAULT_COLORS = ((0.55, 0.33, 0.16, 1.0), (0.85, 0.65, 0.30, 1.0), (0.20, 0.20,
 class ParamDef:
     """One parameter.
 
-    ``kind``: 'double', 'int', 'bool', 'string', 'double3' (3 doubles), 'double4', 'strings'.
+    ``kind``: 'double', 'int', 'bool', 'string', 'double3' (3 doubles), 'double4', 'doubles'
+    (any number of doubles, e.g. one per segment), 'strings'.
     ``lo``/``hi``: range (each element for arrays); ``choices``: allowed strings.
     ``live``: changeable at run time (False → read_only). ``rebuild``: a change rebuilds the
     simulator (structural).
@@ -107,6 +108,8 @@ class ParamDef:
         if self.kind in ('double3', 'double4') and self.lo is not None:
             n = 3 if self.kind == 'double3' else 4
             parts.append(f'{n} numbers, each in [{self.lo:g}, {self.hi:g}]')
+        if self.kind == 'doubles' and self.lo is not None:
+            parts.append(f'numbers, each in [{self.lo:g}, {self.hi:g}]')
         if not self.live:
             parts.append('read-only: set at start-up')
         elif self.rebuild:
@@ -227,6 +230,15 @@ CHAIN_PARAMS = (
              rebuild=True),
     ParamDef('radius', _CHAIN.radius, 'double', 'Segment radius, m (inertia of a solid '
              'cylinder; marker size).', 1e-6, 10.0, rebuild=True),
+    ParamDef('segment_lengths', [], 'doubles', 'Per-segment lengths, m, root first: '
+             'n_segments numbers, overriding length. [] = length split equally.', 1e-6, 1e3,
+             rebuild=True),
+    ParamDef('segment_masses', [], 'doubles', 'Per-segment masses, kg, root first: n_segments '
+             'numbers, overriding mass. [] = mass split in proportion to the lengths.', 1e-9,
+             1e4, rebuild=True),
+    ParamDef('inertia', [], 'doubles', 'Per-segment principal moments about each centre, '
+             'kg m^2: 3 x n_segments numbers, (axial, across, across) for each segment, root '
+             'first. [] = solid cylinders of the segment radius.', 1e-15, 1e4, rebuild=True),
     ParamDef('attach', list(_CHAIN.attach), 'double3', 'Attachment point in the head frame, '
              'm.', -1e3, 1e3, rebuild=True),
     ParamDef('rest_direction', [0.0, 0.0, 0.0], 'double3', 'Direction of the straight chain '
@@ -242,6 +254,12 @@ CHAIN_PARAMS = (
     ParamDef('twist_limit', 0.0, 'double', 'Twist limit of every joint, rad: rotation about '
              'the segment\'s own axis relative to its parent, within +-it. 0 = off.', 0.0,
              MAX_LIMIT, rebuild=True),
+    ParamDef('swing_limits', [], 'doubles', 'Per-joint cone limits, rad, root first: '
+             f'n_segments numbers in (0, {MAX_LIMIT}], overriding swing_limit. [] = swing_limit '
+             'at every joint.', 1e-6, MAX_LIMIT, rebuild=True),
+    ParamDef('twist_limits', [], 'doubles', 'Per-joint twist limits, rad, root first: '
+             f'n_segments numbers in (0, {MAX_LIMIT}], overriding twist_limit. [] = '
+             'twist_limit at every joint.', 1e-6, MAX_LIMIT, rebuild=True),
     ParamDef('collide', True, 'bool', 'Whether the segments collide with the colliders (as '
              'capsules of the chain\'s radius along their whole length).', rebuild=True),
     ParamDef('damping', _CHAIN.damping, 'double', 'Joint damping, N m s/rad (live).', 0.0, 1e3),
@@ -407,6 +425,15 @@ def _check_value(name, pdef, value):
             shown = [float(x) for x in arr.ravel()] if arr.size else value
             raise ParameterError(name, f'{name} = {shown} is not allowed: must be {n} finite '
                                        f'numbers, each in [{pdef.lo:g}, {pdef.hi:g}]')
+    elif pdef.kind == 'doubles':
+        try:
+            arr = np.asarray(list(value), dtype=float)
+        except (TypeError, ValueError):
+            arr = np.full(1, np.nan)
+        if arr.ndim != 1 or arr.size > 3 * MAX_SEGMENTS or not np.all(np.isfinite(arr)) or \
+                np.any(arr < pdef.lo) or np.any(arr > pdef.hi):
+            raise ParameterError(name, f'{name} = {value!r} is not allowed: must be a list of '
+                                       f'finite numbers, each in [{pdef.lo:g}, {pdef.hi:g}]')
     elif pdef.choices is not None and value not in pdef.choices:
         raise ParameterError(name, f'{name} = {value!r} is not allowed: must be one of '
                                    f'{", ".join(pdef.choices)}')
@@ -422,6 +449,8 @@ def _scene_error_name(err, chains, colliders=()):
     m = re.match(r'^chains\[(\d+)\]\.(.*)$', f)
     if m:
         field = m.group(2)
+        if field in ('swing_limit', 'twist_limit') and isinstance(err.value, (tuple, list)):
+            field += 's'                        # the per-joint list was given
         return chain_param_name(chains[int(m.group(1))],
                                 'anchor' if field == 'anchor_body' else field)
     m = re.match(r'^colliders\[(\d+)\]\.(.*)$', f)
@@ -460,16 +489,25 @@ def build_scene(values, chains):
     for c in chains:
         v = {f: values[chain_param_name(c, f)] for f in _CHAIN_DEFS}
         rest = _vector(v['rest_direction'])
+        n = int(v['n_segments'])
+        per_segment = {f: _vector(v[f]) or None for f in ('segment_lengths', 'segment_masses')}
+        inertia = _vector(v['inertia'])
+        if inertia and len(inertia) != 3 * n:
+            name = chain_param_name(c, 'inertia')
+            raise ParameterError(name, f'{name} = {list(inertia)} is not allowed: must be '
+                                       f'3 x n_segments = {3 * n} numbers (axial, across, across '
+                                       f'moment of each segment, kg m^2) or [] (solid cylinders)')
         specs.append(ChainSpec(
-            name=c, n_segments=int(v['n_segments']), length=float(v['length']),
-            mass=float(v['mass']), radius=float(v['radius']),
+            name=c, n_segments=n, length=float(v['length']),
+            mass=float(v['mass']), radius=float(v['radius']), **per_segment,
+            inertia=tuple(zip(inertia[0::3], inertia[1::3], inertia[2::3])) or None,
             anchor_body=body_of(chain_param_name(c, 'anchor'), v['anchor'], world_body),
             attach=_vector(v['attach']),
             rest_direction=None if not any(rest) else rest,
             damping=float(v['damping']), stiffness=float(v['stiffness']),
             drag_linear=float(v['drag_linear']), drag_quadratic=float(v['drag_quadratic']),
-            swing_limit=float(v['swing_limit']) or None,
-            twist_limit=float(v['twist_limit']) or None,
+            swing_limit=_vector(v['swing_limits']) or float(v['swing_limit']) or None,
+            twist_limit=_vector(v['twist_limits']) or float(v['twist_limit']) or None,
             collide=bool(v['collide'])))
     collider_specs = []
     for c in colliders:
