@@ -145,6 +145,12 @@ def test_single_subcommand_and_cli_parsing(tmp_path):
         cli.build_parser().parse_args(['--quick', '--full'])
     args = cli.build_parser().parse_args(['trade', '--full', '--out', 'x'])
     assert args.command == 'trade' and args.profile == 'full' and args.out == 'x'
+    # Options before the subcommand count too (the subcommand's defaults used to reset them,
+    # so `ponytail_bench --full --out X trade` ran the quick profile into docs/bench).
+    args = cli.build_parser().parse_args(['--full', '--out', 'x', '--no-mujoco', 'trade'])
+    assert args.command == 'trade' and args.profile == 'full' and args.out == 'x' and args.no_mujoco
+    args = cli.build_parser().parse_args(['trade'])
+    assert args.profile is None and args.out is None and not args.no_mujoco
 
 
 def test_motions_have_exact_derivatives():

@@ -955,21 +955,30 @@ COMMANDS = {'trade': cmd_trade, 'scaling': cmd_scaling, 'mujoco': cmd_mujoco, 'b
 ALL = ('trade', 'scaling', 'mujoco', 'batch', 'energy', 'terms')
 
 
-def build_parser():
+def _common_options(suppress=False):
+    """The options, accepted before and after the subcommand. The subcommand's copy has no
+    defaults (``SUPPRESS``), so that it does not overwrite options given before it."""
+    d = (lambda value: argparse.SUPPRESS) if suppress else (lambda value: value)
     common = argparse.ArgumentParser(add_help=False)
     g = common.add_mutually_exclusive_group()
-    g.add_argument('--quick', dest='profile', action='store_const', const='quick',
+    g.add_argument('--quick', dest='profile', action='store_const', const='quick', default=d(None),
                    help='the default: every subcommand in ~2-3 min')
-    g.add_argument('--full', dest='profile', action='store_const', const='full',
+    g.add_argument('--full', dest='profile', action='store_const', const='full', default=d(None),
                    help='the full sweep (~30-40 min)')
-    g.add_argument('--tiny', dest='profile', action='store_const', const='tiny',
+    g.add_argument('--tiny', dest='profile', action='store_const', const='tiny', default=d(None),
                    help='seconds; for tests (numbers meaningless)')
-    common.add_argument('--out', default=None, help='output directory (default: docs/bench)')
-    common.add_argument('--repeats', type=int, default=None, help='timing repeats (median)')
-    common.add_argument('--no-mujoco', action='store_true', help='skip MuJoCo even if installed')
-    common.add_argument('--scenes', default=None,
+    common.add_argument('--out', default=d(None), help='output directory (default: docs/bench)')
+    common.add_argument('--repeats', type=int, default=d(None), help='timing repeats (median)')
+    common.add_argument('--no-mujoco', action='store_true', default=d(False),
+                        help='skip MuJoCo even if installed')
+    common.add_argument('--scenes', default=d(None),
                         help='comma-separated scenes for trade (default: the profile\'s; '
                              f'any of {", ".join(SCENES + EXTRA_SCENES)})')
+    return common
+
+
+def build_parser():
+    common = _common_options()
     p = argparse.ArgumentParser(prog='ponytail_bench', parents=[common],
                                 description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -984,7 +993,7 @@ def build_parser():
                  report='results.md from the JSON files in --out',
                  all='trade, scaling, mujoco, batch, energy, terms, then report (the default)')
     for name in list(COMMANDS) + ['all']:
-        sub.add_parser(name, parents=[common], help=helps[name])
+        sub.add_parser(name, parents=[_common_options(suppress=True)], help=helps[name])
     return p
 
 
