@@ -27,6 +27,12 @@ Quaternions are renormalised. ``system`` provides:
   ``rotation_kick``), and on the moving-head references it is 7-20× more accurate than that
   one at the same step. Beyond its reach (dt·ω ≳ 2) it mostly dissipates rather than blowing
   up. Details in ``symplectic_euler``.
+- ``rattle``: 2nd order, the same step as a symmetric kick–drift–kick (Störmer–Verlet with
+  RATTLE's joint impulses) around each segment's exact torque-free rotation: same two solves
+  and one factorisation per step, the applied forces twice. Its energy error is bounded and
+  ∝ dt² (0.28 % of the releasable energy at 1/240 s on the 45° release above; it never rose
+  above its start on the spinning thin chain), axial spin of any rate is exact. Details in
+  ``rattle``.
 """
 import numpy as np
 

@@ -3,9 +3,10 @@
 Stages of one internal step (as in a physics engine's pipeline):
     1. anchor kinematics at the stage times (exact motion, or interpolated between frames);
     2. applied forces (``forces``), then constraint forces by A f_c = b (``solver``);
-    3. integration (``integrators``: RK4 or symplectic Euler);
+    3. integration (``integrators``: RK4, symplectic Euler or RATTLE);
     4. stabilisation: positions put back on the joints (``stabilization``), and for RK4 the
-       velocities too (symplectic Euler's step ends with its own, mass-weighted, projection);
+       velocities too (symplectic Euler's and RATTLE's steps end with their own, mass-weighted,
+       projection);
     5. only if the scene has colliders or joint limits: one-sided constraints at the step's end
        (``collision``: positions, then inelastic velocities, then friction).
 
