@@ -81,7 +81,7 @@ def test_trade_rows_are_complete_and_plausible(tiny_run):
         assert d['tip_rms_mm'] == pytest.approx(b['tip_rms_mm'], rel=1e-6, abs=1e-9)
     rec = doc['recommendation']
     assert rec['current_default'] == 'RK4 1/240'
-    assert set(rec['criteria']) >= {'tip_rms_mm_moving', 'energy_drift_still'}
+    assert set(rec['criteria']) >= {'tip_rms_mm_moving_and_shake', 'energy_drift_still'}
     csv_rows = read_csv(tiny_run / 'trade.csv')
     assert {'scene', 'setting', 'cpu_s_per_sim_s', 'tip_rms_mm', 'tip_max_mm', 'max_gap_m',
             'energy_drift_max', 'resets'} <= set(csv_rows[0])

@@ -277,10 +277,12 @@ def recommend(rows, required=('moving', 'release', 'shake', 'rope')):
     """The cheapest plain setting (banded, projection, exact head) good on every ``required`` scene.
 
     Good: no guard reset and joint gap ≤ ``TARGET_GAP_M`` on every scene, tip RMS ≤
-    ``TARGET_TIP_RMS_MM`` on the moving-head reference, |energy drift| ≤ ``TARGET_ENERGY_DRIFT``
-    on the still-head scenes (release, rope). Cost: CPU per simulated second on the moving
-    head. The chaotic scenes' trajectory error is reported but not required (it says where
-    the chaos takes over, not how good the solver is).
+    ``TARGET_TIP_RMS_MM`` on the moving-head reference and on the violent shake (there only
+    within its valid window, before the chaos takes over: surviving a shake without a reset is
+    not enough, the constrained steps do that 20+ mm off), |energy drift| ≤
+    ``TARGET_ENERGY_DRIFT`` on the still-head scenes (release, rope). Cost: CPU per simulated
+    second on the moving head. The release's trajectory error is reported but not required
+    (chaotic from the start: it says where the chaos takes over, not how good the solver is).
     """
     main = [r for r in rows if (r['scene'], r['n_segments']) in
             (('moving', 10), ('release', 10), ('shake', 10), ('rope', 40))]
@@ -296,7 +298,8 @@ def recommend(rows, required=('moving', 'release', 'shake', 'rope')):
         if 'moving' not in per:
             continue
         ok = all(r['stable'] and r['max_gap_m'] <= TARGET_GAP_M for r in per.values())
-        ok = ok and per['moving']['tip_rms_mm'] <= TARGET_TIP_RMS_MM
+        ok = ok and all(per[s]['tip_rms_mm'] <= TARGET_TIP_RMS_MM
+                        for s in ('moving', 'shake') if s in per)
         for s in ('release', 'rope'):
             if s in per:
                 ok = ok and per[s]['energy_drift_max'] <= TARGET_ENERGY_DRIFT
@@ -314,7 +317,7 @@ def _recommendation(rows):
     """The recommendation (a dict): strict (every scene), without the shake, and the current."""
     best, current = recommend(rows)
     gentle, _ = recommend(rows, required=('moving', 'release', 'rope'))
-    rec = dict(criteria=dict(tip_rms_mm_moving=TARGET_TIP_RMS_MM,
+    rec = dict(criteria=dict(tip_rms_mm_moving_and_shake=TARGET_TIP_RMS_MM,
                              energy_drift_still=TARGET_ENERGY_DRIFT, max_gap_m=TARGET_GAP_M,
                              cost='CPU per simulated second on the moving head'),
                recommended=best[2] if best else None,
@@ -382,7 +385,7 @@ def cmd_trade(prof, out, meta, log=print):
                          ('RMS mm', 'rms_mm', '.2e'), ('window s', 'window_s', '.2f')],
                 title='Reference checks (tip; errors of settings are compared inside the window)')
     print(f'\nRecommendation criteria: no resets and gap ≤ {TARGET_GAP_M:g} m on every scene, '
-          f'tip RMS ≤ {TARGET_TIP_RMS_MM:g} mm on the moving head, |ΔE| ≤ '
+          f'tip RMS ≤ {TARGET_TIP_RMS_MM:g} mm on the moving head and the shake, |ΔE| ≤ '
           f'{100 * TARGET_ENERGY_DRIFT:g}% on still heads; cheapest on the moving head.')
     if rec.get('recommended'):
         print('RECOMMENDED DEFAULT  ' + _summary_line(rec['recommended'], rec['recommended_rows']))
