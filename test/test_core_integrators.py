@@ -313,7 +313,8 @@ def test_rattle_energy_error_is_bounded_and_second_order():
     scale = releasable(chain)
     amplitude = {}
     for dt in (1 / 240, 1 / 960):
-        e = (energies(make_sim(chain, 'rattle', dt), 5.0) - energy(make_sim(chain, 'rattle', dt))) / scale
+        e = energies(make_sim(chain, 'rattle', dt), 5.0)
+        e = (e - e[0]) / scale
         assert e.max() <= 1e-12
         amplitude[dt] = np.max(np.abs(e))
     assert amplitude[1 / 240] < 5e-3

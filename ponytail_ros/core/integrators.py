@@ -243,12 +243,9 @@ def free_rotation(dynamics, x, q, v, w, h, e=None):
     """
     if not dynamics.axisymmetric:
         return x + h * v, quat_normalize(quat_integrate(q, w, h)), w
-    I = dynamics.model.inertia
     e = quat_axis_x(q) if e is None else e
-    ratio = I[:, 0] / I[:, 1]
-    w_a = np.sum(w * e, axis=1)
-    Omega = w - ((1.0 - ratio) * w_a)[:, None] * e
-    nu = w_a * (1.0 - ratio)
+    Omega = _precession_rate(dynamics, w, e)
+    nu = np.sum((w - Omega) * e, axis=1)                         # ω_a (1 - I_a / I_p)
     spin = np.zeros(q.shape)
     spin[:, 0], spin[:, 3] = np.sin(0.5 * h * nu), np.cos(0.5 * h * nu)   # exp(h ν x̂), body
     q1 = quat_normalize(quat_integrate(quat_multiply(q, spin), Omega, h))
@@ -301,7 +298,8 @@ def rattle(system, t, h, x, q, v, w):
     # Velocity-dependent forces at the end need u⁺, not known yet: extrapolate u½ by its
     # change over the first half (O(h²) off, so the step stays 2nd order in drag and damping;
     # for a damping rate λ it is stable for h λ ≤ 2, the same as symplectic Euler's bound that
-    # ``damping_method='auto'`` keeps). The drift turns ω with the segment: w_change is small.
+    # ``damping_method='auto'`` keeps). The change is taken before the drift, which only
+    # carries the axial spin onto the turned axis.
     F1, T1 = system.applied(t + h, x1, q1, 2.0 * v_half - v, w_half + w_change)
     K1 = dyn.joint_response(q1)
     v1 = v_half + half * F1 * m.inv_mass[:, None]

@@ -386,8 +386,8 @@ class Simulator:
         w_rel = st.w - m.parent_side(anchor.angular_velocity, st.w)
         h = self.dt / self._substeps(w_rel)
         if not self._explicit_gyroscopic and self.dynamics.axisymmetric:
-            # Symplectic Euler turns a segment about its own axis exactly, at any rate: only
-            # the rates that swing the axes count (twist about the child's axis left out).
+            # Symplectic Euler and RATTLE turn a segment about its own axis exactly, at any
+            # rate: only the rates that swing the axes count (twist about the child's axis out).
             e = quat_axis_x(st.q)
             w_rel = w_rel - np.einsum('ij,ij->i', w_rel, e)[:, None] * e
         rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
@@ -505,10 +505,8 @@ class _System:
 
     def accel(self, t, x, q, v, w):
         """Accelerations ``(a, α)`` ``(n, 3)`` each (m/s², rad/s², world), joints enforced."""
-        anchor = self.anchor(t)
-        F, T = applied_forces(self.model, x, q, v, w, anchor.orientation,
-                              anchor.angular_velocity, self.external)
-        return self.dynamics.accelerations(x, q, v, w, anchor, F, T)
+        F, T = self.applied(t, x, q, v, w)
+        return self.dynamics.accelerations(x, q, v, w, self.anchor(t), F, T)
 
 
 def carry_with_anchors(model, a0, a1, x, q, v, w):
