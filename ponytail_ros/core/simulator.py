@@ -296,7 +296,7 @@ class Simulator:
         damping = m.active_terms['damping']
         return compiled.StepModel(
             length=m.length, half=self._half, mass=m.mass, inv_mass=m.inv_mass,
-            inertia=m.inertia, chain_of=m.chain_of, is_first=m.is_first,
+            inertia=m.inertia, inv_inertia=m.inv_inertia, chain_of=m.chain_of, is_first=m.is_first,
             has_child=m.has_child, damping=m.damping, stiffness=m.stiffness,
             drag_linear=m.drag_linear, drag_quadratic=m.drag_quadratic, q_rest=m.q_rest,
             gravity=np.asarray(m.gravity, dtype=float), wind=np.asarray(m.wind, dtype=float),

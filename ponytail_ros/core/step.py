@@ -39,7 +39,7 @@ OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED = 0, 1, 2
 
 # The model's arrays and switches for one call (n segments, C chains; SI units).
 StepModel = namedtuple('StepModel', [
-    'length', 'half', 'mass', 'inv_mass', 'inertia',        # (n,), (n,), (n,), (n,), (n, 3)
+    'length', 'half', 'mass', 'inv_mass', 'inertia', 'inv_inertia',   # (n,) ×4, (n, 3) ×2
     'chain_of', 'is_first', 'has_child',                    # (n,) int64, bool, bool
     'damping', 'stiffness', 'drag_linear', 'drag_quadratic', 'q_rest',   # (n,) ..., (n, 4)
     'gravity', 'wind',                                      # (3,)
@@ -113,11 +113,11 @@ def _to_rotvec(x, y, z, w):
 
 @_inline
 def _normalize(q, i):
-    r = np.sqrt(q[i, 0] ** 2 + q[i, 1] ** 2 + q[i, 2] ** 2 + q[i, 3] ** 2)
-    q[i, 0] /= r
-    q[i, 1] /= r
-    q[i, 2] /= r
-    q[i, 3] /= r
+    r = 1.0 / np.sqrt(q[i, 0] ** 2 + q[i, 1] ** 2 + q[i, 2] ** 2 + q[i, 3] ** 2)
+    q[i, 0] *= r
+    q[i, 1] *= r
+    q[i, 2] *= r
+    q[i, 3] *= r
 
 
 @_inline
@@ -146,8 +146,8 @@ def _inertia_terms(M, q, e, hv, Iinv):
         if M.axisymmetric:
             e0, e1, e2 = _axis(q, i)
             e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
-            ip = 1.0 / M.inertia[i, 1]
-            k = 1.0 / M.inertia[i, 0] - ip
+            ip = M.inv_inertia[i, 1]
+            k = M.inv_inertia[i, 0] - ip
             for a in range(3):
                 for b in range(3):
                     Iinv[i, a, b] = k * e[i, a] * e[i, b]
@@ -159,7 +159,7 @@ def _inertia_terms(M, q, e, hv, Iinv):
                 for b in range(3):
                     s = 0.0
                     for k in range(3):
-                        s += R[a, k] * R[b, k] / M.inertia[i, k]
+                        s += R[a, k] * R[b, k] * M.inv_inertia[i, k]
                     Iinv[i, a, b] = s
         for a in range(3):
             hv[i, a] = M.half[i] * e[i, a]
@@ -178,34 +178,44 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
     """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised.
 
     A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},  A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1}),
-    G = [h]× I⁻¹ [h]×  (the parent terms only where joint i has a parent segment).
+    G = [h]× I⁻¹ [h]× (the parent terms only where joint i has a parent segment); for
+    axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
     """
     n = hv.shape[0]
-    G = np.empty((n, 3, 3))
-    S = np.empty((3, 3))
+    G = D           # G_i is built in D[i], then D[i] from G_i and G_{i-1} (kept in Gp)
+    Gp = np.empty((3, 3))
+    Gi = np.empty((3, 3))
     for i in range(n):
         h0, h1, h2 = hv[i, 0], hv[i, 1], hv[i, 2]
-        S[0, 0], S[0, 1], S[0, 2] = 0.0, -h2, h1
-        S[1, 0], S[1, 1], S[1, 2] = h2, 0.0, -h0
-        S[2, 0], S[2, 1], S[2, 2] = -h1, h0, 0.0
-        for a in range(3):
-            for b in range(3):
-                s = 0.0
-                for k in range(3):
-                    for m in range(3):
-                        s += S[a, k] * Iinv[i, k, m] * S[m, b]
-                G[i, a, b] = s
-    for i in range(n):
+        if M.axisymmetric:
+            ip = M.inv_inertia[i, 1]
+            hh = h0 * h0 + h1 * h1 + h2 * h2
+            for a in range(3):
+                for b in range(3):
+                    Gi[a, b] = hv[i, a] * hv[i, b] * ip
+                Gi[a, a] -= hh * ip
+        else:
+            S = ((0.0, -h2, h1), (h2, 0.0, -h0), (-h1, h0, 0.0))
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for k in range(3):
+                        for m in range(3):
+                            s += S[a][k] * Iinv[i, k, m] * S[m][b]
+                    Gi[a, b] = s
         for a in range(3):
             for b in range(3):
                 eye = 1.0 if a == b else 0.0
-                d = M.inv_mass[i] * eye - G[i, a, b]
+                d = M.inv_mass[i] * eye - Gi[a, b]
                 if M.is_first[i]:
                     L[i, a, b] = 0.0
                 else:
-                    d += M.inv_mass[i - 1] * eye - G[i - 1, a, b]
-                    L[i, a, b] = -(M.inv_mass[i - 1] * eye + G[i - 1, a, b])
-                D[i, a, b] = d
+                    d += M.inv_mass[i - 1] * eye - Gp[a, b]
+                    L[i, a, b] = -(M.inv_mass[i - 1] * eye + Gp[a, b])
+                G[i, a, b] = d
+        for a in range(3):
+            for b in range(3):
+                Gp[a, b] = Gi[a, b]
     return factor(D, L, M.is_first, C, Lo)
 
 
@@ -398,23 +408,26 @@ def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c
 
 
 @_jit
-def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c):
+def _rk4_workspace(n):
+    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((4, n, 3)), np.empty((4, n, 4)),
+            np.empty((4, n, 3)), np.empty((4, n, 3)), np.empty((n, 3)), np.empty((n, 4)),
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)))
+
+
+@_jit
+def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside."""
     n = x.shape[0]
-    wb = np.empty((n, 3))
+    wb, w_tmp, kx, kq, kv, kw, xs, qs, vs, wbs, alpha = rws
     for i in range(n):
         wb[i, 0], wb[i, 1], wb[i, 2] = _qrot(-q[i, 0], -q[i, 1], -q[i, 2], q[i, 3],
                                              w[i, 0], w[i, 1], w[i, 2])
-    w_tmp = np.empty((n, 3))
-    kx = np.empty((4, n, 3))
-    kq = np.empty((4, n, 4))
-    kv = np.empty((4, n, 3))
-    kw = np.empty((4, n, 3))
-    xs = x.copy()
-    qs = q.copy()
-    vs = v.copy()
-    wbs = wb.copy()
-    alpha = np.empty((n, 3))
+        for a in range(3):
+            xs[i, a] = x[i, a]
+            vs[i, a] = v[i, a]
+            wbs[i, a] = wb[i, a]
+        for a in range(4):
+            qs[i, a] = q[i, a]
     hh = 0.5 * h
     for s in range(4):
         if s > 0:
@@ -925,9 +938,10 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     unusable."""
     n = x.shape[0]
     ws = _workspace(n)
+    rws = _rk4_workspace(n)
     for k in range(n_steps):
         if M.integrator == RK4:
-            ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c)
+            ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c)
         else:
             ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c,
                                    k == 0 or not M.projection)
