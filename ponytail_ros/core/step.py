@@ -182,18 +182,19 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
     axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
     """
     n = hv.shape[0]
-    G = D           # G_i is built in D[i], then D[i] from G_i and G_{i-1} (kept in Gp)
-    Gp = np.empty((3, 3))
+    Gp = np.zeros((3, 3))           # G of the previous segment
     Gi = np.empty((3, 3))
     for i in range(n):
         h0, h1, h2 = hv[i, 0], hv[i, 1], hv[i, 2]
         if M.axisymmetric:
             ip = M.inv_inertia[i, 1]
             hh = h0 * h0 + h1 * h1 + h2 * h2
-            for a in range(3):
-                for b in range(3):
-                    Gi[a, b] = hv[i, a] * hv[i, b] * ip
-                Gi[a, a] -= hh * ip
+            Gi[0, 0] = (h0 * h0 - hh) * ip
+            Gi[1, 1] = (h1 * h1 - hh) * ip
+            Gi[2, 2] = (h2 * h2 - hh) * ip
+            Gi[0, 1] = Gi[1, 0] = h0 * h1 * ip
+            Gi[0, 2] = Gi[2, 0] = h0 * h2 * ip
+            Gi[1, 2] = Gi[2, 1] = h1 * h2 * ip
         else:
             S = ((0.0, -h2, h1), (h2, 0.0, -h0), (-h1, h0, 0.0))
             for a in range(3):
@@ -203,16 +204,21 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
                         for m in range(3):
                             s += S[a][k] * Iinv[i, k, m] * S[m][b]
                     Gi[a, b] = s
-        for a in range(3):
-            for b in range(3):
-                eye = 1.0 if a == b else 0.0
-                d = M.inv_mass[i] * eye - Gi[a, b]
-                if M.is_first[i]:
+        im = M.inv_mass[i]
+        if M.is_first[i]:
+            for a in range(3):
+                for b in range(3):
+                    D[i, a, b] = -Gi[a, b]
                     L[i, a, b] = 0.0
-                else:
-                    d += M.inv_mass[i - 1] * eye - Gp[a, b]
-                    L[i, a, b] = -(M.inv_mass[i - 1] * eye + Gp[a, b])
-                G[i, a, b] = d
+                D[i, a, a] += im
+        else:
+            imp = M.inv_mass[i - 1]
+            for a in range(3):
+                for b in range(3):
+                    D[i, a, b] = -Gi[a, b] - Gp[a, b]
+                    L[i, a, b] = -Gp[a, b]
+                D[i, a, a] += im + imp
+                L[i, a, a] -= imp
         for a in range(3):
             for b in range(3):
                 Gp[a, b] = Gi[a, b]
@@ -768,10 +774,10 @@ def _unprojected_rhs(M, A, r0, r1, x, v, w, v1, w1, hv, e, h, out):
 
 
 # -- implicit joint damping: the constrained KKT system, banded ---------------------------------
-_KL = 17        # half-bandwidth of the KKT matrix with unknowns (v_i, ω_i, λ_i) per segment
+_KL = 8         # half-bandwidth of the reduced KKT matrix, unknowns (λ_i, ω_i) per segment
 
 
-@_jit
+@_inline
 def _band_add(ab, r, c, val):
     ab[r, c - r + 2 * _KL] += val
 
@@ -779,46 +785,69 @@ def _band_add(ab, r, c, val):
 @_jit
 def _implicit_damping(M, A, row, q, v, w, h):
     """Velocities after ``h`` of joint damping, implicit Euler on the constrained system
-    (``solver.Dynamics.implicit_damping``): (M + h C) u⁺ - Jᵀ λ = M u + h c₀ ω_anchor,
-    J u⁺ = anchor terms; banded Gaussian elimination with partial pivoting, O(n). In place;
-    False if singular."""
+    (``solver.Dynamics.implicit_damping``), in place; False if singular:
+
+        (M + h C) u⁺ - Jᵀ λ = M u + h c₀ ω_anchor,     J u⁺ = anchor terms.
+
+    The linear rows give v⁺_i = v_i + (λ_i - λ_{i+1}) / m_i, substituted into the joint rows:
+    what is left has unknowns (λ_i, ω_i) per segment, half-bandwidth 8 (against 17 with v
+    kept), solved by banded Gaussian elimination with partial pivoting in O(n)."""
     n = v.shape[0]
-    N = 9 * n
-    width = 3 * _KL + 1                      # columns r - KL .. r + 2 KL (fill-in by pivoting)
-    ab = np.zeros((N, width))
+    N = 6 * n
+    ab = np.zeros((N, 3 * _KL + 1))          # columns r - KL .. r + 2 KL (fill-in by pivoting)
     rhs = np.zeros(N)
+    R = np.empty((3, 3))
     for i in range(n):
         c = M.chain_of[i]
-        V, W, LAM = 9 * i, 9 * i + 3, 9 * i + 6
+        LAM, W = 6 * i, 6 * i + 3
         e0, e1, e2 = _axis(q, i)
-        hv0, hv1, hv2 = M.half[i] * e0, M.half[i] * e1, M.half[i] * e2
-        S = ((0.0, -hv2, hv1), (hv2, 0.0, -hv0), (-hv1, hv0, 0.0))
+        g = M.half[i]
+        S = ((0.0, -g * e2, g * e1), (g * e2, 0.0, -g * e0), (-g * e1, g * e0, 0.0))
         Ia, Ip = M.inertia[i, 0], M.inertia[i, 1]
         if M.axisymmetric:
-            Iw = ((Ip + (Ia - Ip) * e0 * e0, (Ia - Ip) * e0 * e1, (Ia - Ip) * e0 * e2),
-                  ((Ia - Ip) * e1 * e0, Ip + (Ia - Ip) * e1 * e1, (Ia - Ip) * e1 * e2),
-                  ((Ia - Ip) * e2 * e0, (Ia - Ip) * e2 * e1, Ip + (Ia - Ip) * e2 * e2))
+            k = Ia - Ip
+            Iw = ((Ip + k * e0 * e0, k * e0 * e1, k * e0 * e2),
+                  (k * e1 * e0, Ip + k * e1 * e1, k * e1 * e2),
+                  (k * e2 * e0, k * e2 * e1, Ip + k * e2 * e2))
         else:
-            R = np.empty((3, 3))
             _rot_matrix(q, i, R)
-            m3 = np.empty((3, 3))
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for kk in range(3):
-                        s += R[a, kk] * M.inertia[i, kk] * R[b, kk]
-                    m3[a, b] = s
-            Iw = ((m3[0, 0], m3[0, 1], m3[0, 2]), (m3[1, 0], m3[1, 1], m3[1, 2]),
-                  (m3[2, 0], m3[2, 1], m3[2, 2]))
+            r0 = (R[0, 0] * M.inertia[i, 0], R[0, 1] * M.inertia[i, 1], R[0, 2] * M.inertia[i, 2])
+            r1 = (R[1, 0] * M.inertia[i, 0], R[1, 1] * M.inertia[i, 1], R[1, 2] * M.inertia[i, 2])
+            r2 = (R[2, 0] * M.inertia[i, 0], R[2, 1] * M.inertia[i, 1], R[2, 2] * M.inertia[i, 2])
+            Iw = ((r0[0] * R[0, 0] + r0[1] * R[0, 1] + r0[2] * R[0, 2],
+                   r0[0] * R[1, 0] + r0[1] * R[1, 1] + r0[2] * R[1, 2],
+                   r0[0] * R[2, 0] + r0[1] * R[2, 1] + r0[2] * R[2, 2]),
+                  (r1[0] * R[0, 0] + r1[1] * R[0, 1] + r1[2] * R[0, 2],
+                   r1[0] * R[1, 0] + r1[1] * R[1, 1] + r1[2] * R[1, 2],
+                   r1[0] * R[2, 0] + r1[1] * R[2, 1] + r1[2] * R[2, 2]),
+                  (r2[0] * R[0, 0] + r2[1] * R[0, 1] + r2[2] * R[0, 2],
+                   r2[0] * R[1, 0] + r2[1] * R[1, 1] + r2[2] * R[1, 2],
+                   r2[0] * R[2, 0] + r2[1] * R[2, 1] + r2[2] * R[2, 2]))
         ci = M.damping[i]
         cn = M.damping[i + 1] if M.has_child[i] else 0.0
+        im = M.inv_mass[i]
+        first = M.is_first[i]
+        if not first:
+            p0, p1, p2 = _axis(q, i - 1)
+            gp = M.half[i - 1]
+            Sp = ((0.0, -gp * p2, gp * p1), (gp * p2, 0.0, -gp * p0), (-gp * p1, gp * p0, 0.0))
+            imp = M.inv_mass[i - 1]
         for a in range(3):
-            # v rows: m v⁺ - λ_i + λ_{i+1} = m v
-            _band_add(ab, V + a, V + a, M.mass[i])
-            _band_add(ab, V + a, LAM + a, -1.0)
+            # Joint i: parent point velocity = child point velocity, with v⁺ substituted:
+            #   -v⁺_i - [h_i]× ω⁺_i + v⁺_{i-1} - [h_{i-1}]× ω⁺_{i-1} = 0 (or the anchor's).
+            _band_add(ab, LAM + a, LAM + a, -im)
             if M.has_child[i]:
-                _band_add(ab, V + a, LAM + 9 + a, 1.0)
-            rhs[V + a] = M.mass[i] * v[i, a]
+                _band_add(ab, LAM + a, LAM + 6 + a, im)
+            for b in range(3):
+                _band_add(ab, LAM + a, W + b, -S[a][b])
+            if first:
+                rhs[LAM + a] = v[i, a] - A.velocity[row, c, a]
+            else:
+                _band_add(ab, LAM + a, LAM - 6 + a, imp)
+                _band_add(ab, LAM + a, LAM + a, -imp)
+                for b in range(3):
+                    _band_add(ab, LAM + a, W - 6 + b, -Sp[a][b])
+                rhs[LAM + a] = v[i, a] - v[i - 1, a]
             # ω rows: (I + h(c_i + c_{i+1})) ω⁺ - h c_i ω⁺_{i-1} - h c_{i+1} ω⁺_{i+1}
             #         + [h]× λ_i + [h]× λ_{i+1} = I ω + h c_i ω_anchor (first joint)
             s = 0.0
@@ -826,36 +855,22 @@ def _implicit_damping(M, A, row, q, v, w, h):
                 _band_add(ab, W + a, W + b, Iw[a][b])
                 _band_add(ab, W + a, LAM + b, S[a][b])
                 if M.has_child[i]:
-                    _band_add(ab, W + a, LAM + 9 + b, S[a][b])
+                    _band_add(ab, W + a, LAM + 6 + b, S[a][b])
                 s += Iw[a][b] * w[i, b]
             _band_add(ab, W + a, W + a, h * (ci + cn))
-            if not M.is_first[i]:
-                _band_add(ab, W + a, W - 9 + a, -h * ci)
-                _band_add(ab, W - 9 + a, W + a, -h * ci)
-            rhs[W + a] = s
-            if M.is_first[i]:
-                rhs[W + a] += h * ci * A.angular_velocity[row, c, a]
-            # λ rows: parent point velocity - child point velocity = 0
-            _band_add(ab, LAM + a, V + a, -1.0)
-            for b in range(3):
-                _band_add(ab, LAM + a, W + b, -S[a][b])
-            if M.is_first[i]:
-                rhs[LAM + a] = -A.velocity[row, c, a]
+            if first:
+                s += h * ci * A.angular_velocity[row, c, a]
             else:
-                _band_add(ab, LAM + a, V - 9 + a, 1.0)
-        if not M.is_first[i]:
-            p0, p1, p2 = _axis(q, i - 1)
-            g = M.half[i - 1]
-            Sp = ((0.0, -g * p2, g * p1), (g * p2, 0.0, -g * p0), (-g * p1, g * p0, 0.0))
-            for a in range(3):
-                for b in range(3):
-                    _band_add(ab, LAM + a, W - 9 + b, -Sp[a][b])
+                _band_add(ab, W + a, W - 6 + a, -h * ci)
+                _band_add(ab, W - 6 + a, W + a, -h * ci)
+            rhs[W + a] = s
     if not _band_solve(ab, rhs, _KL):
         return False
     for i in range(n):
         for a in range(3):
-            v[i, a] = rhs[9 * i + a]
-            w[i, a] = rhs[9 * i + 3 + a]
+            lam_next = rhs[6 * i + 6 + a] if M.has_child[i] else 0.0
+            v[i, a] += (rhs[6 * i + a] - lam_next) * M.inv_mass[i]
+            w[i, a] = rhs[6 * i + 3 + a]
     return True
 
 
@@ -953,3 +968,37 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
         if M.projection:
             _project(M, A, 2 * k + 2, x, q, v, w, M.integrator == RK4)
     return OK
+
+
+# -- compilation -------------------------------------------------------------------------------
+def compile_kernels():
+    """Compile the step (or load it from numba's on-disk cache) by running two steps of a
+    two-segment chain; returns ``(seconds, compiled)``, ``compiled`` True when numba had to
+    compile (the first start after an install or an upgrade) rather than load its cache.
+
+    The cache sits in ``__pycache__`` beside this file, or, where that is not writable (a
+    system install), in numba's user-wide cache directory; ``NUMBA_CACHE_DIR`` overrides both.
+    """
+    import time
+    from .head import KinematicState
+    from .scene import ChainSpec, Scene, SolverSpec
+    from .simulator import Simulator
+    t0 = time.perf_counter()
+    before = sum(advance.stats.cache_misses.values())
+    sim = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
+                          solver=SolverSpec(integrator='rk4', dt=0.01)))
+    sim.advance_frame(0.02, KinematicState.still())
+    compiled = sum(advance.stats.cache_misses.values()) > before
+    return time.perf_counter() - t0, compiled
+
+
+def report_compile(log=None):
+    """``compile_kernels``, saying so in one line (``log``: a callable, default stderr) when it
+    compiled: the first start after an install pays it once."""
+    import sys
+    seconds, compiled = compile_kernels()
+    if compiled:
+        msg = (f'ponytail_ros: compiled the simulation step in {seconds:.1f} s (once after '
+               'install; later starts load it from the cache)')
+        (log or (lambda m: print(m, file=sys.stderr, flush=True)))(msg)
+    return seconds, compiled
