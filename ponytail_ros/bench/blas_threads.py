@@ -1,4 +1,4 @@
-"""One BLAS thread for the benchmark: reproducible timings, no thread contention in the dense solve.
+"""One BLAS thread for the benchmark: reproducible timings, no contention in the dense solve.
 
 BLAS reads its thread count once, when NumPy is first imported; so this module sets the
 variables and must be imported before NumPy is. ``cli`` imports it first; anything that imports

@@ -144,7 +144,8 @@ def _run_commands(todo: tuple[str, ...], profile: str, prof: dict[str, Any], out
                 summary = json.load(f)
         except ValueError:
             summary = {}
-    print(f'ponytail_bench {command} --{profile} -> {out} (BLAS threads pinned: {blas_threads.PINNED})')
+    print(f'ponytail_bench {command} --{profile} -> {out} '
+          f'(BLAS threads pinned: {blas_threads.PINNED})')
     for name in todo:
         t0 = time.perf_counter()
         print(f'\n== {name} ==', flush=True)
@@ -165,7 +166,8 @@ def _run_commands(todo: tuple[str, ...], profile: str, prof: dict[str, Any], out
             json.dump(jsonable(summary), f, indent=1, allow_nan=False)
         if command == 'all':
             report.run(prof, out, make_meta(profile, 'report'))
-    print(f'\nTotal wall time {wall:.1f} s ({", ".join(f"{k} {v:.0f} s" for k, v in walls.items())})')
+    each = ', '.join(f'{k} {v:.0f} s' for k, v in walls.items())
+    print(f'\nTotal wall time {wall:.1f} s ({each})')
     return 0
 
 

@@ -21,7 +21,7 @@ TARGET_GAP_M = 1e-6
 
 def recommend(rows: Sequence[Row], required: Sequence[str] = ('moving', 'release', 'shake', 'rope')
               ) -> tuple[Optional[Candidate], Optional[dict[str, Row]]]:
-    """The cheapest plain setting (banded, projection, exact head) good on every ``required`` scene.
+    """The cheapest plain setting (banded, projection, exact head) good on all ``required`` scenes.
 
     Good: no guard reset and joint gap ≤ ``TARGET_GAP_M`` on every scene, tip RMS ≤
     ``TARGET_TIP_RMS_MM`` on the moving-head reference and on the violent shake (there only
@@ -83,14 +83,16 @@ def summary_line(label: str, per: Mapping[str, Row]) -> str:
     mv = per.get('moving')
     parts = []
     if mv:
-        parts.append(f'moving-head tip RMS {mv["tip_rms_mm"]:.3g} mm (max {mv["tip_max_mm"]:.3g} mm), '
+        parts.append(f'moving-head tip RMS {mv["tip_rms_mm"]:.3g} mm '
+                     f'(max {mv["tip_max_mm"]:.3g} mm), '
                      f'{mv["cpu_s_per_sim_s"] * 1e3:.0f} ms CPU per simulated s '
                      f'({mv["cpu_us_per_step"]:.0f} µs/step)')
     for s in ('release', 'shake', 'rope'):
         if s in per:
             r = per[s]
-            e = ('' if r.get('energy_drift_max') is None or not math.isfinite(r['energy_drift_max'])
-                 else f', |ΔE| {100 * r["energy_drift_max"]:.2g}%')
+            drift = r.get('energy_drift_max')
+            e = ('' if drift is None or not math.isfinite(drift)
+                 else f', |ΔE| {100 * drift:.2g}%')
             parts.append(f'{s}: RMS {r["tip_rms_mm"]:.3g} mm{e}'
                          + ('' if r['stable'] else f' ({r["resets"]} guard resets)'))
     return f'{label}: ' + '; '.join(parts)

@@ -90,10 +90,10 @@ def git_describe() -> Optional[str]:
     """This checkout's short revision, ``+core-modified`` if ``ponytail_ros/core`` has changes."""
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     try:
-        rev = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=root, capture_output=True,
-                             text=True, timeout=5).stdout.strip()
-        dirty = subprocess.run(['git', 'status', '--porcelain', '--', 'ponytail_ros/core'], cwd=root,
-                               capture_output=True, text=True, timeout=5).stdout.strip()
+        rev = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=root,
+                             capture_output=True, text=True, timeout=5).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--', 'ponytail_ros/core'],
+                               cwd=root, capture_output=True, text=True, timeout=5).stdout.strip()
         return rev + ('+core-modified' if dirty else '') if rev else None
     except Exception:  # pragma: no cover - no git
         return None

@@ -19,12 +19,29 @@ from ..tables import print_table, write_table
 HELP = 'C chains in one scene vs one chain alone vs C simulators'
 
 
+DT = 1.0 / 240.0
+
+
 def run(prof, out, meta, log=print):
-    rows = []
     n = prof['batch_segments']
-    dt = 1.0 / 240.0
-    steps = prof['batch_steps']
-    solver = SolverSpec(dt=dt, max_steps_per_call=10 ** 6)
+    solver = SolverSpec(dt=DT, max_steps_per_call=10 ** 6)
+    rows, alone = _batched_rows(prof, n, solver, log)
+    rows += _separate_rows(prof, n, solver, alone)
+    print_table(rows, [('mode', 'mode', ''), ('chains', 'chains', 'd'),
+                       ('segments', 'segments_per_chain', 'd'),
+                       ('CPU ms/step', 'cpu_ms_per_step', '.2f'),
+                       ('µs per chain-step', 'cpu_us_per_chain_step', '.1f'),
+                       ('vs one chain alone', 'relative_to_alone', '.3f'),
+                       ('max dev vs solo m', 'max_dev_from_solo_m', '.1e')],
+                title=f'Batched crowd: C chains of {n} segments, RK4 1/240, one banded solve')
+    write_table(out, 'batch', rows, meta)
+    return rows
+
+
+def _batched_rows(prof, n, solver, log):
+    """C chains in one scene, for each C of the profile; and the cost of one chain alone."""
+    rows = []
+    dt, steps = DT, prof['batch_steps']
     alone = None
     check = {}
     for C in prof['batch_c']:
@@ -44,25 +61,38 @@ def run(prof, out, meta, log=print):
             alone = per_step
         # Correctness: chain c of the batch equals the same chain simulated alone.
         if C > 1:
-            c = C // 2
-            m1 = crowd_motion(C)
-            solo_motion = _SingleBody(m1, c)
-            solo = Simulator(Scene(chains=(ponytail_chain(n),), solver=solver), solo_motion, 0.0)
-            solo.advance_to(0.25, solo_motion)
-            batch = Simulator(sc, m1, 0.0)
-            batch.advance_to(0.25, m1)
-            sl = batch.model.chain_slice(c)
-            check[C] = float(np.max(np.abs(batch.state.x[sl] - solo.state.x)))
+            check[C] = _deviation_from_solo(sc, C, n, solver)
         rows.append(dict(mode='one scene (batched)', chains=C, segments_per_chain=n,
                          cpu_ms_per_step=per_step * 1e3, cpu_us_per_chain_step=per_step / C * 1e6,
                          relative_to_alone=(per_step / C) / alone if alone else None,
                          max_dev_from_solo_m=check.get(C), steps_timed=k))
         log(f'  batch C={C} done')
+    return rows, alone
+
+
+def _deviation_from_solo(sc, C, n, solver):
+    """Largest state difference (m) at 0.25 s of chain C // 2 of ``sc`` from that chain alone."""
+    c = C // 2
+    m1 = crowd_motion(C)
+    solo_motion = _SingleBody(m1, c)
+    solo = Simulator(Scene(chains=(ponytail_chain(n),), solver=solver), solo_motion, 0.0)
+    solo.advance_to(0.25, solo_motion)
+    batch = Simulator(sc, m1, 0.0)
+    batch.advance_to(0.25, m1)
+    sl = batch.model.chain_slice(c)
+    return float(np.max(np.abs(batch.state.x[sl] - solo.state.x)))
+
+
+def _separate_rows(prof, n, solver, alone):
+    """C separate simulators of one chain each, stepped in turn (C up to ``batch_loop_max``)."""
+    rows = []
+    dt, steps = DT, prof['batch_steps']
     for C in prof['batch_c']:
         if C < 2 or C > prof['batch_loop_max']:
             continue
         motion = crowd_motion(C)
-        sims = [(Simulator(Scene(chains=(ponytail_chain(n),), solver=solver), _SingleBody(motion, c), 0.0),
+        sims = [(Simulator(Scene(chains=(ponytail_chain(n),), solver=solver),
+                           _SingleBody(motion, c), 0.0),
                  _SingleBody(motion, c)) for c in range(C)]
         k = max(2, steps // 2)
         for s, m in sims:
@@ -80,14 +110,6 @@ def run(prof, out, meta, log=print):
                          cpu_ms_per_step=per_step * 1e3, cpu_us_per_chain_step=per_step / C * 1e6,
                          relative_to_alone=(per_step / C) / alone if alone else None,
                          max_dev_from_solo_m=None, steps_timed=k))
-    print_table(rows, [('mode', 'mode', ''), ('chains', 'chains', 'd'),
-                       ('segments', 'segments_per_chain', 'd'),
-                       ('CPU ms/step', 'cpu_ms_per_step', '.2f'),
-                       ('µs per chain-step', 'cpu_us_per_chain_step', '.1f'),
-                       ('vs one chain alone', 'relative_to_alone', '.3f'),
-                       ('max dev vs solo m', 'max_dev_from_solo_m', '.1e')],
-                title=f'Batched crowd: C chains of {n} segments, RK4 1/240, one banded solve')
-    write_table(out, 'batch', rows, meta)
     return rows
 
 
@@ -100,5 +122,5 @@ class _SingleBody(HeadMotion):
     def state_at(self, t):
         s = self.motion.state_at(t)
         c = slice(self.c, self.c + 1)
-        return type(s)(s.position[c], s.orientation[c], s.linear_velocity[c], s.angular_velocity[c],
-                       s.linear_acceleration[c], s.angular_acceleration[c])
+        return type(s)(s.position[c], s.orientation[c], s.linear_velocity[c],
+                       s.angular_velocity[c], s.linear_acceleration[c], s.angular_acceleration[c])

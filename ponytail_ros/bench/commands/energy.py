@@ -39,17 +39,21 @@ def run(prof, out, meta, log=print):
         scale = traj.energy[0] - e_rest
         de = (traj.energy - traj.energy[0]) / scale
         series[s.label] = (traj.t, de)
-        rows.append(dict(setting=s.label, integrator=s.integrator, dt=s.dt, dt_label=M.fmt_dt(s.dt),
-                         projection=s.projection, duration_s=T, releasable_J=scale,
+        rows.append(dict(setting=s.label, integrator=s.integrator, dt=s.dt,
+                         dt_label=M.fmt_dt(s.dt), projection=s.projection, duration_s=T,
+                         releasable_J=scale,
                          drift_max_abs=float(np.max(np.abs(de))), drift_final=float(de[-1]),
                          growth_max=float(np.max(de)), max_gap_m=float(np.max(traj.gap)),
                          resets=len(traj.resets), cpu_s=cpu))
+    title = 'Energy drift'
+    if rows:
+        title = (f'Energy drift: still anchor, no damping, 5 segments released 45°, {T:g} s '
+                 f'(E0 - E_rest = {rows[0]["releasable_J"]:.4f} J)')
     print_table(rows, [('setting', 'setting', ''), ('max |ΔE|/(E0-Erest)', 'drift_max_abs', '.2e'),
                        ('final ΔE/(E0-Erest)', 'drift_final', '+.2e'),
                        ('max growth', 'growth_max', '+.2e'), ('max gap m', 'max_gap_m', '.1e'),
                        ('resets', 'resets', 'd'), ('CPU s', 'cpu_s', '.1f')],
-                title=f'Energy drift: still anchor, no damping, 5 segments released 45°, {T:g} s '
-                      f'(E0 - E_rest = {rows[0]["releasable_J"]:.4f} J)' if rows else 'Energy drift')
+                title=title)
     write_table(out, 'energy', rows, meta)
     plots.energy_plot(series, os.path.join(out, 'energy.png'))
     return rows

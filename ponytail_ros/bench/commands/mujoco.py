@@ -66,7 +66,8 @@ def run(prof, out, meta, log=print):
         t0 = time.perf_counter()
         ref = M.reference(b, prof['mujoco_dt_ref'])
         checks.append(dict(n_segments=n, duration_s=T, dt=M.fmt_dt(prof['mujoco_dt_ref']),
-                           ref_self_error_mm=ref.self_error * 1e3, ref_valid_until_s=ref.valid_until))
+                           ref_self_error_mm=ref.self_error * 1e3,
+                           ref_valid_until_s=ref.valid_until))
         if n <= prof['mujoco_crosscheck_max']:
             # Independent check of the reference: MuJoCo at the same tiny step.
             mc = MJ.MujocoChain(b, prof['mujoco_dt_ref'])
@@ -88,7 +89,8 @@ def run(prof, out, meta, log=print):
                 ts, tips, herr, unst = mc.run(T)
                 run_cpu = time.process_time() - c0
                 # each timing repeat ~0.2 s of CPU (or the whole run if shorter)
-                us = mc.time_steps(max(5, min(steps, int(0.2 / max(mj_us, 1e-7)))), prof['repeats'])
+                k = max(5, min(steps, int(0.2 / max(mj_us, 1e-7))))
+                us = mc.time_steps(k, prof['repeats'])
                 inside = ts <= ref.valid_until + 1e-9
                 e = np.linalg.norm(tips[inside] - ref.at(ts[inside]), axis=1)
                 stable = (not unst) and bool(np.all(np.isfinite(e)))
@@ -96,7 +98,8 @@ def run(prof, out, meta, log=print):
                 rows.append(dict(engine='mujoco', scene='moving', n_segments=n, dt=dt,
                                  dt_label=M.fmt_dt(dt), duration_s=T, cpu_us_per_step=us * 1e6,
                                  cpu_s_per_sim_s=us / dt, run_cpu_s_per_sim_s=run_cpu / T,
-                                 tip_rms_mm=float(np.sqrt(np.mean(e ** 2))) * 1e3 if stable else float('nan'),
+                                 tip_rms_mm=(float(np.sqrt(np.mean(e ** 2))) * 1e3 if stable
+                                             else float('nan')),
                                  tip_max_mm=float(np.max(e)) * 1e3 if stable else float('nan'),
                                  error_window_s=ref.valid_until, tip_rms_vs_shared_full_mm=sh_rms,
                                  stable=stable, head_error_m=herr, resets=int(unst)))
@@ -133,8 +136,8 @@ def run(prof, out, meta, log=print):
                          ('ours vs shared max mm', 'ours_vs_shared_max_mm', '.2e'),
                          ('MuJoCo vs shared max mm', 'mujoco_vs_shared_max_mm', '.2e')],
                 title='Reference cross-checks (tiny step)')
-    print_table(long_rows, [('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
-                            ('simulated s', 'duration_s', '.1f'),
+    print_table(long_rows, [('engine', 'engine', ''), ('N', 'n_segments', 'd'),
+                            ('dt', 'dt_label', ''), ('simulated s', 'duration_s', '.1f'),
                             ('first blow-up at s', 'first_failure_s', '.2f'),
                             ('blow-ups', 'failures', 'd')],
                 title='Long run on the moving head, undamped (robustness at game steps)')
@@ -190,8 +193,9 @@ def _print_mujoco_verdict(rows):
     print('\nPer segment count, cost per step (ours / MuJoCo) and error at the same step:')
     for n in sorted({r['n_segments'] for r in rows}):
         for dt in sorted({r['dt'] for r in rows if r['n_segments'] == n}, reverse=True):
-            o = [r for r in rows if r['n_segments'] == n and r['dt'] == dt and r['engine'] == 'ours']
-            m = [r for r in rows if r['n_segments'] == n and r['dt'] == dt and r['engine'] == 'mujoco']
+            here = [r for r in rows if r['n_segments'] == n and r['dt'] == dt]
+            o = [r for r in here if r['engine'] == 'ours']
+            m = [r for r in here if r['engine'] == 'mujoco']
             if o and m:
                 o, m = o[0], m[0]
                 ratio = o['cpu_us_per_step'] / m['cpu_us_per_step']

@@ -39,7 +39,8 @@ def run(prof, out, meta, log=print):
                 variants = [('implicit damping', dict(implicit_damping=True)),
                             ('explicit damping', dict(implicit_damping=False))]
         for vname, kw in variants:
-            bb = replace(b, scene=b.scene.replace(solver=SolverSpec(dt=dt, max_steps_per_call=10 ** 6, **kw)))
+            solver = SolverSpec(dt=dt, max_steps_per_call=10 ** 6, **kw)
+            bb = replace(b, scene=b.scene.replace(solver=solver))
             traj = M.simulate(bb, S(RK4, dt, extra=tuple(kw.items())), every_step=True)
             c = M.check_against_shared(traj, shared, n)
             rows.append(dict(file=name, variant=vname, dt=M.fmt_dt(dt), max_mm=c['max_m'] * 1e3,

@@ -7,7 +7,7 @@ import os
 
 from ..recommend import recommendation, summary_line
 from ..tables import load_rows, md_table
-from .trade import TRADE_COLS
+from .trade import REFCHECK_COLS, TRADE_COLS
 
 HELP = 'results.md from the JSON files in --out'
 
@@ -19,14 +19,15 @@ def run(prof, out, meta, log=print):
     trade, doc = load_rows(out, 'trade')
     if trade:
         m = doc['meta']
-        parts.append(f'Machine: {m.get("processor")} ({m.get("cpus")} CPUs), Python {m.get("python")}, '
-                     f'NumPy {m.get("numpy")}, SciPy {m.get("scipy")}, MuJoCo {m.get("mujoco")}; '
+        parts.append(f'Machine: {m.get("processor")} ({m.get("cpus")} CPUs), '
+                     f'Python {m.get("python")}, NumPy {m.get("numpy")}, SciPy {m.get("scipy")}, '
+                     f'MuJoCo {m.get("mujoco")}; '
                      f'profile `{m.get("profile")}`; core `{m.get("git")}`. Costs are CPU time '
                      f'(`time.process_time`, one BLAS thread), median of repeats.\n')
         rec = recommendation(trade)
         if rec.get('recommended'):
-            parts.append('## Recommended default\n\n**' + summary_line(rec['recommended'],
-                                                                          rec['recommended_rows']) + '**\n')
+            best = summary_line(rec['recommended'], rec['recommended_rows'])
+            parts.append(f'## Recommended default\n\n**{best}**\n')
         if rec.get('recommended_without_shake'):
             parts.append('If the violent shake need not run clean (the guard resets it): '
                          + summary_line(rec['recommended_without_shake'],
@@ -34,14 +35,13 @@ def run(prof, out, meta, log=print):
         if rec.get('current_rows'):
             parts.append('Current default: ' + summary_line(rec['current_default'],
                                                               rec['current_rows']) + '\n')
-        parts.append('## Speed/accuracy trade\n\n![pareto](pareto.png)\n\n' + md_table(trade, TRADE_COLS))
+        parts.append('## Speed/accuracy trade\n\n![pareto](pareto.png)\n\n'
+                     + md_table(trade, TRADE_COLS))
     for name, title, cols in (
-            ('refcheck', 'Reference checks', [('scene', 'scene', ''), ('N', 'n_segments', 'd'),
-                                             ('reference', 'dt_ref', ''), ('against', 'against', ''),
-                                             ('max mm', 'max_mm', '.2e'), ('RMS mm', 'rms_mm', '.2e'),
-                                             ('window s', 'window_s', '.2f')]),
+            ('refcheck', 'Reference checks', REFCHECK_COLS),
             ('scaling', 'Cost per step vs segment count', [
-                ('series', 'series', ''), ('N', 'n_segments', 'd'), ('µs/step', 'cpu_us_per_step', '.1f'),
+                ('series', 'series', ''), ('N', 'n_segments', 'd'),
+                ('µs/step', 'cpu_us_per_step', '.1f'),
                 ('µs/step/segment', lambda r: r['cpu_us_per_step'] / r['n_segments'], '.2f')]),
             ('mujoco', 'This core vs MuJoCo', [
                 ('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
@@ -52,7 +52,8 @@ def run(prof, out, meta, log=print):
                 ('RMS vs shared, whole run, mm', 'tip_rms_vs_shared_full_mm', '.3g'),
                 ('stable', 'stable', '')]),
             ('batch', 'Batched crowd', [
-                ('mode', 'mode', ''), ('chains', 'chains', 'd'), ('segments', 'segments_per_chain', 'd'),
+                ('mode', 'mode', ''), ('chains', 'chains', 'd'),
+                ('segments', 'segments_per_chain', 'd'),
                 ('CPU ms/step', 'cpu_ms_per_step', '.2f'),
                 ('µs per chain-step', 'cpu_us_per_chain_step', '.1f'),
                 ('vs one chain alone', 'relative_to_alone', '.3f'),
@@ -85,7 +86,8 @@ def run(prof, out, meta, log=print):
     try:
         with open(os.path.join(out, 'summary.json')) as f:
             walls = json.load(f).get('wall_s', {})
-        parts.append('## Wall time of the run\n\n' + ', '.join(f'{k} {v:.0f} s' for k, v in walls.items()))
+        parts.append('## Wall time of the run\n\n'
+                     + ', '.join(f'{k} {v:.0f} s' for k, v in walls.items()))
     except (OSError, ValueError):
         pass
     with open(os.path.join(out, 'results.md'), 'w') as f:

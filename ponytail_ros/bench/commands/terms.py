@@ -1,4 +1,4 @@
-"""``terms``: what each force term, collider and joint limit costs; what each ready-made scene costs.
+"""``terms``: what each force term, collider and joint limit costs, and each ready-made scene.
 
 A 20-segment ponytail with each term added in turn (switched-off terms against the plain
 scene), and every ``config/*.yaml`` (``bench/terms.py``): ``terms.csv/json``,

@@ -12,7 +12,8 @@ import time
 
 from .. import measure as M
 from .. import plots
-from ..recommend import TARGET_ENERGY_DRIFT, TARGET_GAP_M, TARGET_TIP_RMS_MM, recommendation, summary_line
+from ..recommend import (TARGET_ENERGY_DRIFT, TARGET_GAP_M, TARGET_TIP_RMS_MM, recommendation,
+                         summary_line)
 from ..scenes import REFERENCE_DIR, make_scene
 from ..tables import load_rows, print_table, write_table
 
@@ -35,7 +36,8 @@ def _scene_list(prof):
 
 
 def _ref_check_rows(b, ref, prof):
-    rows = [dict(scene=b.name, n_segments=b.n_segments, against='itself at 2x step (Richardson: /15)',
+    rows = [dict(scene=b.name, n_segments=b.n_segments,
+                 against='itself at 2x step (Richardson: /15)',
                  dt_ref=M.fmt_dt(prof['dt_ref']), max_mm=ref.self_error * 1e3, rms_mm=None,
                  window_s=ref.valid_until, max_all_mm=ref.self_error_all * 1e3)]
     if b.shared:
@@ -55,6 +57,9 @@ TRADE_COLS = [('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('setting', 'set
               ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
               ('max gap m', 'max_gap_m', '.1e'),
               ('|ΔE|/E_rel', 'energy_drift_max', '.2e'), ('resets', 'resets', 'd')]
+REFCHECK_COLS = [('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('reference', 'dt_ref', ''),
+                 ('against', 'against', ''), ('max mm', 'max_mm', '.2e'),
+                 ('RMS mm', 'rms_mm', '.2e'), ('window s', 'window_s', '.2f')]
 
 
 def run(prof, out, meta, log=print):
@@ -77,13 +82,12 @@ def run(prof, out, meta, log=print):
             row['reference_dt'] = prof['dt_ref']
             row['duration_s'] = b.duration
             rows.append(row)
-        log(f'  {b.name} N={b.n_segments}: {len(sets)} settings in {time.perf_counter() - t0:.1f} s')
+        log(f'  {b.name} N={b.n_segments}: {len(sets)} settings in '
+            f'{time.perf_counter() - t0:.1f} s')
     rec = recommendation(rows)
     print_table(rows, TRADE_COLS, title='Speed/accuracy trade (CPU per simulated second; error '
                 'against the converged reference)')
-    print_table(checks, [('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('reference', 'dt_ref', ''),
-                         ('against', 'against', ''), ('max mm', 'max_mm', '.2e'),
-                         ('RMS mm', 'rms_mm', '.2e'), ('window s', 'window_s', '.2f')],
+    print_table(checks, REFCHECK_COLS,
                 title='Reference checks (tip; errors of settings are compared inside the window)')
     print(f'\nRecommendation criteria: no resets and gap ≤ {TARGET_GAP_M:g} m on every scene, '
           f'tip RMS ≤ {TARGET_TIP_RMS_MM:g} mm on the moving head and the shake, |ΔE| ≤ '
@@ -117,10 +121,10 @@ def draw_pareto(out):
         key = (r['scene'], r['n_segments'])
         if key not in scenes:
             scenes.append(key)
-    main = [k for k in scenes if k in (('moving', 10), ('release', 10), ('shake', 10), ('rope', 40),
-                                       ('damped', 10))]
+    main = [k for k in scenes if k in (('moving', 10), ('release', 10), ('shake', 10),
+                                       ('rope', 40), ('damped', 10))]
     rec = recommendation(rows).get('recommended')
     plots.pareto_plot(rows, os.path.join(out, 'pareto.png'), main or scenes[:4],
                       mujoco_rows=mj_rows or (), recommended=rec,
-                      title=f'Speed/accuracy trade ({doc["meta"].get("profile")} profile): one point '
-                            f'per setting; ringed = recommended ({rec})')
+                      title=f'Speed/accuracy trade ({doc["meta"].get("profile")} profile): one '
+                            f'point per setting; ringed = recommended ({rec})')
