@@ -20,6 +20,7 @@ from dataclasses import dataclass, asdict, replace
 import json
 import math
 import time
+from typing import Any, Optional
 import warnings
 
 import numpy as np
@@ -55,7 +56,7 @@ class Setting:
     projection: bool = True
     baumgarte_stiffness: float = 0.0
     baumgarte_damping: float = 0.0
-    tick_rate: float = None
+    tick_rate: Optional[float] = None
     extra: tuple = ()       # more SolverSpec fields, as ((name, value), ...)
 
     def solver(self, max_steps=1_000_000, **kw):
@@ -91,10 +92,10 @@ class Trajectory:
 
     t: np.ndarray
     tip: np.ndarray
-    tip_vel: np.ndarray = None
-    energy: np.ndarray = None
-    gap: np.ndarray = None
-    resets: list = None
+    tip_vel: Optional[np.ndarray] = None
+    energy: Optional[np.ndarray] = None
+    gap: Optional[np.ndarray] = None
+    resets: Optional[list] = None
 
     def at(self, t):
         """Tip position at times ``t`` (cubic Hermite; linear if no velocities)."""
@@ -173,7 +174,7 @@ def simulate(bench, setting, sample_dt=0.01, duration=None, every_step=False):
                       np.array(gaps), resets)
 
 
-_REF_CACHE = {}
+_REF_CACHE: dict[tuple, Any] = {}
 
 
 def reference(bench, dt_ref=1.0 / 8000.0, duration=None, check=True, tol=1e-5):

@@ -50,7 +50,7 @@ def available():
     return mujoco is not None
 
 
-_WARNINGS = []
+_WARNINGS: list[str] = []
 
 
 def _quiet_warning(msg):

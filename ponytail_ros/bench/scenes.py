@@ -24,6 +24,7 @@ against).
 """
 from dataclasses import dataclass, replace
 import os
+from typing import Optional
 
 import numpy as np
 
@@ -57,7 +58,7 @@ class BenchScene:
     motion: object
     duration: float
     still: bool
-    shared: str = None
+    shared: Optional[str] = None
     description: str = ''
 
     @property
