@@ -11,6 +11,8 @@ from .scenes import SCENES
 
 RK4, SE, RATTLE = 'rk4', 'symplectic_euler', 'rattle'
 S = Setting
+#: A profile's sizes (a copy of one of ``PROFILES``, with the command line's overrides).
+Profile = dict[str, Any]
 
 
 def _settings_quick() -> list[Setting]:
@@ -43,7 +45,7 @@ def _settings_tiny() -> list[Setting]:
 
 
 #: name -> sizes; ``settings`` is a function (a fresh list per call).
-PROFILES: dict[str, dict[str, Any]] = {
+PROFILES: dict[str, Profile] = {
     'tiny': dict(
         scenes=SCENES, durations=dict(moving=0.1, release=0.1, shake=0.1, rope=0.1, damped=0.1),
         dt_ref=1 / 1920, repeats=1, timing_window=0.05, settings=_settings_tiny,

@@ -21,6 +21,10 @@ from . import mujoco_chain as MJ
 from .blas_threads import PINNED
 
 Row = dict[str, Any]
+#: Run metadata, stored as ``meta`` in every table (``make_meta``).
+Meta = dict[str, Any]
+#: Progress output of a command (``print`` by default).
+Log = Callable[..., None]
 #: (header, key or function of the row, format spec); '' formats with ``str``.
 Column = tuple[str, Union[str, Callable[[Row], Any]], str]
 
@@ -124,11 +128,14 @@ def cpu_name() -> str:
     return platform.processor()
 
 
-def load_rows(out: str, name: str) -> tuple[Optional[list[Row]], Optional[dict[str, Any]]]:
-    """The rows of ``name.json`` in ``out`` (``None`` errors as NaN) and the whole document."""
+def load_rows(out: str, name: str) -> tuple[Optional[list[Row]], dict[str, Any]]:
+    """The rows of ``name.json`` in ``out`` (``None`` errors as NaN) and the whole document.
+
+    No such file: ``(None, {})``.
+    """
     path = os.path.join(out, name + '.json')
     if not os.path.exists(path):
-        return None, None
+        return None, {}
     with open(path) as f:
         doc = json.load(f)
     rows = [{k: (float('nan') if v is None and k.endswith(('_mm', '_m', 'drift_max')) else v)

@@ -5,16 +5,18 @@ moves exactly as the same chain alone: ``batch.csv/json``.
 """
 import time
 from dataclasses import replace
+from typing import Optional
 
 import numpy as np
 
-from ponytail_ros.core.head import HeadMotion
+from ponytail_ros.core.head import HeadMotion, KinematicState
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
 from ..motions import crowd_motion
 from ..scenes import ponytail_chain
-from ..tables import print_table, write_table
+from ..profiles import Profile
+from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = 'C chains in one scene vs one chain alone vs C simulators'
 
@@ -22,7 +24,8 @@ HELP = 'C chains in one scene vs one chain alone vs C simulators'
 DT = 1.0 / 240.0
 
 
-def run(prof, out, meta, log=print):
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
+    """The batched crowd against one chain alone and against separate simulators."""
     n = prof['batch_segments']
     solver = SolverSpec(dt=DT, max_steps_per_call=10 ** 6)
     rows, alone = _batched_rows(prof, n, solver, log)
@@ -38,12 +41,13 @@ def run(prof, out, meta, log=print):
     return rows
 
 
-def _batched_rows(prof, n, solver, log):
+def _batched_rows(prof: Profile, n: int, solver: SolverSpec,
+                  log: Log) -> tuple[list[Row], Optional[float]]:
     """C chains in one scene, for each C of the profile; and the cost of one chain alone."""
-    rows = []
+    rows: list[Row] = []
     dt, steps = DT, prof['batch_steps']
-    alone = None
-    check = {}
+    alone: Optional[float] = None
+    check: dict[int, float] = {}
     for C in prof['batch_c']:
         motion = crowd_motion(C)
         chains = tuple(replace(ponytail_chain(n), name=f'c{c}', anchor_body=c) for c in range(C))
@@ -70,7 +74,7 @@ def _batched_rows(prof, n, solver, log):
     return rows, alone
 
 
-def _deviation_from_solo(sc, C, n, solver):
+def _deviation_from_solo(sc: Scene, C: int, n: int, solver: SolverSpec) -> float:
     """Largest state difference (m) at 0.25 s of chain C // 2 of ``sc`` from that chain alone."""
     c = C // 2
     m1 = crowd_motion(C)
@@ -83,9 +87,10 @@ def _deviation_from_solo(sc, C, n, solver):
     return float(np.max(np.abs(batch.state.x[sl] - solo.state.x)))
 
 
-def _separate_rows(prof, n, solver, alone):
+def _separate_rows(prof: Profile, n: int, solver: SolverSpec,
+                   alone: Optional[float]) -> list[Row]:
     """C separate simulators of one chain each, stepped in turn (C up to ``batch_loop_max``)."""
-    rows = []
+    rows: list[Row] = []
     dt, steps = DT, prof['batch_steps']
     for C in prof['batch_c']:
         if C < 2 or C > prof['batch_loop_max']:
@@ -116,10 +121,10 @@ def _separate_rows(prof, n, solver, alone):
 class _SingleBody(HeadMotion):
     """Body ``c`` of a multi-body motion, as a one-body motion."""
 
-    def __init__(self, motion, c):
+    def __init__(self, motion: HeadMotion, c: int) -> None:
         self.motion, self.c = motion, c
 
-    def state_at(self, t):
+    def state_at(self, t: float) -> KinematicState:
         s = self.motion.state_at(t)
         c = slice(self.c, self.c + 1)
         return type(s)(s.position[c], s.orientation[c], s.linear_velocity[c],

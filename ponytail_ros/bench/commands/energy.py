@@ -5,6 +5,7 @@
 """
 import os
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -14,12 +15,13 @@ from ponytail_ros.core.scene import Scene, SolverSpec
 from .. import measure as M
 from .. import plots
 from ..scenes import BenchScene, ponytail_chain
-from ..tables import print_table, write_table
+from ..profiles import Profile
+from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = 'energy drift per integrator and step, still anchor, no damping'
 
 
-def energy_scene(solver=None):
+def energy_scene(solver: Optional[SolverSpec] = None) -> BenchScene:
     """5 segments of the reference ponytail on a still anchor, released 45° from vertical."""
     a = np.radians(45.0)
     chain = ponytail_chain(5, rest_direction=(np.sin(a), 0.0, -np.cos(a)))
@@ -27,8 +29,10 @@ def energy_scene(solver=None):
     return BenchScene('energy', sc, StillMotion((0.0, 0.0, 1.6)), 10.0, True)
 
 
-def run(prof, out, meta, log=print):
-    rows, series = [], {}
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
+    """Energy drift of each of the profile's ``energy_settings``."""
+    rows: list[Row] = []
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     T = prof['energy_T']
     for s in prof['energy_settings']:
         b = energy_scene().with_duration(T)

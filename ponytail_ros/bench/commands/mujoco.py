@@ -6,6 +6,7 @@ empty table saying so) when the optional ``mujoco`` package is not installed.
 """
 import os
 import time
+from typing import Optional
 import warnings
 
 import numpy as np
@@ -17,13 +18,16 @@ from .. import mujoco_chain as MJ
 from .. import plots
 from ..profiles import RK4, S
 from ..scenes import REFERENCE_DIR, make_scene
-from ..tables import print_table, write_table
+from ..profiles import Profile
+from ..scenes import BenchScene
+from ..tables import Column, Log, Meta, Row, print_table, write_table
 from .trade import draw_pareto
 
 HELP = 'the same chain in MuJoCo side by side (optional mujoco package)'
 
 
-def _vs_shared(b, ts, tips):
+def _vs_shared(b: BenchScene, ts: np.ndarray,
+               tips: np.ndarray) -> tuple[Optional[float], Optional[float]]:
     """Tip RMS/max (mm) against the shared file over its whole run, at the common sample times
     (every 10 ms when dt divides it; 1/240 s meets the 10 ms grid every 50 ms)."""
     if not b.shared:
@@ -40,7 +44,8 @@ def _vs_shared(b, ts, tips):
     return float(np.sqrt(np.mean(e ** 2))) * 1e3, float(e.max()) * 1e3
 
 
-def _our_tip_run(b, dt, T):
+def _our_tip_run(b: BenchScene, dt: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """This core's tip every 10 ms (RK4 at ``dt``, head exact): (times, tips)."""
     sim = Simulator(b.scene.replace(solver=S(RK4, dt).solver()), b.motion, 0.0)
     ts, tips = [0.0], [M._tip(sim)[0]]
     with warnings.catch_warnings():
@@ -52,13 +57,14 @@ def _our_tip_run(b, dt, T):
     return np.array(ts), np.array(tips)
 
 
-def run(prof, out, meta, log=print):
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
     """MuJoCo side by side."""
     if not MJ.available():
         print('\nMuJoCo side by side: skipped (mujoco not installed: pip install mujoco)')
         write_table(out, 'mujoco', [], meta, dict(skipped='mujoco not installed'))
         return []
-    rows, checks = [], []
+    rows: list[Row] = []
+    checks: list[Row] = []
     budget = prof['mujoco_budget_s']
     for n in prof['mujoco_n']:
         T = prof['mujoco_duration'] if n <= 50 else min(1.0, prof['mujoco_duration'])
@@ -119,7 +125,8 @@ def run(prof, out, meta, log=print):
                              stable=ours['stable'], head_error_m=0.0, resets=ours['resets']))
         log(f'  mujoco N={n} done in {time.perf_counter() - t0:.1f} s')
     long_rows = _long_run(prof)
-    cols = [('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
+    cols: list[Column] = [
+            ('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
             ('µs/step', 'cpu_us_per_step', '.1f'),
             ('CPU ms/sim-s', lambda r: r['cpu_s_per_sim_s'] * 1e3, '.1f'),
             ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
@@ -149,12 +156,12 @@ def run(prof, out, meta, log=print):
     return rows
 
 
-def _long_run(prof):
+def _long_run(prof: Profile) -> list[Row]:
     """Both engines on the undamped moving-head ponytail (N = 10) for ``long_run_s`` at 1/240 and
     1/120 s: when (if ever) does each blow up? (MuJoCo resets itself on a bad qacc; the core's
     guard resets and reports.)"""
     T = prof.get('long_run_s', 0.0)
-    rows = []
+    rows: list[Row] = []
     if not T:
         return rows
     b = make_scene('moving', duration=T)
@@ -189,15 +196,15 @@ def _long_run(prof):
     return rows
 
 
-def _print_mujoco_verdict(rows):
+def _print_mujoco_verdict(rows: list[Row]) -> None:
     print('\nPer segment count, cost per step (ours / MuJoCo) and error at the same step:')
     for n in sorted({r['n_segments'] for r in rows}):
         for dt in sorted({r['dt'] for r in rows if r['n_segments'] == n}, reverse=True):
             here = [r for r in rows if r['n_segments'] == n and r['dt'] == dt]
-            o = [r for r in here if r['engine'] == 'ours']
-            m = [r for r in here if r['engine'] == 'mujoco']
-            if o and m:
-                o, m = o[0], m[0]
+            ours = [r for r in here if r['engine'] == 'ours']
+            theirs = [r for r in here if r['engine'] == 'mujoco']
+            if ours and theirs:
+                o, m = ours[0], theirs[0]
                 ratio = o['cpu_us_per_step'] / m['cpu_us_per_step']
                 faster = 'MuJoCo' if ratio > 1 else 'ours'
                 print(f'  N={n:4d} dt={o["dt_label"]:>7}: {faster} {max(ratio, 1 / ratio):.1f}x '

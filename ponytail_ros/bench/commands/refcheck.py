@@ -5,20 +5,22 @@
 import glob
 import os
 from dataclasses import replace
+from typing import Any
 
 from ponytail_ros.core.scene import SolverSpec
 
 from .. import measure as M
 from ..profiles import RK4, S
 from ..scenes import REFERENCE_DIR, make_scene
-from ..tables import print_table, write_table
+from ..profiles import Profile
+from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = "RK4 against every file of ../shared/reference/"
 
 
-def run(prof, out, meta, log=print):
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
     """This core's RK4 at the reference step against every shared reference file."""
-    rows = []
+    rows: list[Row] = []
     dt = prof['dt_ref']
     for path in sorted(glob.glob(os.path.join(REFERENCE_DIR, 'ponytail_N*.json'))):
         name = os.path.splitext(os.path.basename(path))[0]
@@ -27,7 +29,7 @@ def run(prof, out, meta, log=print):
         n = int(sc['n_segments'])
         kind = 'moving' if sc['head'] == 'moving' else 'release'
         b = make_scene(kind, n_segments=n, duration=min(3.0, prof['durations']['moving'] * 2))
-        variants = [('default', {})]
+        variants: list[tuple[str, dict[str, Any]]] = [('default', {})]
         if sc.get('damping', 0.0):
             chain = replace(b.scene.chains[0], damping=float(sc['damping']))
             b = replace(b, scene=b.scene.replace(chains=(chain,)))

@@ -6,13 +6,51 @@ import json
 import os
 
 from ..recommend import recommendation, summary_line
-from ..tables import load_rows, md_table
+from ..profiles import Profile
+from ..tables import Column, Log, Meta, load_rows, md_table
 from .trade import REFCHECK_COLS, TRADE_COLS
 
 HELP = 'results.md from the JSON files in --out'
 
+#: The tables after the trade's: (JSON file name, section title, columns).
+SECTIONS: list[tuple[str, str, list[Column]]] = [
+    ('refcheck', 'Reference checks', REFCHECK_COLS),
+    ('scaling', 'Cost per step vs segment count', [
+        ('series', 'series', ''), ('N', 'n_segments', 'd'),
+        ('µs/step', 'cpu_us_per_step', '.1f'),
+        ('µs/step/segment', lambda r: r['cpu_us_per_step'] / r['n_segments'], '.2f')]),
+    ('mujoco', 'This core vs MuJoCo', [
+        ('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
+        ('µs/step', 'cpu_us_per_step', '.1f'),
+        ('CPU ms/sim-s', lambda r: r['cpu_s_per_sim_s'] * 1e3, '.1f'),
+        ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
+        ('window s', 'error_window_s', '.2f'),
+        ('RMS vs shared, whole run, mm', 'tip_rms_vs_shared_full_mm', '.3g'),
+        ('stable', 'stable', '')]),
+    ('batch', 'Batched crowd', [
+        ('mode', 'mode', ''), ('chains', 'chains', 'd'),
+        ('segments', 'segments_per_chain', 'd'),
+        ('CPU ms/step', 'cpu_ms_per_step', '.2f'),
+        ('µs per chain-step', 'cpu_us_per_chain_step', '.1f'),
+        ('vs one chain alone', 'relative_to_alone', '.3f'),
+        ('max dev vs solo m', 'max_dev_from_solo_m', '.1e')]),
+    ('energy', 'Energy drift (still anchor, no damping, 5 segments released 45°)', [
+        ('setting', 'setting', ''), ('max abs dE/(E0-Erest)', 'drift_max_abs', '.2e'),
+        ('final', 'drift_final', '+.2e'), ('max growth', 'growth_max', '+.2e'),
+        ('resets', 'resets', 'd')]),
+    ('terms', 'Cost of each term, collider and limit (20-segment ponytail, moving head, '
+              'RK4 1/240 s; each row adds to the one above, the last two switch '
+              'features off)', [
+        ('configuration', 'configuration', ''),
+        ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'), ('vs gravity', 'vs_gravity', '.2f'),
+        ('contact+limit rows/step', 'rows_per_step', '.2f')]),
+    ('scenes', 'Ready-made scenes (config/*.yaml) on the scripted head', [
+        ('scene', 'scene', ''), ('models', 'models', ''),
+        ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'),
+        ('contact+limit rows/step', 'rows_per_step', '.2f')])]
 
-def run(prof, out, meta, log=print):
+
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[str]:
     """``results.md``: every table of the JSON files in ``out`` as markdown."""
     parts = [f'# ponytail_bench results\n\nGenerated from the JSON files in this directory '
              f'({meta["date"]}).\n']
@@ -37,41 +75,7 @@ def run(prof, out, meta, log=print):
                                                               rec['current_rows']) + '\n')
         parts.append('## Speed/accuracy trade\n\n![pareto](pareto.png)\n\n'
                      + md_table(trade, TRADE_COLS))
-    for name, title, cols in (
-            ('refcheck', 'Reference checks', REFCHECK_COLS),
-            ('scaling', 'Cost per step vs segment count', [
-                ('series', 'series', ''), ('N', 'n_segments', 'd'),
-                ('µs/step', 'cpu_us_per_step', '.1f'),
-                ('µs/step/segment', lambda r: r['cpu_us_per_step'] / r['n_segments'], '.2f')]),
-            ('mujoco', 'This core vs MuJoCo', [
-                ('engine', 'engine', ''), ('N', 'n_segments', 'd'), ('dt', 'dt_label', ''),
-                ('µs/step', 'cpu_us_per_step', '.1f'),
-                ('CPU ms/sim-s', lambda r: r['cpu_s_per_sim_s'] * 1e3, '.1f'),
-                ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
-                ('window s', 'error_window_s', '.2f'),
-                ('RMS vs shared, whole run, mm', 'tip_rms_vs_shared_full_mm', '.3g'),
-                ('stable', 'stable', '')]),
-            ('batch', 'Batched crowd', [
-                ('mode', 'mode', ''), ('chains', 'chains', 'd'),
-                ('segments', 'segments_per_chain', 'd'),
-                ('CPU ms/step', 'cpu_ms_per_step', '.2f'),
-                ('µs per chain-step', 'cpu_us_per_chain_step', '.1f'),
-                ('vs one chain alone', 'relative_to_alone', '.3f'),
-                ('max dev vs solo m', 'max_dev_from_solo_m', '.1e')]),
-            ('energy', 'Energy drift (still anchor, no damping, 5 segments released 45°)', [
-                ('setting', 'setting', ''), ('max abs dE/(E0-Erest)', 'drift_max_abs', '.2e'),
-                ('final', 'drift_final', '+.2e'), ('max growth', 'growth_max', '+.2e'),
-                ('resets', 'resets', 'd')]),
-            ('terms', 'Cost of each term, collider and limit (20-segment ponytail, moving head, '
-                      'RK4 1/240 s; each row adds to the one above, the last two switch '
-                      'features off)', [
-                ('configuration', 'configuration', ''),
-                ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'), ('vs gravity', 'vs_gravity', '.2f'),
-                ('contact+limit rows/step', 'rows_per_step', '.2f')]),
-            ('scenes', 'Ready-made scenes (config/*.yaml) on the scripted head', [
-                ('scene', 'scene', ''), ('models', 'models', ''),
-                ('CPU ms/sim-s', 'cpu_ms_per_sim_s', '.1f'),
-                ('contact+limit rows/step', 'rows_per_step', '.2f')])):
+    for name, title, cols in SECTIONS:
         rows, d = load_rows(out, name)
         if not rows:
             continue

@@ -5,12 +5,13 @@ scene), and every ``config/*.yaml`` (``bench/terms.py``): ``terms.csv/json``,
 ``scenes.csv/json``.
 """
 from .. import terms
-from ..tables import write_table
+from ..profiles import Profile
+from ..tables import Log, Meta, Row, write_table
 
 HELP = 'cost of each force term, collider and limit; of each ready-made scene'
 
 
-def run(prof, out, meta, log=print):
+def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
     """Cost of each term, collider and limit, and of each ready-made scene (``terms.py``)."""
     seconds, repeats = prof['terms_seconds'], prof['terms_repeats']
     table = terms.bench_terms(20, seconds, repeats, out=log)

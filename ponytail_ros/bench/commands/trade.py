@@ -9,20 +9,23 @@ heads, the energy drift. Writes ``trade.csv/json``, ``refcheck.csv/json``, ``par
 """
 import os
 import time
+from typing import Any
 
 from .. import measure as M
 from .. import plots
 from ..recommend import (TARGET_ENERGY_DRIFT, TARGET_GAP_M, TARGET_TIP_RMS_MM, recommendation,
                          summary_line)
 from ..scenes import REFERENCE_DIR, make_scene
-from ..tables import load_rows, print_table, write_table
+from ..profiles import Profile
+from ..scenes import BenchScene
+from ..tables import Column, Log, Meta, Row, load_rows, print_table, write_table
 
 HELP = 'the sweep on the named scenes: cost, tip error, gap, energy; Pareto plot'
 
 
-def _scene_list(prof):
+def _scene_list(prof: Profile) -> list[tuple[BenchScene, list[M.Setting]]]:
     """(bench scene, settings) pairs: the four named scenes, then the segment-count sweep."""
-    out = []
+    out: list[tuple[BenchScene, list[M.Setting]]] = []
     for name in prof['scenes']:
         b = make_scene(name, duration=prof['durations'][name])
         sets = prof['settings']()
@@ -35,7 +38,8 @@ def _scene_list(prof):
     return out
 
 
-def _ref_check_rows(b, ref, prof):
+def _ref_check_rows(b: BenchScene, ref: Any, prof: Profile) -> list[Row]:
+    """The reference's own error (Richardson) and, where a shared file matches, its error."""
     rows = [dict(scene=b.name, n_segments=b.n_segments,
                  against='itself at 2x step (Richardson: /15)',
                  dt_ref=M.fmt_dt(prof['dt_ref']), max_mm=ref.self_error * 1e3, rms_mm=None,
@@ -51,19 +55,24 @@ def _ref_check_rows(b, ref, prof):
 
 
 
-TRADE_COLS = [('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('setting', 'setting', ''),
-              ('CPU ms/sim-s', lambda r: r['cpu_s_per_sim_s'] * 1e3, '.1f'),
-              ('µs/step', 'cpu_us_per_step', '.0f'),
-              ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
-              ('max gap m', 'max_gap_m', '.1e'),
-              ('|ΔE|/E_rel', 'energy_drift_max', '.2e'), ('resets', 'resets', 'd')]
-REFCHECK_COLS = [('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('reference', 'dt_ref', ''),
-                 ('against', 'against', ''), ('max mm', 'max_mm', '.2e'),
-                 ('RMS mm', 'rms_mm', '.2e'), ('window s', 'window_s', '.2f')]
+TRADE_COLS: list[Column] = [
+    ('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('setting', 'setting', ''),
+    ('CPU ms/sim-s', lambda r: r['cpu_s_per_sim_s'] * 1e3, '.1f'),
+    ('µs/step', 'cpu_us_per_step', '.0f'),
+    ('tip RMS mm', 'tip_rms_mm', '.3g'), ('tip max mm', 'tip_max_mm', '.3g'),
+    ('max gap m', 'max_gap_m', '.1e'),
+    ('|ΔE|/E_rel', 'energy_drift_max', '.2e'), ('resets', 'resets', 'd')]
+REFCHECK_COLS: list[Column] = [
+    ('scene', 'scene', ''), ('N', 'n_segments', 'd'), ('reference', 'dt_ref', ''),
+    ('against', 'against', ''), ('max mm', 'max_mm', '.2e'),
+    ('RMS mm', 'rms_mm', '.2e'), ('window s', 'window_s', '.2f')]
 
 
-def run(prof, out, meta, log=print):
-    rows, checks = [], []
+def run(prof: Profile, out: str, meta: Meta, log: Log = print
+        ) -> tuple[list[Row], list[Row], dict[str, Any]]:
+    """The sweep; returns (rows, reference checks, recommendation)."""
+    rows: list[Row] = []
+    checks: list[Row] = []
     for b, sets in _scene_list(prof):
         t0 = time.perf_counter()
         ref = M.reference(b, prof['dt_ref'])
@@ -108,7 +117,7 @@ def run(prof, out, meta, log=print):
 
 
 
-def draw_pareto(out):
+def draw_pareto(out: str) -> None:
     """``pareto.png`` from ``trade.json`` (+ MuJoCo's points from ``mujoco.json`` if there)."""
     rows, doc = load_rows(out, 'trade')
     if not rows:
@@ -116,7 +125,7 @@ def draw_pareto(out):
     mj_rows, mj_doc = load_rows(out, 'mujoco')
     if mj_doc and mj_doc['meta'].get('profile') != doc['meta'].get('profile'):
         mj_rows = None
-    scenes = []
+    scenes: list[tuple[str, int]] = []
     for r in rows:
         key = (r['scene'], r['n_segments'])
         if key not in scenes:
