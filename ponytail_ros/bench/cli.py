@@ -46,14 +46,24 @@ from types import ModuleType
 from typing import Any, Optional
 
 from . import mujoco_chain as MJ
-from .commands import batch, energy, mujoco, refcheck, report, scaling, terms, trade
+from .commands import (  # one line per command, as in COMMANDS
+    batch,
+    energy,
+    mujoco,
+    refcheck,
+    report,
+    scaling,
+    terms,
+    trade,
+)
 from .profiles import PROFILES
 from .scenes import EXTRA_SCENES, SCENES
 from .tables import jsonable, make_meta
 
 __all__ = ['ALL', 'COMMANDS', 'PROFILES', 'build_parser', 'main']
 
-# -- the subcommands: one line each (name -> module with ``HELP`` and ``run``), in --help order --
+# -- the subcommands, in --help order: name -> module of ``commands/`` (defines ``HELP`` and
+# ``run``). A new command: its module, one line in the import above and one line here.
 COMMANDS: dict[str, ModuleType] = {
     'trade': trade,
     'scaling': scaling,
