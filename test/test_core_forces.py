@@ -11,7 +11,8 @@ G = 9.81
 
 
 def settle(chain, seconds=20.0, dt=1 / 480, **scene_kw):
-    scene = Scene(chains=(chain,), solver=SolverSpec(dt=dt, max_steps_per_call=1_000_000), **scene_kw)
+    solver = SolverSpec(dt=dt, max_steps_per_call=1_000_000)
+    scene = Scene(chains=(chain,), solver=solver, **scene_kw)
     sim = Simulator(scene, KinematicState.still(ANCHOR))
     sim.advance_to(seconds, StillMotion(ANCHOR))
     return sim
@@ -20,8 +21,8 @@ def settle(chain, seconds=20.0, dt=1 / 480, **scene_kw):
 def test_bending_stiffness_holds_a_segment_at_its_static_angle():
     """Rest pose horizontal (+X); gravity pulls it down by θ with k θ = m g (l/2) cos θ."""
     m, l, k = 0.05, 0.3, 0.1
-    sim = settle(ChainSpec(n_segments=1, length=l, mass=m, attach=(0, 0, 0), rest_direction=(1, 0, 0),
-                           stiffness=k, damping=5e-3))
+    sim = settle(ChainSpec(n_segments=1, length=l, mass=m, attach=(0, 0, 0),
+                           rest_direction=(1, 0, 0), stiffness=k, damping=5e-3))
     prox, dist = sim.joint_positions()
     d = dist[0] - prox[0]
     theta = np.arctan2(-d[2], d[0])
@@ -64,9 +65,9 @@ def test_baumgarte_without_projection_bounds_the_drift():
     motion = SwayYawMotion()
 
     def worst_gap(**solver):
-        scene = Scene(chains=(ChainSpec(n_segments=10, damping=2e-4),),
-                      solver=SolverSpec(integrator='symplectic_euler', dt=1 / 240, projection=False,
-                                        guard_max_gap=10.0, **solver))
+        spec = SolverSpec(integrator='symplectic_euler', dt=1 / 240, projection=False,
+                          guard_max_gap=10.0, **solver)
+        scene = Scene(chains=(ChainSpec(n_segments=10, damping=2e-4),), solver=spec)
         sim = Simulator(scene, motion)
         worst = 0.0
         for k in range(1, 1201):
