@@ -136,7 +136,7 @@ def _rot_matrix(q, i, R):
 
 
 # -- mass properties and the joint system ------------------------------------------------------
-@_jit
+@_inline
 def _inertia_terms(M, q, e, hv, Iinv):
     """Segment axes ``e``, half-vectors ``hv`` = (l/2) e and world inverse inertias ``Iinv``
     ``(n, 3, 3)`` at orientations ``q``."""
@@ -173,7 +173,7 @@ def _apply3(Mx, i, v0, v1, v2):
             Mx[i, 2, 0] * v0 + Mx[i, 2, 1] * v1 + Mx[i, 2, 2] * v2)
 
 
-@_jit
+@_inline
 def _factor_joints(M, hv, Iinv, D, L, C, Lo):
     """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised.
 
@@ -232,7 +232,7 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
     return factor(D, L, M.is_first, C, Lo)
 
 
-@_jit
+@_inline
 def _apply_joint_impulses(M, lam, hv, Iinv, dv, dw):
     """Δv, Δω of every segment from joint forces or impulses ``lam`` (+ on the child at its
     proximal end, - on the parent at its distal end)."""
@@ -251,7 +251,7 @@ def _apply_joint_impulses(M, lam, hv, Iinv, dv, dw):
 
 
 # -- applied forces ----------------------------------------------------------------------------
-@_jit
+@_inline
 def _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
     """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``forces``)."""
     n = x.shape[0]
@@ -338,7 +338,7 @@ def _gyroscopic(M, q, i, e, w0, w1, w2):
 
 
 # -- RK4: accelerations with the joint forces solved (A f_c = b) --------------------------------
-@_jit
+@_inline
 def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
     """Linear and angular accelerations (m/s², rad/s²) with every joint enforced
     (``solver.Dynamics.accelerations``); False if A is not positive definite."""
@@ -400,7 +400,7 @@ def _workspace(n):
             np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
 
 
-@_jit
+@_inline
 def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c,
                 dq, dwb):
     """RK4's right-hand side in body-frame ω: (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α)."""
