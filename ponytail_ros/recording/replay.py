@@ -75,7 +75,8 @@ from ponytail_ros.ros.parameters import ParameterError, frame_names
 from ponytail_ros.ros.parameters import frame_topics as topics_of
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
-from .params import IGNORED_NAMES, resolve_values, unknown_names, values_from_metadata
+from .params import (IGNORED_NAMES, resolve_values, unknown_parameter_warnings,
+                     values_from_metadata, values_from_params_file)
 from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, resolve_topic,
                        stamp_ns)
 
@@ -108,16 +109,21 @@ class ReplayInput:
         try:
             self.reader = BagReader(self.path)
             self.topics = self.reader.topics()
-            self.metadata = self.reader.metadata()
+            self.metadata = self.reader.metadata()   # a full walk: finds a cut or damage
         except BagError as exc:
             raise ReplayError(str(exc)) from None
-        self.truncated = not _finished(self.path)
+        self.truncated = not self.reader.finished
+        #: "truncated at byte N of M: why" for a cut file, else None.
+        self.truncation = self.reader.truncation if self.truncated else None
         self.layout = None
         if RECORDING_METADATA in self.metadata:
             try:
                 self.layout = RunLayout.from_metadata(self.metadata[RECORDING_METADATA])
             except (KeyError, ValueError):
                 self.layout = None  # not ours after all: treat as a plain recording
+        #: Our recordings are replayed in the order the node handled the messages (file order,
+        #: see recorder.py); any other bag in log-time order, as rosbag2 plays it.
+        self.order = 'file' if self.layout is not None else 'log_time'
         self.recorded_parameters = self.metadata.get(PARAMETERS_METADATA)
         self.note = None
         if head_topic is None:
@@ -130,12 +136,24 @@ class ReplayInput:
         self.head_topic = head_topic
         if head_topic not in self.topics:
             recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
+            if self.truncated:
+                raise ReplayError(
+                    f'{self.path} is {self.truncation or "truncated (no footer)"}; the part '
+                    f'that can be read has no topic {head_topic} (recorded: {recorded or "none"})')
             raise ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
                               f'{recorded or "none"}); choose one with --head-topic')
         self.head_type = self.topics[head_topic]
         if self.head_type not in HEAD_TYPES:
             raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a head '
                               f'pose ({" or ".join(HEAD_TYPES)})')
+
+    def messages(self, topics):
+        """``BagReader.messages`` in this input's order (:attr:`order`)."""
+        return self.reader.messages(topics, order=self.order)
+
+    def truncated_warning(self) -> str:
+        return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '
+                f'can be read (ponytail_replay repair makes it a complete, indexed file)')
 
     @property
     def node(self) -> str:
@@ -176,15 +194,6 @@ class ReplayInput:
             return None
 
 
-def _finished(path: Path) -> bool:
-    with path.open('rb') as f:
-        size = f.seek(0, os.SEEK_END)
-        if size < 2 * len(_MCAP_MAGIC):
-            return False
-        f.seek(-len(_MCAP_MAGIC), os.SEEK_END)
-        return f.read() == _MCAP_MAGIC
-
-
 def _head_pose(msg, head_type):
     """(position, orientation) tuples of a PoseStamped or TransformStamped."""
     if head_type == HEAD_TYPES[0]:
@@ -204,7 +213,7 @@ class ReplayNode:
     recorded clock."""
 
     def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str,
-                 frame_types: Sequence[str] = ()):
+                 frame_types: Sequence[str] = (), zero_stamp_valid: bool = False):
         from ponytail_ros.ros.node_core import NodeCore
         self.core = NodeCore(values)
         self.runner = self.core.runner
@@ -213,6 +222,10 @@ class ReplayNode:
         self._frame_types = list(frame_types) or [HEAD_TYPES[0]] * len(self.core.frames)
         self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
         self._diag_next_ns = None
+        self._diag_last_ns = None
+        #: A zero header stamp is a real stamp (a simulator clock starting at 0), not "no
+        #: stamp", when the stream has other non-zero stamps.
+        self._zero_stamp_valid = zero_stamp_valid
 
     @property
     def values(self):
@@ -226,7 +239,12 @@ class ReplayNode:
     def head(self, msg, log_time_ns: int) -> None:
         self._recorder.head(msg, log_time_ns)
         p, q = _head_pose(msg, self._head_type)
-        self.core.push_head(msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
+        stamp = msg.header.stamp
+        if (self._zero_stamp_valid and stamp.sec == 0 and stamp.nanosec == 0
+                and self.core.stamp_source == 'header'):
+            self.runner.push(0.0, p, q, msg.header.frame_id)  # NodeCore would take "no stamp"
+            return
+        self.core.push_head(stamp, log_time_ns, p, q, msg.header.frame_id)
 
     # PonytailNode._on_frame_pose
     def frame(self, i: int, msg, log_time_ns: int) -> None:
@@ -268,6 +286,16 @@ class ReplayNode:
         self._diag_next_ns += self._diag_period_ns * max(
             1, (t_ns - self._diag_next_ns) // self._diag_period_ns + 1)
         self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+        self._diag_last_ns = t_ns
+
+    def final_diagnostics(self, t_ns: int) -> None:
+        """The last, partial period's diagnostics at the end of the input (the node's last
+        period ends when it is stopped; a replay's at its last tick), so that the drop and reset
+        counts in the file are the run's totals."""
+        if self._diag_next_ns is not None and t_ns != self._diag_last_ns \
+                and t_ns > self.core.window.t0_ns:
+            self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+            self._diag_last_ns = t_ns
 
     def diagnostics_message(self, t_ns: int):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -347,7 +375,9 @@ class _Progress:
 def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
            ticks: str = 'auto', overwrite: bool = False,
            progress: Optional[Callable[..., None]] = None,
-           warn: Optional[Callable[[str], None]] = None) -> ReplayResult:
+           warn: Optional[Callable[[str], None]] = None,
+           stamp_source: Optional[str] = None, tf: bool = True,
+           tf_prefix: str = '') -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -358,9 +388,14 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
             during the replay (often: throttle it).
         warn: called with each warning (default: ignored).
+        stamp_source: ``'header'`` or ``'receive'`` over the parameters' ``stamp_source``
+            (head stamps on another clock than the log times need ``'receive'``).
+        tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
+            ``<tf_prefix><chain>/<i>``.
 
     Raises:
-        ReplayError: bad input or options (one-line message naming the file and topic).
+        ReplayError: bad input or options (one-line message naming the file and topic), a
+            damaged input, or a run in which every head pose was dropped.
     """
     warn = warn or (lambda text: None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -374,8 +409,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if inp.note:
         warn(inp.note)
     if inp.truncated:
-        warn(f'{inp.path} is truncated (no summary: its writer was killed?); replaying what '
-             f'can be read')
+        warn(inp.truncated_warning())
 
     try:
         values, source = resolve_values(params_file, inp.recorded_parameters, inp.node)
@@ -385,9 +419,17 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         raise ReplayError(f'{origin}: invalid parameters: {exc}') from None
     partial = values_from_metadata(inp.recorded_parameters) if (
         params_file is None and inp.recorded_parameters) else {}
-    unknown = unknown_names(partial) if partial else []
-    if unknown:
-        warn(f'ignoring unknown parameters: {", ".join(unknown)}')
+    if params_file is not None:
+        try:
+            partial = values_from_params_file(params_file, inp.node)
+        except ParameterError:
+            partial = {}
+    for text in unknown_parameter_warnings(partial):
+        warn(f'{params_file or inp.path}: {text}')
+    if stamp_source is not None:
+        if stamp_source not in ('header', 'receive'):
+            raise ReplayError(f'--stamp-source must be header or receive, not {stamp_source!r}')
+        values['stamp_source'] = stamp_source
     result.parameters_from = source if source == 'the recording' else Path(source).name
 
     # Ticks: the node's own where possible.
@@ -462,7 +504,15 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             text = f'{output_path} already exists (use --overwrite to replace it)'
         raise ReplayError(text) from None
 
-    node = ReplayNode(values, recorder, inp.head_type, frame_types)
+    head_stamps = _head_stamps(inp)
+    clock_note = _foreign_clock(inp, head_stamps, values['stamp_source'])
+    if clock_note:
+        warn(clock_note)
+    node = ReplayNode(values, recorder, inp.head_type, frame_types,
+                      # A node recording replays as the node ran (a zero stamp: the receive
+                      # time); in another bag whose stamps are set, 0 is a stamp (sim clock).
+                      zero_stamp_valid=(inp.layout is None
+                                        and any(stamp for stamp, _ in head_stamps)))
     span = inp.span_ns() if progress is not None else None
     t_start = span[0] if span else None
     total_s = (span[1] - span[0]) * 1e-9 if span else None
@@ -494,7 +544,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     next_tick = None
     last_log = None
     try:
-        for topic, _, msg, log_ns in inp.reader.messages(wanted):
+        for topic, _, msg, log_ns in inp.messages(wanted):
             if mode == 'nominal' and next_tick is not None:
                 while next_tick < log_ns:
                     do_tick(next_tick)
@@ -530,6 +580,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             while next_tick <= last_log:
                 do_tick(next_tick)
                 next_tick += period_ns
+        if result.last_tick_ns is not None:
+            node.final_diagnostics(result.last_tick_ns)
     except BagError as exc:
         recorder.close()
         output_path.unlink(missing_ok=True)
@@ -541,6 +593,23 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
         output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
+    dropped = {k: v for k, v in node.runner.dropped.items() if v}
+    reasons = ', '.join(f'{v} {k}' for k, v in sorted(dropped.items()))
+    if result.ticks == 0:
+        output_path.unlink(missing_ok=True)
+        why = (f'all {result.head_samples} head poses were dropped ({reasons})' if dropped
+               else f'no tick had the inputs it needs ({", ".join(node.runner.missing_inputs())}'
+                    f' missing)')
+        raise ReplayError(f'{inp.path}: nothing simulated: {why}'
+                          + (f'; {clock_note}' if clock_note else ''))
+    if dropped:
+        warn(f'{inp.path}: {sum(dropped.values())} of {result.head_samples + result.frame_samples}'
+             f' input poses dropped ({reasons})')
+    if inp.reader.out_of_order:
+        warn(f'{inp.path}: {inp.reader.out_of_order} messages are stored out of log-time order; '
+             f'replayed in log-time order, as ros2 bag play does')
+    if inp.truncated and inp.reader.truncation:
+        inp.truncation = inp.reader.truncation
     if inp.truncated:
         warn(f'{inp.path}: replayed {result.head_samples} head poses and {result.ticks} ticks '
              f'(all that could be read)')
@@ -549,6 +618,39 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and t_start is not None:
         progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
     return result
+
+
+#: Head stamps further than this from their log times (median) are on another clock.
+FOREIGN_CLOCK_S = 5.0
+_STAMP_SAMPLE = 200
+
+
+def _head_stamps(inp: ReplayInput):
+    """(header stamp, log time) ns of the first head poses."""
+    out = []
+    for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
+        out.append((stamp_ns(msg.header.stamp), log_ns))
+        if len(out) >= _STAMP_SAMPLE:
+            break
+    return out
+
+
+def _foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[str]:
+    """A warning if the head stamps are on another clock than the log times (a bag stamped
+    by a simulator clock from 0, or from another epoch) and would be used (``stamp_source:
+    header``): the head motion would be estimated on one clock and simulated on the other."""
+    if stamp_source != 'header':
+        return None
+    pairs = [(s, l) for s, l in head_stamps if s]
+    if not pairs:
+        return None
+    offset = float(np.median([s - l for s, l in pairs])) * 1e-9
+    if abs(offset) <= FOREIGN_CLOCK_S:
+        return None
+    return (f'{inp.path}: the head pose stamps on {inp.head_topic} are {offset:+.6g} s off their '
+            f'log times (another clock: a simulator from 0, or another machine); the replay '
+            f'would be physically wrong. Use --stamp-source receive (stamp_source: receive in '
+            f'the params file) to time the poses by their log times')
 
 
 def _used_frame_names(values) -> set:
@@ -819,14 +921,14 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     if inp.note:
         warn(inp.note)
     if inp.truncated:
-        warn(f'{inp.path} is truncated; playing what can be read')
+        warn(inp.truncated_warning().replace('replaying', 'playing'))
     topics = {inp.head_topic: inp.head_type}
     if inp.layout is not None:
         topics.update({t: inp.topics[t] for t in inp.layout.frame_topics
                        if inp.topics.get(t) in HEAD_TYPES})
     try:
         samples = [(topic, msg, log_ns, stamp_ns(msg.header.stamp)) for topic, _, msg, log_ns
-                   in inp.reader.messages(topics)]
+                   in inp.messages(topics)]
     except BagError as exc:
         raise ReplayError(str(exc)) from None
     if not any(topic == inp.head_topic for topic, *_ in samples):
