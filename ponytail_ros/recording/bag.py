@@ -737,7 +737,8 @@ class BagReader:
         return topics
 
     def messages(self, topics: Union[None, str, Iterable[str], Mapping[str, Union[str, type]]]
-                 = None, order: str = 'log_time') -> Iterator[Tuple[str, str, Any, int]]:
+                 = None, order: str = 'log_time', raw: bool = False
+                 ) -> Iterator[Tuple[str, str, Any, int]]:
         """Yield ``(topic, 'pkg/msg/Type', deserialised message, log_time_ns)``.
 
         Args:
@@ -746,6 +747,11 @@ class BagReader:
             order: ``'log_time'`` (default): by log time, ties in file order, as rosbag2 plays
                 a bag; messages stored out of that order are counted in :attr:`out_of_order`.
                 ``'file'``: in the order they were written.
+            raw: yield the CDR bytes instead of deserialised messages (no message class
+                needed).
+
+        With ``topics`` None, topics whose message type is not installed (``tf2_msgs`` with
+        the PyPI wheels) are left out unless ``raw``.
 
         Raises:
             BagError: a requested topic is not in the bag, was recorded with another type, or
@@ -756,6 +762,12 @@ class BagReader:
         recorded = self.topics()
         if topics is None:
             wanted = set(recorded)
+            if not raw:
+                for name in list(wanted):
+                    try:
+                        _message_class(recorded[name])
+                    except BagError:
+                        wanted.discard(name)
         else:
             expected = (dict(topics) if isinstance(topics, Mapping)
                         else dict.fromkeys([topics] if isinstance(topics, str) else topics))
@@ -768,7 +780,10 @@ class BagReader:
                     raise BagError(f'{self.path}: topic {name} holds {recorded[name]}, '
                                    f'not {_type_string(msg_type)}')
             wanted = set(expected)
-        classes = {name: _message_class(recorded[name]) for name in wanted}
+        classes = {} if raw else {name: _message_class(recorded[name]) for name in wanted}
+
+        def decode(data, name):
+            return bytes(data) if raw else deserialize_message(data, classes[name])
 
         # Log-time order with bounded memory: the earliest log time any later chunk may hold
         # (each chunk's message_start_time, suffix minimum) says which buffered messages are
@@ -793,7 +808,7 @@ class BagReader:
         def due(limit):
             while pending and pending[0][0] <= limit:
                 log_time, _, name, type_name, data = heapq.heappop(pending)
-                yield name, type_name, deserialize_message(data, classes[name]), log_time
+                yield name, type_name, decode(data, name), log_time
 
         for offset, record in self._scan():
             if isinstance(record, Schema):
@@ -811,8 +826,7 @@ class BagReader:
                     self.out_of_order += 1
                 newest = max(newest, record.log_time)
                 if order == 'file':
-                    yield (name, type_name, deserialize_message(record.data, classes[name]),
-                           record.log_time)
+                    yield name, type_name, decode(record.data, name), record.log_time
                     continue
                 yield from due(bound.get(offset, -1))
                 heapq.heappush(pending, (record.log_time, sequence, name, type_name,

@@ -7,6 +7,7 @@ Usage::
                     [--ticks auto|recorded|nominal] [--overwrite] [--quiet]
     ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
     ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
+    ponytail_replay repair IN.mcap OUT.mcap [--overwrite]    (a killed or damaged recording)
 
 Offline replay (no ROS graph, no sleeping; as fast as the machine allows): the head poses
 (``geometry_msgs/msg/PoseStamped`` or ``TransformStamped``) of any rosbag2 MCAP file -- one
@@ -345,25 +346,59 @@ class ReplayResult:
 
 
 class _Progress:
-    """A one-line text progress bar on a TTY (stderr)."""
+    """A progress bar with ETA on a terminal (stderr): tqdm when installed (the ``pypi`` extra),
+    else one line of text. Called as ``progress(done_s, total_s_or_None, final=False)``."""
 
     def __init__(self, stream):
         self.stream = stream
         self.wall0 = time.perf_counter()
         self.last = 0.0
+        self.bar = None
+        self.done = 0.0
+        try:
+            import tqdm  # noqa: F401
+            self.tqdm = True
+        except ImportError:
+            self.tqdm = False
 
     def __call__(self, done_s: float, total_s: Optional[float] = None,
                  final: bool = False) -> None:
+        if self.tqdm:
+            self._tqdm(done_s, total_s, final)
+        else:
+            self._text(done_s, total_s, final)
+
+    def _tqdm(self, done_s, total_s, final):
+        from tqdm import tqdm
+        if self.bar is None:
+            self.bar = tqdm(total=round(total_s, 3) if total_s else None, file=self.stream,
+                            unit='s', unit_scale=False, desc='replay (simulated s)',
+                            dynamic_ncols=True, mininterval=0.1,
+                            bar_format='{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} '
+                                       '[{elapsed}<{remaining}, {rate_fmt}]' if total_s else None)
+        done_s = max(done_s, self.done)
+        if total_s:
+            done_s = min(done_s, self.bar.total)
+        self.bar.update(done_s - self.done)
+        self.done = done_s
+        if final:
+            self.bar.close()
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+    def _text(self, done_s, total_s, final):
         now = time.perf_counter()
         if not final and now - self.last < 0.1:
             return
         self.last = now
-        self.total = total_s
         wall = max(now - self.wall0, 1e-9)
-        if self.total:
-            frac = min(max(done_s / self.total, 0.0), 1.0)
+        if total_s:
+            frac = min(max(done_s / total_s, 0.0), 1.0)
             bar = '#' * int(30 * frac) + '-' * (30 - int(30 * frac))
-            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{self.total:.1f} s'
+            eta = wall * (1 - frac) / frac if frac > 0 else float('nan')
+            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{total_s:.1f} s, ETA {eta:.0f} s'
         else:
             text = f'{done_s:7.1f} s'
         self.stream.write(f'\r{text}  {done_s / wall:6.1f}x real time')
@@ -377,7 +412,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: str = '') -> ReplayResult:
+           tf_prefix: Optional[str] = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -391,7 +426,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         stamp_source: ``'header'`` or ``'receive'`` over the parameters' ``stamp_source``
             (head stamps on another clock than the log times need ``'receive'``).
         tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
-            ``<tf_prefix><chain>/<i>``.
+            ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
 
     Raises:
         ReplayError: bad input or options (one-line message naming the file and topic), a
@@ -431,6 +466,11 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             raise ReplayError(f'--stamp-source must be header or receive, not {stamp_source!r}')
         values['stamp_source'] = stamp_source
     result.parameters_from = source if source == 'the recording' else Path(source).name
+
+    head_stamps = _head_stamps(inp)
+    clock_note = _foreign_clock(inp, head_stamps, values['stamp_source'])
+    if clock_note:
+        warn(clock_note)
 
     # Ticks: the node's own where possible.
     tick_topic = inp.tick_topic()
@@ -495,7 +535,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         recorder = RunRecorder(
             output_path, layout, parameters, head_type=inp.head_type, frame_types=frame_types,
             overwrite=overwrite,
-            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS,
+            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, tf=tf,
+            tf_prefix=(tf_prefix if tf_prefix is not None
+                       else inp.metadata.get(RECORDING_METADATA, {}).get('tf_prefix', '')),
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
                   'parameters_from': result.parameters_from})
     except BagError as exc:
@@ -504,10 +546,6 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             text = f'{output_path} already exists (use --overwrite to replace it)'
         raise ReplayError(text) from None
 
-    head_stamps = _head_stamps(inp)
-    clock_note = _foreign_clock(inp, head_stamps, values['stamp_source'])
-    if clock_note:
-        warn(clock_note)
     node = ReplayNode(values, recorder, inp.head_type, frame_types,
                       # A node recording replays as the node ran (a zero stamp: the receive
                       # time); in another bag whose stamps are set, 0 is a stamp (sim clock).
@@ -628,10 +666,13 @@ _STAMP_SAMPLE = 200
 def _head_stamps(inp: ReplayInput):
     """(header stamp, log time) ns of the first head poses."""
     out = []
-    for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
-        out.append((stamp_ns(msg.header.stamp), log_ns))
-        if len(out) >= _STAMP_SAMPLE:
-            break
+    try:
+        for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
+            out.append((stamp_ns(msg.header.stamp), log_ns))
+            if len(out) >= _STAMP_SAMPLE:
+                break
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
     return out
 
 
@@ -996,10 +1037,13 @@ def _parser():
     p = argparse.ArgumentParser(
         prog='ponytail_replay',
         description='Re-simulate a recording offline (-o), compare two runs (compare / '
-                    '--compare) or play its head poses into a running graph (--live).',
+                    '--compare), play its head poses into a running graph (--live), or repair a '
+                    'cut-short or damaged recording (repair IN OUT).',
         epilog='Examples:  ponytail_replay run.mcap -o replayed.mcap --params config/ponytail.yaml'
                '   |   ponytail_replay compare run.mcap replayed.mcap --plot diff.png'
-               '   |   ponytail_replay --live run.mcap')
+               '   |   ponytail_replay --live run.mcap'
+               '   |   ponytail_replay repair killed.mcap fixed.mcap.  Exit status: 0 done, 2 bad '
+               'or damaged input (one line naming the file and the problem), 1 unexpected error.')
     p.add_argument('inputs', nargs='+', metavar='INPUT.mcap',
                    help='the recording (two with --compare)')
     p.add_argument('-o', '--output', metavar='OUTPUT.mcap', help='replay: the new recording')
@@ -1010,8 +1054,17 @@ def _parser():
     p.add_argument('--ticks', choices=('auto', 'recorded', 'nominal'), default='auto',
                    help='tick at the node\'s recorded tick times or every 1/rate s (default '
                         'auto: recorded when available and the rate is unchanged)')
+    p.add_argument('--stamp-source', choices=('header', 'receive'),
+                   help='time head poses by their header stamps or their log (receive) times, '
+                        'over the parameters\' stamp_source (receive: stamps on another clock)')
+    p.add_argument('--no-tf', action='store_true',
+                   help='replay: do not record the segments as TF frames on /tf')
+    p.add_argument('--tf-prefix', metavar='PREFIX',
+                   help='replay: TF frames are PREFIX<chain>/<i> (default: as recorded, else '
+                        'none)')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUTPUT')
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no summary')
+    p.add_argument('-q', '--quiet', action='store_true',
+                   help='no progress bar, no summary, no warnings')
     p.add_argument('--compare', action='store_true', help='compare two recordings A B')
     p.add_argument('--plot', metavar='OUT.png', help='compare: also plot (matplotlib)')
     p.add_argument('--live', action='store_true',
@@ -1027,9 +1080,42 @@ def _parser():
     return p
 
 
+def _repair_parser():
+    p = argparse.ArgumentParser(
+        prog='ponytail_replay repair',
+        description='Rewrite a recording cut short (a killed writer: no summary, index or '
+                    'footer) or damaged (changed bytes) as a complete, indexed MCAP file that '
+                    'every reader opens (rosbags, mcap, ros2 bag), keeping every intact record '
+                    'and saying what was lost.')
+    p.add_argument('input', metavar='IN.mcap')
+    p.add_argument('output', metavar='OUT.mcap')
+    p.add_argument('--overwrite', action='store_true', help='replace an existing OUT')
+    p.add_argument('-q', '--quiet', action='store_true', help='no summary')
+    return p
+
+
+def _check_plot_path(path) -> Optional[str]:
+    """Why ``--plot`` cannot be written there, or None."""
+    out = Path(path)
+    if out.is_dir():
+        return f'--plot {out}: is a directory, give a file name (e.g. diff.png)'
+    if not out.parent.is_dir():
+        return f'--plot {out}: folder {out.parent} does not exist'
+    if not os.access(out.parent, os.W_OK):
+        return f'--plot {out}: folder {out.parent} is not writable'
+    return None
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``ponytail_replay``; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+
+    def error(text):
+        print(f'ponytail_replay: error: {text}', file=sys.stderr)
+        return 2
+
+    if argv and argv[0] == 'repair':
+        return _main_repair(argv[1:], error)
     if argv and argv[0] == 'compare':
         argv = ['--compare'] + argv[1:]
     parser = _parser()
@@ -1037,20 +1123,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if ros_args and not args.live:
         parser.error(f'unrecognized arguments: {" ".join(ros_args)}')
 
-    def error(text):
-        print(f'ponytail_replay: error: {text}', file=sys.stderr)
-        return 2
-
     def warn(text):
-        print(f'ponytail_replay: warning: {text}', file=sys.stderr)
+        if not args.quiet:
+            print(f'ponytail_replay: warning: {text}', file=sys.stderr)
 
     modes = sum((args.compare, args.live, args.output is not None))
     if modes != 1:
         parser.error('give exactly one of -o OUTPUT (replay), --compare A B, --live INPUT')
+    progress = None
     try:
         if args.compare:
             if len(args.inputs) != 2:
                 parser.error('--compare takes two recordings: A B')
+            if args.plot:
+                problem = _check_plot_path(args.plot)
+                if problem:
+                    return error(problem)
             comps, *_, values_a, values_b = compare(*args.inputs)
             print(format_comparison(args.inputs[0], args.inputs[1], comps, values_a, values_b))
             if args.plot:
@@ -1058,6 +1146,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     print(f'plot: {plot_comparison(comps, args.plot)}')
                 except ImportError:
                     return error('--plot needs matplotlib (pip install matplotlib)')
+                except (OSError, ValueError) as exc:
+                    return error(f'--plot {args.plot}: cannot write it: '
+                                 f'{getattr(exc, "strerror", None) or exc}')
             return 0
         if len(args.inputs) != 1:
             parser.error('give one input recording')
@@ -1066,7 +1157,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        progress=progress, warn=None if args.quiet else warn)
+                        progress=progress, warn=warn, stamp_source=args.stamp_source,
+                        tf=not args.no_tf, tf_prefix=args.tf_prefix)
         if not args.quiet:
             print(result.summary(args.inputs[0]))
         return 0
@@ -1074,6 +1166,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return error(exc)
     except KeyboardInterrupt:
         return 130
+    finally:
+        if progress is not None:
+            progress.close()
+
+
+def _main_repair(argv, error) -> int:
+    from .repair import RepairError, repair
+    args = _repair_parser().parse_args(argv)
+    try:
+        result = repair(args.input, args.output, overwrite=args.overwrite)
+    except RepairError as exc:
+        return error(exc)
+    for problem in result.damage:
+        print(f'ponytail_replay: warning: {args.input}: skipped a damaged part: '
+              f'{problem.describe(result.input_size)}', file=sys.stderr)
+    if not args.quiet:
+        print(result.summary(args.input))
+    return 0
 
 
 def _main_live(args, ros_args, warn, error) -> int:
