@@ -29,7 +29,8 @@ __all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
            'closest_name', 'IGNORED_NAMES']
 
 #: Parameters a node has that do not change the simulation (accepted and ignored offline).
-IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service'})
+IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service',
+                           'tf.publish', 'tf.prefix'})
 
 
 def default_values(chains, colliders=(), frames=()) -> Dict[str, Any]:
