@@ -172,3 +172,47 @@ def test_tf_publish_asked_for_without_tf2_msgs_is_said_once(ros_context):
     finally:
         asked.destroy_node()
         default.destroy_node()
+
+
+# -- progress -------------------------------------------------------------------------------------
+
+
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is written."""
+
+    def __init__(self):
+        self.text = ''
+
+    def write(self, s):
+        self.text += s
+        return len(s)
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return True
+
+
+@pytest.mark.parametrize('quiet', [False, True])
+def test_replay_shows_a_progress_bar_on_a_terminal_unless_quiet(tmp_path, monkeypatch, quiet):
+    pytest.importorskip('tqdm')
+    from ponytail_ros.recording.replay import main
+    bag = rosbags_bag(tmp_path, 'in', head_samples(150))
+    term = _Terminal()
+    monkeypatch.setattr(sys, 'stderr', term)
+    code = main([str(bag), '-o', str(tmp_path / 'out.mcap')] + (['--quiet'] if quiet else []))
+    assert code == 0
+    if quiet:
+        assert term.text == ''
+    else:
+        final = term.text.replace('\r', '\n').strip().splitlines()[-1]
+        assert final.startswith('replay (simulated s): 100%|') and '1.5/1.5' in final
+        assert '<00:00' in final          # the ETA field
+
+
+def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
+    from ponytail_ros.recording.replay import main
+    bag = rosbags_bag(tmp_path, 'in', head_samples(150))
+    assert main([str(bag), '-o', str(tmp_path / 'out.mcap')]) == 0
+    assert 'replay (simulated s)' not in capsys.readouterr().err

@@ -53,9 +53,31 @@ recorded log times before each pose and at ``--clock-rate`` Hz in between, for n
 ``use_sim_time:=true``. For a node on the system clock use ``--no-clock --restamp`` (or its
 ``stamp_source:=receive``).
 
-Exit status: 0 on success, 2 on bad input (one line on stderr naming the file and topic: not an
-MCAP file, no such topic, not a head pose type, invalid parameters), 1 on an unexpected error. A
-truncated input (a recording whose writer was killed) replays what can be read, with a warning.
+Nothing is lost or wrong in silence:
+
+* a **damaged** input (changed bytes: a chunk or data-section CRC mismatch, a record that does
+  not fit its length) is refused with the byte offset and the problem (``BagReader``); ``repair``
+  keeps every intact record in a new file;
+* a **truncated** input (a recording whose writer was killed) replays what can be read, with a
+  warning saying where it is cut; ``repair`` makes it a complete, indexed file (``repair.py``);
+* a bag not written by the node is replayed in **log-time order** (as ``ros2 bag play``), with a
+  warning if it was stored out of that order; the node's own recordings in file order (the order
+  the node handled the messages);
+* head stamps on **another clock** than the log times (median offset over 5 s) are said on the
+  terminal with the fix, ``--stamp-source receive``; in such a bag a first stamp of exactly 0 is
+  a stamp, not "no stamp";
+* unknown ``--params`` names are warned with the closest known name; dropped input poses are
+  counted on the terminal; the last (partial) diagnostics period is written; a run in which
+  nothing could be simulated (every pose dropped) is an error saying why.
+
+Every recording and replay output also holds the segments as TF frames on ``/tf``
+(``--tf-prefix``, ``--no-tf``; ``tf.py``). On a terminal a progress bar (tqdm) shows the
+simulated time and the ETA; ``--quiet`` silences it, the summary and the warnings.
+
+Exit status: 0 on success (warnings on stderr), 2 on bad or damaged input (one line on stderr
+naming the file and the problem: not an MCAP file, damaged, truncated before the head topic, no
+such topic, not a head pose type, invalid parameters, nothing simulated), 1 on an unexpected
+error.
 """
 from __future__ import annotations
 
