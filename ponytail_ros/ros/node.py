@@ -523,6 +523,16 @@ class PonytailNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self._diag_pub.publish(msg)
+        if 'clocks differ' in msg.status[0].message:
+            # Said on the terminal too, with the fix, not only inside /diagnostics.
+            age = next((kv.value for kv in msg.status[0].values
+                        if kv.key == 'head input age (s)'), '?')
+            self._log_throttled(
+                'clock', 30.0, 'warning',
+                f'Head pose stamps on {self._input_topics["head"]} are {age} s off this node\'s '
+                f'clock (another clock: a simulator, another machine, use_sim_time on one side '
+                f'only): the motion is estimated wrongly. Fix: stamp_source:=receive (time poses '
+                f'by their arrival), or run both on the same clock (use_sim_time)')
 
     def destroy_node(self):
         """Finalise the recording (if any), then destroy the node."""
