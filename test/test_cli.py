@@ -216,3 +216,36 @@ def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
     bag = rosbags_bag(tmp_path, 'in', head_samples(150))
     assert main([str(bag), '-o', str(tmp_path / 'out.mcap')]) == 0
     assert 'replay (simulated s)' not in capsys.readouterr().err
+
+
+def test_head_stamps_on_another_clock_are_said_on_the_terminal_with_the_fix(ros_context, capfd):
+    from geometry_msgs.msg import PoseStamped
+    from test_node import overrides
+    node = PonytailNode(context=ros_context, parameter_overrides=overrides())
+    tester = rclpy.create_node('tester', context=ros_context)
+    pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(tester)
+
+    def publish():   # stamps from a simulator clock that started 1000 s ago
+        m = PoseStamped()
+        m.header.frame_id = 'world'
+        t = tester.get_clock().now().nanoseconds - 1000 * 10**9
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t, 10**9)
+        m.pose.orientation.w = 1.0
+        pub.publish(m)
+    tester.create_timer(0.01, publish)
+    said = ''
+    try:
+        def warned():
+            nonlocal said
+            said += capfd.readouterr().err
+            return 'off this node\'s clock' in said
+        assert spin_until(executor, warned, 10.0)
+    finally:
+        executor.shutdown()
+        tester.destroy_node()
+        node.destroy_node()
+    line = next(x for x in said.splitlines() if "off this node's clock" in x)
+    assert '/head_pose' in line and 'stamp_source:=receive' in line and '1000.' in line
