@@ -100,7 +100,8 @@ class HeadDemoNode(Node):
         self._pub.publish(msg)
 
 
-HELP = f"""usage: ponytail_head_demo [-h] [--ros-args -p rate:=60.0 -p motion:=script -r __ns:=/alice]
+HELP = f"""usage: ponytail_head_demo [-h] [--ros-args -p rate:=60.0 -p motion:=script
+                          -r __ns:=/alice]
 
 {__doc__.split(chr(10), 1)[1].strip()}
 
