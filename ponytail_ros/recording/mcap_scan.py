@@ -327,8 +327,8 @@ class McapScan:
     def chunk_start_times(self) -> List[Tuple[int, int]]:
         """``(offset, log time)`` for each unit of messages in file order (a chunk, or a
         message outside chunks): the earliest log time it claims (``message_start_time``; 0
-        for a chunk without messages): a quick walk that reads only record headers. Stops quietly where
-        :meth:`records` would report a problem.
+        for a chunk without messages): a quick walk that reads only record headers. Stops
+        quietly where :meth:`records` would report a problem.
         """
         out: List[Tuple[int, int]] = []
         with self.path.open('rb') as f:
