@@ -395,3 +395,27 @@ def test_repair_refuses_to_overwrite_and_names_the_file(tmp_path, capsys):
     code, _, err = run(['repair', bag, out], capsys)
     assert code == 2 and len(err) == 1 and str(out) in err[0] and 'already exists' in err[0]
     assert out.read_bytes() == b'keep me'
+
+
+def test_repair_finds_the_next_chunk_after_a_chunk_with_a_broken_length(tmp_path, capsys):
+    samples = head_samples()
+    bag = mcap_bag(tmp_path / 'in.mcap', samples)
+    with open(bag, 'rb') as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 4
+    broken = chunks[1]
+    raw = bytearray(bag.read_bytes())
+    assert raw[broken.chunk_start_offset] == 0x06
+    struct.pack_into('<Q', raw, broken.chunk_start_offset + 1, 2**40)
+    bag.write_bytes(bytes(raw))
+    code, _, err = run([bag, '-o', tmp_path / 'out.mcap'], capsys)
+    assert code == 2 and len(err) == 1 and str(bag) in err[0]
+    assert f'damaged at byte {broken.chunk_start_offset}' in err[0]
+    fixed = tmp_path / 'fixed.mcap'
+    code, out, err = run(['repair', bag, fixed], capsys)
+    assert code == 0 and len(err) == 1
+    assert f'skipped {chunks[2].chunk_start_offset - broken.chunk_start_offset} bytes' in err[0]
+    kept = [log for _, _, _, log in BagReader(fixed).messages()]
+    expected = [log for log, _ in samples
+                if not broken.message_start_time <= log <= broken.message_end_time]
+    assert kept == expected and len(kept) < N_POSES
