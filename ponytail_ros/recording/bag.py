@@ -31,7 +31,13 @@ wall time. If the process is killed (SIGKILL, a crash), every chunk pushed befor
 and :class:`BagReader` reads it back; what is lost is the chunk being built -- messages within
 ``chunk_duration_ns`` of log time (default 0.5 s) of the end -- plus any messages still queued
 for the writer thread (normally none: the thread keeps up unless the disk stalls). Data is not
-``fsync``-ed, so this bound covers the death of the process, not of the machine.
+``fsync``-ed, so this bound covers the death of the process, not of the machine. Such a file has
+no summary or index: ``ponytail_replay repair`` rewrites it as a complete, indexed file that
+indexed readers (``rosbags``, mcap's ``SeekingReader``) open too.
+
+Reading (:class:`BagReader`) checks every record (``mcap_scan.py``): a damaged file (chunk or
+data-section CRC mismatch, a record that does not fit its length) is an error naming the byte,
+never a shorter file; a cut-short one is read up to the cut and says where it is cut.
 
 Signals: :meth:`BagWriter.close` is idempotent and safe to call from a signal handler, a
 ``finally`` block or ``atexit`` (every writer registers it with ``atexit``, so a normal

@@ -24,7 +24,18 @@ Topics (all relative, so a namespace per character scales out; no global state):
   solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state
   and each frame's (``frame <name>``: none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
-  name carries the namespace.
+  name carries the namespace;
+* publishes ``/tf`` (``tf2_msgs/TFMessage``) when ``tf2_msgs`` is importable (a sourced ROS 2
+  workspace; the PyPI wheels lack it) and ``tf.publish`` (default true): each segment as the frame
+  ``<tf.prefix><chain>/<i>``, child of the head pose's frame, every tick. Without ``tf2_msgs``
+  nothing is published (said once if ``tf.publish`` was set explicitly); recordings hold ``/tf``
+  either way.
+
+Start-up says on the terminal: parameter-file or ``-p`` names that are no parameter of the node
+(with the closest known name), ``tf.publish`` without ``tf2_msgs``, another node with the same
+name in the same namespace (it doubles every topic; checked for the first 5 s). Live changes
+naming no parameter, or of the wrong type, are refused with a reason in words; head stamps on
+another clock than the node's are said on the terminal with the fix (``stamp_source:=receive``).
 
 Each tick advances the chains by the clock's elapsed time (``use_sim_time`` and ``/clock`` work;
 late or skipped timer periods are caught up, at most ``solver.max_steps_per_call`` steps). The
