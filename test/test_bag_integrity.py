@@ -419,3 +419,27 @@ def test_repair_finds_the_next_chunk_after_a_chunk_with_a_broken_length(tmp_path
     expected = [log for log, _ in samples
                 if not broken.message_start_time <= log <= broken.message_end_time]
     assert kept == expected and len(kept) < N_POSES
+
+
+@pytest.mark.parametrize('compression', [CompressionType.ZSTD, CompressionType.LZ4])
+def test_compressed_chunks_are_read_whole_and_checked(tmp_path, compression):
+    samples = head_samples(200)
+    path = tmp_path / 'c.mcap'
+    with open(path, 'wb') as f:
+        w = McapWriter(f, chunk_size=2048, compression=compression)
+        w.start(profile='ros2', library='test')
+        sid = w.register_schema('geometry_msgs/msg/PoseStamped', 'ros2msg',
+                                message_definition('geometry_msgs/msg/PoseStamped').encode())
+        cid = w.register_channel(HEAD, 'cdr', sid)
+        for k, (log_ns, data) in enumerate(samples):
+            w.add_message(cid, log_ns, data, log_ns, k)
+        w.finish()
+    got = [(log, bytes(data)) for _, _, data, log in BagReader(path).messages(raw=True)]
+    assert got == [(log, bytes(data)) for log, data in samples]
+    with open(path, 'rb') as f:
+        chunk = make_reader(f).get_summary().chunk_indexes[3]
+    raw = bytearray(path.read_bytes())
+    raw[chunk.chunk_start_offset + chunk.chunk_length - 5] ^= 0xFF   # inside its compressed data
+    path.write_bytes(bytes(raw))
+    with pytest.raises(BagError, match=f'damaged at byte {chunk.chunk_start_offset}'):
+        list(BagReader(path).messages(raw=True))

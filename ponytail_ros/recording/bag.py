@@ -691,6 +691,8 @@ class BagReader:
         return self._finished
 
     def _damaged(self, exc: ScanError) -> BagError:
+        if exc.problem.kind != 'damaged':
+            return BagError(f'{self.path} is {exc}')
         return BagError(f'{self.path} is {exc}; replaying it would use or skip corrupt data. '
                         f'"ponytail_replay repair {self.path} FIXED.mcap" keeps every intact '
                         f'record')

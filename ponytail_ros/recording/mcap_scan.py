@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Iterator, List, Optional, Tuple, Union
 
 from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
+from mcap.exceptions import McapError, UnsupportedCompressionError
 from mcap.opcode import Opcode
 from mcap.records import (
     Attachment, AttachmentIndex, Channel, Chunk, ChunkIndex, DataEnd, Footer, Header,
@@ -57,7 +57,8 @@ _RESYNC_WINDOW = 256 * 1024 * 1024
 
 @dataclass(frozen=True)
 class Problem:
-    """What is wrong at ``offset`` (bytes): ``kind`` ``'truncated'`` or ``'damaged'``."""
+    """What is wrong at ``offset`` (bytes): ``kind`` ``'truncated'``, ``'damaged'`` or
+    ``'unreadable'`` (intact, but needs a decompressor that is not installed)."""
 
     kind: str
     offset: int
@@ -243,7 +244,13 @@ class McapScan:
                 from mcap.stream_reader import get_chunk_data_stream
                 stream, n = get_chunk_data_stream(chunk)
                 data = stream.read(n)
-        except Exception as exc:  # noqa: BLE001 - any decompression failure is damage
+        except UnsupportedCompressionError:
+            package = {'zstd': 'zstandard', 'lz4': 'lz4'}.get(chunk.compression)
+            raise ScanError(Problem(
+                'unreadable', offset, f'its chunks are compressed with {chunk.compression!r}'
+                + (f', which needs the Python package {package} (pip install {package})'
+                   if package else ', which mcap does not support')), self.size) from None
+        except Exception as exc:  # noqa: BLE001 - any other decompression failure is damage
             self._damaged(offset, f'chunk does not decompress ({chunk.compression}: {exc})',
                           skip)
             return None
