@@ -443,3 +443,15 @@ def test_compressed_chunks_are_read_whole_and_checked(tmp_path, compression):
     path.write_bytes(bytes(raw))
     with pytest.raises(BagError, match=f'damaged at byte {chunk.chunk_start_offset}'):
         list(BagReader(path).messages(raw=True))
+
+
+def test_repair_of_a_bag_cut_inside_its_only_chunk_says_nothing_was_recoverable(tmp_path,
+                                                                               capsys):
+    bag = rosbags_bag(tmp_path, 'in', head_samples())
+    raw = bag.read_bytes()
+    bag.write_bytes(raw[:int(len(raw) * 0.6)])
+    out = tmp_path / 'fixed.mcap'
+    code, _, err = run(['repair', bag, out], capsys)
+    assert code == 2 and len(err) == 1 and str(bag) in err[0]
+    assert 'no message could be recovered' in err[0] and 'truncated at byte' in err[0]
+    assert not out.exists()

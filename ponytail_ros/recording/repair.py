@@ -76,8 +76,8 @@ def repair(input_path: Union[str, os.PathLike], output_path: Union[str, os.PathL
     """Rewrite ``input_path`` as a complete, indexed MCAP file ``output_path``.
 
     Raises:
-        RepairError: the input is missing or not MCAP, the output is the input, exists (and not
-            ``overwrite``) or cannot be written.
+        RepairError: the input is missing or not MCAP, holds no recoverable message, the output
+            is the input, exists (and not ``overwrite``) or cannot be written.
     """
     src, dst = Path(input_path), Path(output_path)
     if not src.is_file():
@@ -103,6 +103,11 @@ def repair(input_path: Union[str, os.PathLike], output_path: Union[str, os.PathL
         raise RepairError(f'repairing {src} into {dst} failed: {exc}') from None
     result.truncation, result.damage = scan.truncation, list(scan.damage)
     result.was_complete = scan.truncation is None and not scan.damage and scan.footer_seen
+    if result.messages == 0 and not result.was_complete:
+        dst.unlink(missing_ok=True)
+        problems = ([scan.truncation] if scan.truncation else []) + list(scan.damage)
+        raise RepairError(f'{src}: no message could be recovered ('
+                          + '; '.join(p.describe(scan.size) for p in problems) + ')')
     return result
 
 
