@@ -299,7 +299,7 @@ while True:
         p.position.x, p.orientation.w = i * 1e-3 + k * 0.1, 1.0
     rec.poses(0, a, t)
     i += 1
-    if not announced and path.stat().st_size > 40_000:
+    if not announced and path.stat().st_size > 120_000:
         print('ready', flush=True)      # several chunks are on disk; keep writing
         announced = True
 '''
