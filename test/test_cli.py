@@ -55,6 +55,8 @@ def test_replay_repair_has_help_too():
      ['--plot /no/such/dir/x.png', 'folder /no/such/dir does not exist']),
     ('ponytail_replay', ['/no/such/in.mcap', '-o', '/tmp/never.mcap'],
      ['/no/such/in.mcap']),
+    ('ponytail_demo', ['--config', '/no/such.yaml'], ['--config /no/such.yaml', 'no such file']),
+    ('ponytail_demo', ['--duration', '-1'], ['--duration -1', 'must be > 0']),
 ])
 def test_bad_input_is_one_line_naming_it_and_exit_2(program, args, words):
     done = run_module(EXECUTABLES[program], *args)
