@@ -366,8 +366,17 @@ def test_a_sigkilled_recording_is_repaired_into_a_file_rosbags_and_mcap_index_re
     # The final rosbag2 metadata counts what was kept (ros2 bag info).
     bag = yaml.safe_load(BagReader(fixed).metadata()['rosbag2']['serialized_metadata'])
     assert bag['message_count'] == len(readable)
-    # ... and the repaired file replays without a truncation warning.
+    # ... and the repaired file is complete, and replays exactly as the cut one did, without
+    # the truncation warning.
     assert BagReader(fixed).check() is None
+    code, _, err_cut = run([killed, '-o', tmp_path / 'cut_replay.mcap'], capsys)
+    assert code == 0 and any('truncated at byte' in e for e in err_cut)
+    code, _, err_fixed = run([fixed, '-o', tmp_path / 'fixed_replay.mcap'], capsys)
+    assert code == 0 and not any('truncated' in e for e in err_fixed)
+    a = pose_arrays(tmp_path / 'cut_replay.mcap')
+    b = pose_arrays(tmp_path / 'fixed_replay.mcap')
+    assert len(a) > 20 and [t for t, _ in a] == [t for t, _ in b]
+    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(a, b))
 
 
 def test_repair_skips_a_damaged_chunk_keeps_the_rest_and_says_so(tmp_path, capsys):
