@@ -665,7 +665,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if dropped:
         warn(f'{inp.path}: {sum(dropped.values())} of {result.head_samples + result.frame_samples}'
              f' input poses dropped ({reasons})')
-    if inp.reader.out_of_order:
+    if inp.reader.out_of_order and inp.order == 'log_time':
         warn(f'{inp.path}: {inp.reader.out_of_order} messages are stored out of log-time order; '
              f'replayed in log-time order, as ros2 bag play does')
     if inp.truncated and inp.reader.truncation:
