@@ -34,7 +34,8 @@ setup(
     # so that a sourced workspace does not try to pull PyPI wheels over the system ROS install.
     install_requires=['setuptools'],
     extras_require={
-        'pypi': ROS_WHEELS + CORE,
+        # tqdm: ponytail_replay's progress bar (a plain text line without it)
+        'pypi': ROS_WHEELS + CORE + ['tqdm'],
         'plot': ['matplotlib'],
         'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib', 'ruff', 'mypy'],
         'bench': ['mujoco'],

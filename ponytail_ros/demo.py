@@ -144,11 +144,33 @@ def main(argv=None):
     parser.add_argument('--duration', type=float, default=20.0, help='wall seconds (default 20)')
     parser.add_argument('--config', default=None, help='parameters file (default ponytail.yaml)')
     parser.add_argument('--out', default='out', help='output folder (default out/)')
+    parser.epilog = ('Exit status: 0 done, 1 no segment poses received, 2 bad input (one line '
+                     'naming it).')
     args = parser.parse_args(argv)
+
+    def error(text):
+        print(f'ponytail_demo: error: {text}', file=sys.stderr)
+        return 2
+    if not 0.0 < args.duration <= 86400.0:
+        return error(f'--duration {args.duration:g}: must be > 0 and <= 86400 s')
     config = Path(args.config) if args.config else config_path('ponytail.yaml')
+    if not config.is_file():
+        return error(f'--config {config}: no such file')
     print(f'Running the head demo and ponytail_node for {args.duration:g} s ({config}) ...',
           flush=True)
-    data = run_demo(args.duration, config)
+    from rclpy.exceptions import ParameterException
+    from ponytail_ros.ros.parameters import ParameterError
+    from ponytail_ros.ros.spin import describe_error
+    try:
+        data = run_demo(args.duration, config)
+    except (ParameterError, ParameterException) as err:
+        return error(f'invalid parameters in {config}: {describe_error(err)}')
+    except KeyboardInterrupt:
+        return 130
+    except Exception as err:  # noqa: BLE001 - rclpy.init refusing the params file (RCLError)
+        if type(err).__name__ != 'RCLError':
+            raise
+        return error(f'cannot start with {config}: {describe_error(err)}')
     if len(data['t']) < 2:
         print('no segment poses were received', file=sys.stderr)
         return 1

@@ -60,6 +60,7 @@ TYPES = {
     '/segment_markers': 'visualization_msgs/msg/MarkerArray',
     '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
     '/parameter_events': 'rcl_interfaces/msg/ParameterEvent',
+    '/tf': 'tf2_msgs/msg/TFMessage',
 }
 
 
@@ -190,7 +191,9 @@ def test_node_recording_holds_what_the_node_published_and_received(live_run):
     assert meta[RECORDING_METADATA]['source'] == 'ponytail_node'
     assert meta[RECORDING_METADATA]['tick_topic'] == '/segment_poses'
     bag = yaml.safe_load(meta['rosbag2']['serialized_metadata'])
-    assert bag['message_count'] == sum(len(v) for v in rec.values())
+    # every message, /tf too (one per tick: as many as PoseArrays)
+    assert bag['message_count'] == sum(len(v) for v in rec.values()) + len(rec['/segment_poses'])
+    assert bag['message_count'] == sum(1 for _ in BagReader(live_run.path).messages(raw=True))
 
 
 def test_log_time_is_the_node_clock_receive_time_and_publish_time_the_stamp(live_run):
@@ -229,6 +232,21 @@ def test_rosbags_decodes_the_node_recording_with_and_without_a_typestore(live_ru
                 msg = (store.deserialize_cdr(raw, c.msgtype) if kwargs
                        else reader.deserialize(raw, c.msgtype))
                 theirs.setdefault(c.topic, []).append((log_ns, plain(msg)))
+        # /tf (tf2_msgs is not installed for rclpy here): every segment of every PoseArray as
+        # a frame <chain>/<i> of the array's frame, at its stamp, to 1e-12.
+        tf = theirs.pop('/tf')
+        arrays = ours['/segment_poses']
+        assert [log for log, _ in tf] == [log for log, _ in arrays]
+        for (_, frames), (_, array) in zip(tf, arrays):
+            assert len(frames['transforms']) == len(array['poses']) > 0
+            for i, (tr, pose) in enumerate(zip(frames['transforms'], array['poses'])):
+                assert tr['header'] == array['header']
+                assert tr['child_frame_id'] == f'ponytail/{i}'
+                got = [tr['transform']['translation'][k] for k in 'xyz'] + \
+                      [tr['transform']['rotation'][k] for k in 'xyzw']
+                want = [pose['position'][k] for k in 'xyz'] + \
+                       [pose['orientation'][k] for k in 'xyzw']
+                assert np.max(np.abs(np.subtract(got, want))) <= 1e-12
         assert repr(theirs) == repr(ours)      # repr: NaN fields compare equal
 
 
@@ -360,7 +378,9 @@ def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_conte
     with open(killed, 'rb') as f:
         assert f.read()[-8:] != b'\x89MCAP0\r\n'          # not finalised
     recovered = list(BagReader(killed).messages())       # every message deserialises
-    assert len(recovered) == messages_in_complete_chunks(killed) > 0
+    every = list(BagReader(killed).messages(raw=True))   # /tf too (tf2_msgs not installed)
+    assert len(every) == messages_in_complete_chunks(killed) > 0
+    assert len(recovered) == sum(t != '/tf' for t, *_ in every)
     ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in recovered if t == '/kill/segment_poses'}
     last_seen = max(got['kill'])
     assert {s for s in got['kill'] if s <= last_seen - 1_000_000_000} <= ticks
@@ -376,9 +396,11 @@ def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_conte
             summary = make_reader(f).get_summary()
         assert summary is not None
         messages = list(BagReader(files[ns]).messages())
-        assert summary.statistics.message_count == len(messages)
+        every = sum(1 for _ in BagReader(files[ns]).messages(raw=True))   # /tf too
+        assert summary.statistics.message_count == every
+        assert every - len(messages) == sum(t == f'/{ns}/segment_poses' for t, *_ in messages)
         bag = yaml.safe_load(BagReader(files[ns]).metadata()['rosbag2']['serialized_metadata'])
-        assert bag['message_count'] == len(messages)
+        assert bag['message_count'] == every
         ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in messages
                  if t == f'/{ns}/segment_poses'}
         assert set(got[ns]) <= ticks

@@ -31,7 +31,13 @@ wall time. If the process is killed (SIGKILL, a crash), every chunk pushed befor
 and :class:`BagReader` reads it back; what is lost is the chunk being built -- messages within
 ``chunk_duration_ns`` of log time (default 0.5 s) of the end -- plus any messages still queued
 for the writer thread (normally none: the thread keeps up unless the disk stalls). Data is not
-``fsync``-ed, so this bound covers the death of the process, not of the machine.
+``fsync``-ed, so this bound covers the death of the process, not of the machine. Such a file has
+no summary or index: ``ponytail_replay repair`` rewrites it as a complete, indexed file that
+indexed readers (``rosbags``, mcap's ``SeekingReader``) open too.
+
+Reading (:class:`BagReader`) checks every record (``mcap_scan.py``): a damaged file (chunk or
+data-section CRC mismatch, a record that does not fit its length) is an error naming the byte,
+never a shorter file; a cut-short one is read up to the cut and says where it is cut.
 
 Signals: :meth:`BagWriter.close` is idempotent and safe to call from a signal handler, a
 ``finally`` block or ``atexit`` (every writer registers it with ``atexit``, so a normal
@@ -43,6 +49,7 @@ This module imports rclpy; nothing in ``ponytail_ros.core`` may import it.
 from __future__ import annotations
 
 import atexit
+import heapq
 import importlib
 import json
 import operator
@@ -61,10 +68,9 @@ from typing import Any, Dict, Iterable, Iterator, Mapping, Optional, Tuple, Unio
 import yaml
 from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 from mcap import __version__ as _MCAP_VERSION
-from mcap.exceptions import EndOfFile, McapError
+from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from rclpy.qos import (
     QoSDurabilityPolicy, QoSHistoryPolicy, QoSLivelinessPolicy, QoSProfile, QoSReliabilityPolicy,
@@ -72,6 +78,7 @@ from rclpy.qos import (
 from rclpy.serialization import deserialize_message
 
 from ponytail_ros.recording.cdr import serialize_canonical
+from ponytail_ros.recording.mcap_scan import McapScan, ScanError, is_finished
 
 try:
     from rosidl_runtime_py.utilities import get_message as _get_message
@@ -185,14 +192,24 @@ def message_definition(type_name: str) -> str:
     The type's own ``.msg`` text, then for each dependency not written yet (sorted names, depth
     first): a newline, 80 ``=``, ``MSG: <name as referenced>`` and that type's text.
     """
+    return message_definition_of_text(type_name, None)
+
+
+def message_definition_of_text(type_name: str, text: Optional[str]) -> str:
+    """:func:`message_definition` of a type whose own ``.msg`` text is ``text`` (for a type
+    whose package is not installed, e.g. ``tf2_msgs``), its dependencies read from the
+    installed packages; ``text`` None: read it too."""
     seen = set()
 
-    def full_text(name: str) -> str:
-        path = _interface_file(name, '.msg')
-        try:
-            text = path.read_bytes().decode('utf-8')
-        except OSError as exc:
-            raise BagError(f'no .msg definition for {name}: {path}: {exc.strerror}') from None
+    def full_text(name: str, own: Optional[str] = None) -> str:
+        if own is not None:
+            text = own
+        else:
+            path = _interface_file(name, '.msg')
+            try:
+                text = path.read_bytes().decode('utf-8')
+            except OSError as exc:
+                raise BagError(f'no .msg definition for {name}: {path}: {exc.strerror}') from None
         result = text
         for dependency in sorted(_msg_dependencies(text, _split_type(name)[0])):
             if dependency not in seen:
@@ -200,7 +217,7 @@ def message_definition(type_name: str) -> str:
                 result += f'\n{_DELIMITER}MSG: {dependency}\n' + full_text(dependency)
         return result
 
-    return full_text(type_name)
+    return full_text(type_name, text)
 
 
 @lru_cache(maxsize=None)
@@ -371,7 +388,8 @@ class BagWriter:
         return self._error
 
     def add_topic(self, name: str, msg_type: Union[str, type],
-                  qos: Union[QoSProfile, int] = 10) -> None:
+                  qos: Union[QoSProfile, int] = 10, *, definition: Optional[str] = None,
+                  type_hash_: Optional[str] = None) -> None:
         """Declare a topic before writing to it.
 
         Args:
@@ -380,6 +398,10 @@ class BagWriter:
             qos: the publisher's QoS profile, or a history depth for rclpy's default
                 (keep last, reliable, volatile); recorded as ``offered_qos_profiles`` so that
                 ``ros2 bag play`` republishes with it.
+
+            definition, type_hash_: the ``ros2msg`` schema text and ``RIHS01`` hash of a type
+                whose Python package is not installed (``tf2_msgs``); its messages are then
+                written with :meth:`write_serialized` only.
 
         Raises:
             BagError: the topic exists, the writer is closed, or the type's definition is not
@@ -391,9 +413,14 @@ class BagWriter:
             raise BagError(f'topic {name!r} already added to bag {self.path}')
         type_name = _type_string(msg_type)
         profile = qos if isinstance(qos, QoSProfile) else QoSProfile(depth=qos)
-        topic = _Topic(name=name, type_name=type_name, msg_class=_message_class(type_name),
-                       definition=message_definition(type_name), qos=_qos_dict(profile),
-                       type_hash=type_hash(type_name))
+        if definition is not None:
+            topic = _Topic(name=name, type_name=type_name, msg_class=None, definition=definition,
+                           qos=_qos_dict(profile), type_hash=type_hash_ or '')
+        else:
+            topic = _Topic(name=name, type_name=type_name,
+                           msg_class=_message_class(type_name),
+                           definition=message_definition(type_name), qos=_qos_dict(profile),
+                           type_hash=type_hash(type_name))
         self._topics[name] = topic
         self._queue.put(('topic', topic))
 
@@ -623,24 +650,17 @@ def _close_quietly(stream) -> None:
 # Reader
 
 
-class _WholeReads:
-    """A file whose ``read(n)`` returns all ``n`` bytes or nothing.
-
-    mcap's StreamReader raises EndOfFile only on an empty read; a record cut short by a killed
-    writer would otherwise be parsed from its partial bytes. With this wrapper the truncated
-    tail raises EndOfFile and every complete record before it is read normally.
-    """
-
-    def __init__(self, file):
-        self._file = file
-
-    def read(self, size: int = -1) -> bytes:
-        data = self._file.read(size)
-        return data if size < 0 or len(data) == size else b''
-
-
 class BagReader:
-    """Reads an MCAP bag, including one cut short by a killed writer (no summary or footer).
+    """Reads an MCAP bag, checked record by record (``mcap_scan.McapScan``).
+
+    * A file cut short by a killed writer (no summary or footer) is read up to the cut; after a
+      full read, :attr:`truncation` says where and why (None for a complete file).
+    * A damaged file (changed bytes: a chunk CRC or data-section CRC mismatch, a record that
+      does not fit its length, an unknown opcode, a length past the end of a finished file)
+      raises :class:`BagError` naming the file, the byte offset and the problem, with the
+      repair command; no record of a damaged chunk is ever returned.
+    * Messages come in log-time order (ties in file order), as the ``mcap`` and ``rosbags``
+      readers and ``ros2 bag play`` give them, or in file order (``order='file'``).
 
     Args:
         path: the ``.mcap`` file.
@@ -654,26 +674,54 @@ class BagReader:
         try:
             with self.path.open('rb') as file:
                 magic = file.read(len(_MCAP_MAGIC))
-                size = file.seek(0, os.SEEK_END)
-                if size >= 2 * len(_MCAP_MAGIC):
-                    file.seek(-len(_MCAP_MAGIC), os.SEEK_END)
-                    self._finished = file.read() == _MCAP_MAGIC
-                else:
-                    self._finished = False
+            self._finished = is_finished(self.path)
         except OSError as exc:
             raise BagError(f'cannot read bag {self.path}: {exc.strerror or exc}') from None
         if magic != _MCAP_MAGIC:
             raise BagError(f'{self.path} is not an MCAP file')
+        #: Where and why the file is cut short ("truncated at byte N of M: ..."), known after a
+        #: full read (:meth:`metadata`, :meth:`messages`); None for a complete file.
+        self.truncation: Optional[str] = None
+        #: Messages of the last :meth:`messages` call stored before one with a later log time.
+        self.out_of_order = 0
+
+    @property
+    def finished(self) -> bool:
+        """The file ends with the MCAP magic (its writer closed it)."""
+        return self._finished
+
+    def _damaged(self, exc: ScanError) -> BagError:
+        if exc.problem.kind != 'damaged':
+            return BagError(f'{self.path} is {exc}')
+        return BagError(f'{self.path} is {exc}; replaying it would use or skip corrupt data. '
+                        f'"ponytail_replay repair {self.path} FIXED.mcap" keeps every intact '
+                        f'record')
+
+    def _scan(self, expand_chunks: bool = True) -> Iterator[Tuple[int, Any]]:
+        """``(offset, record)`` in file order; damage raises, a cut sets :attr:`truncation`."""
+        try:
+            scan = McapScan(self.path)
+            yield from scan.records(expand_chunks=expand_chunks)
+        except ScanError as exc:
+            raise self._damaged(exc) from None
+        except OSError as exc:
+            raise BagError(f'cannot read bag {self.path}: {exc.strerror or exc}') from None
+        self.truncation = (scan.truncation.describe(scan.size)
+                           if scan.truncation is not None else None)
 
     def _records(self, emit_chunks: bool = False) -> Iterator[Any]:
-        """Every complete record in file order; a truncated tail ends the iteration quietly."""
-        with self.path.open('rb') as file:
-            try:
-                yield from StreamReader(_WholeReads(file), emit_chunks=emit_chunks).records
-            except EndOfFile:
-                return  # the writer was killed: everything before the cut has been read
-            except McapError as exc:
-                raise BagError(f'{self.path} is corrupt: {exc}') from None
+        for _, record in self._scan(expand_chunks=not emit_chunks):
+            yield record
+
+    def check(self) -> Optional[str]:
+        """Read every record (chunk CRCs included); the truncation text or None.
+
+        Raises:
+            BagError: the file is damaged.
+        """
+        for _ in self._scan():
+            pass
+        return self.truncation
 
     def topics(self) -> Dict[str, str]:
         """Topic name -> message type ``pkg/msg/Type``."""
@@ -681,37 +729,53 @@ class BagReader:
             try:
                 with self.path.open('rb') as file:
                     summary = SeekingReader(file).get_summary()
-            except (McapError, struct.error):
+            except (McapError, struct.error, ValueError, UnicodeDecodeError):
                 summary = None  # unreadable summary: scan the data section like a cut file
             if summary is not None:
                 return {channel.topic: summary.schemas[channel.schema_id].name
-                        for channel in summary.channels.values()}
+                        for channel in summary.channels.values()
+                        if channel.schema_id in summary.schemas}
         schemas: Dict[int, str] = {}
         topics: Dict[str, str] = {}
         for record in self._records():
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
             elif isinstance(record, Channel):
-                topics[record.topic] = schemas[record.schema_id]
+                topics[record.topic] = schemas.get(record.schema_id, '')
         return topics
 
     def messages(self, topics: Union[None, str, Iterable[str], Mapping[str, Union[str, type]]]
-                 = None) -> Iterator[Tuple[str, str, Any, int]]:
+                 = None, order: str = 'log_time', raw: bool = False
+                 ) -> Iterator[Tuple[str, str, Any, int]]:
         """Yield ``(topic, 'pkg/msg/Type', deserialised message, log_time_ns)``.
-
-        Messages come in file order, i.e. the order they were written.
 
         Args:
             topics: all topics (None), a name, names, or a mapping name -> expected type
                 (class or ``pkg/msg/Type``) to check what was recorded.
+            order: ``'log_time'`` (default): by log time, ties in file order, as rosbag2 plays
+                a bag; messages stored out of that order are counted in :attr:`out_of_order`.
+                ``'file'``: in the order they were written.
+            raw: yield the CDR bytes instead of deserialised messages (no message class
+                needed).
+
+        With ``topics`` None, topics whose message type is not installed (``tf2_msgs`` with
+        the PyPI wheels) are left out unless ``raw``.
 
         Raises:
             BagError: a requested topic is not in the bag, was recorded with another type, or
-                its message type is not installed.
+                its message type is not installed; the file is damaged.
         """
+        if order not in ('log_time', 'file'):
+            raise ValueError(f'order must be log_time or file, not {order!r}')
         recorded = self.topics()
         if topics is None:
             wanted = set(recorded)
+            if not raw:
+                for name in list(wanted):
+                    try:
+                        _message_class(recorded[name])
+                    except BagError:
+                        wanted.discard(name)
         else:
             expected = (dict(topics) if isinstance(topics, Mapping)
                         else dict.fromkeys([topics] if isinstance(topics, str) else topics))
@@ -724,20 +788,59 @@ class BagReader:
                     raise BagError(f'{self.path}: topic {name} holds {recorded[name]}, '
                                    f'not {_type_string(msg_type)}')
             wanted = set(expected)
-        classes = {name: _message_class(recorded[name]) for name in wanted}
+        classes = {} if raw else {name: _message_class(recorded[name]) for name in wanted}
 
+        def decode(data, name):
+            return bytes(data) if raw else deserialize_message(data, classes[name])
+
+        # Log-time order with bounded memory: the earliest log time any later chunk may hold
+        # (each chunk's message_start_time, suffix minimum) says which buffered messages are
+        # due. A file already in order buffers at most one chunk.
+        bound: Dict[int, float] = {}
+        if order == 'log_time':
+            try:
+                units = McapScan(self.path).chunk_start_times()
+            except OSError as exc:
+                raise BagError(f'cannot read bag {self.path}: {exc.strerror or exc}') from None
+            low = float('inf')
+            for offset, start in reversed(units):
+                low = min(low, start)
+                bound[offset] = low
         schemas: Dict[int, str] = {}
         channels: Dict[int, Tuple[str, str]] = {}
-        for record in self._records():
+        pending: list = []
+        sequence = 0
+        newest = -1
+        self.out_of_order = 0
+
+        def due(limit):
+            while pending and pending[0][0] <= limit:
+                log_time, _, name, type_name, data = heapq.heappop(pending)
+                yield name, type_name, decode(data, name), log_time
+
+        for offset, record in self._scan():
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
             elif isinstance(record, Channel):
-                channels[record.id] = (record.topic, schemas[record.schema_id])
+                channels[record.id] = (record.topic, schemas.get(record.schema_id, ''))
             elif isinstance(record, Message):
+                if record.channel_id not in channels:
+                    raise BagError(f'{self.path}: a message at byte {offset} is on channel '
+                                   f'{record.channel_id}, which no channel record defines')
                 name, type_name = channels[record.channel_id]
-                if name in wanted:
-                    yield (name, type_name, deserialize_message(record.data, classes[name]),
-                           record.log_time)
+                if name not in wanted:
+                    continue
+                if record.log_time < newest:
+                    self.out_of_order += 1
+                newest = max(newest, record.log_time)
+                if order == 'file':
+                    yield name, type_name, decode(record.data, name), record.log_time
+                    continue
+                yield from due(bound.get(offset, -1))
+                heapq.heappush(pending, (record.log_time, sequence, name, type_name,
+                                         record.data))
+                sequence += 1
+        yield from due(float('inf'))
 
     def metadata(self) -> Dict[str, Dict[str, str]]:
         """Metadata records, name -> key/value dict (the last record of a name wins, as in

@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 import yaml
 
@@ -25,10 +25,12 @@ from ponytail_ros.ros.parameters import (
 
 __all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
            'metadata_from_values', 'default_values', 'scene_and_settings', 'resolve_values',
-           'unknown_names', 'IGNORED_NAMES']
+           'unknown_names', 'unknown_parameter_warnings', 'unknown_parameter_warning',
+           'closest_name', 'IGNORED_NAMES']
 
 #: Parameters a node has that do not change the simulation (accepted and ignored offline).
-IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service'})
+IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_description_service',
+                           'tf.publish', 'tf.prefix'})
 
 
 def default_values(chains, colliders=(), frames=()) -> Dict[str, Any]:
@@ -123,6 +125,35 @@ def unknown_names(partial: Mapping[str, Any]):
     frames = list(partial.get('frames', []))
     return sorted(n for n in partial
                   if definition(n, chains, colliders, frames) is None and n not in IGNORED_NAMES)
+
+
+def closest_name(name: str, known) -> Optional[str]:
+    """The known name most like ``name`` (a typo's intended name), or None."""
+    import difflib
+    match = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return match[0] if match else None
+
+
+def unknown_parameter_warning(name: str, known) -> str:
+    """"unknown parameter 'x' ignored (did you mean 'y'?)" for a name not in ``known``."""
+    close = closest_name(name, known)
+    hint = f' (did you mean {close!r}?)' if close else ''
+    return f'unknown parameter {name!r} ignored{hint}'
+
+
+def unknown_parameter_warnings(partial: Mapping[str, Any]) -> List[str]:
+    """One warning per name in ``partial`` that no node with its chains, colliders and
+    frames has, naming the closest known parameter."""
+    unknown = unknown_names(partial) if partial else []
+    if not unknown:
+        return []
+    try:
+        known = default_values(list(partial.get('chains', ['ponytail'])),
+                               list(partial.get('colliders', [])),
+                               list(partial.get('frames', [])))
+    except ParameterError:
+        known = {}
+    return [unknown_parameter_warning(n, known) for n in unknown]
 
 
 def scene_and_settings(values: Mapping[str, Any]):

@@ -8,6 +8,9 @@ What is recorded (topic names as resolved in the node's namespace; types as publ
 * each chain's ``segment_poses`` / ``segment_poses/<chain>`` (``geometry_msgs/msg/PoseArray``);
 * ``segment_markers`` (``visualization_msgs/msg/MarkerArray``) when published (markers on);
 * ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``);
+* ``/tf`` (``tf2_msgs/msg/TFMessage``): every chain's segments as TF frames
+  ``<tf_prefix><chain>/<i>`` (children of the ``PoseArray``'s frame, the head pose's), one
+  message per chain per tick (``tf.py``; on by default, ``tf=False`` to leave it out);
 * ``/parameter_events`` (``rcl_interfaces/msg/ParameterEvent``): one event per accepted live
   parameter change of the node (``changed_parameters``), at the time it was accepted;
 * metadata ``ponytail_ros/parameters``: every parameter of the node at start-up, name -> value
@@ -41,7 +44,9 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Union
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_parameter_events
 
-from .bag import PARAMETERS_METADATA, BagError, BagWriter
+from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of_text
+from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
+                 tfmessage_type_hash)
 from .cdr import serialize_canonical
 from .params import metadata_from_values
 
@@ -195,6 +200,9 @@ class RunRecorder:
             that check the length (rosbags) accept every type. On by default; off writes
             ``serialize_message``'s bytes as they are.
         overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
+        tf: also record every chain's segments on ``/tf`` (``tf2_msgs/msg/TFMessage``, one
+            message per chain per tick, written with its ``PoseArray``; see ``tf.py``).
+        tf_prefix: the segment frames are ``<tf_prefix><chain>/<i>``.
 
     Raises:
         BagError: the file cannot be created (exists, folder missing, not writable).
@@ -207,7 +215,7 @@ class RunRecorder:
                  info: Optional[Mapping[str, str]] = None,
                  on_error: Optional[Callable[[str], None]] = None,
                  canonical: bool = True, overwrite: bool = False, chunk_size: int = 64 * 1024,
-                 chunk_duration_ns: int = 500_000_000):
+                 chunk_duration_ns: int = 500_000_000, tf: bool = True, tf_prefix: str = ''):
         path = Path(path)
         if path.is_dir():
             raise BagError(f'cannot create bag {path}: it is a directory')
@@ -219,6 +227,9 @@ class RunRecorder:
         self._closed = False
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
                                  chunk_duration_ns=chunk_duration_ns)
+        #: pose topic -> chain name, for the chains' TF frames (empty without tf)
+        self._tf_chains = dict(zip(layout.pose_topics, layout.chains)) if tf else {}
+        self._tf_prefix = tf_prefix
         self.path = self._writer.path
         qos = dict(qos or {})
         try:
@@ -226,6 +237,8 @@ class RunRecorder:
             self._writer.write_metadata(PARAMETERS_METADATA, metadata_from_values(parameters))
             meta = layout.to_metadata()
             meta.update({'format': FORMAT_VERSION, 'head_type': head_type})
+            if tf:
+                meta.update({'tf_topic': TF_TOPIC, 'tf_prefix': tf_prefix})
             meta.update(info or {})
             self._writer.write_metadata(RECORDING_METADATA, meta)
             self._writer.add_topic(layout.head_topic, head_type, qos.get(layout.head_topic,
@@ -248,6 +261,11 @@ class RunRecorder:
                                    'rcl_interfaces/msg/ParameterEvent',
                                    qos.get(layout.parameter_events_topic,
                                            qos_profile_parameter_events))
+            if tf:
+                self._writer.add_topic(
+                    TF_TOPIC, TFMESSAGE_TYPE, qos.get(TF_TOPIC, QoSProfile(depth=TF_QOS_DEPTH)),
+                    definition=message_definition_of_text(TFMESSAGE_TYPE, TFMESSAGE_MSG),
+                    type_hash_=tfmessage_type_hash())
         except BaseException:
             self._writer.close()
             raise
@@ -271,6 +289,11 @@ class RunRecorder:
                                               _publish_time(msg, log_time_ns))
             else:
                 self._writer.write(topic, msg, log_time_ns, _publish_time(msg, log_time_ns))
+            chain = self._tf_chains.get(topic)
+            if chain is not None:
+                self._writer.write_serialized(TF_TOPIC, tf_from_pose_array(msg, chain,
+                                                                           self._tf_prefix),
+                                              log_time_ns, _publish_time(msg, log_time_ns))
         except BagError as exc:
             # A negative time, or closed by another thread meanwhile: never the node's
             # problem; reported once like an I/O error.
@@ -323,7 +346,7 @@ class RunRecorder:
     def for_node(cls, node, record_path: str, chains: Sequence[str], head_subscription,
                  pose_publishers: Sequence[Any], marker_publisher, diagnostics_publisher,
                  frames: Sequence[str] = (), frame_subscriptions: Sequence[Any] = (),
-                 ) -> Optional['RunRecorder']:
+                 tf_prefix: str = '') -> Optional['RunRecorder']:
         """A recorder for a running ``PonytailNode``, or None (error logged) if the file cannot
         be created; the node then goes on without recording.
 
@@ -345,7 +368,7 @@ class RunRecorder:
         qos = {p.topic_name: p.qos_profile
                for p in (*pose_publishers, marker_publisher, diagnostics_publisher)}
         try:
-            recorder = cls(path, layout, parameters, qos=qos,
+            recorder = cls(path, layout, parameters, qos=qos, tf_prefix=tf_prefix,
                            info={'source': 'ponytail_node'},
                            on_error=lambda text: logger.error(
                                f'Recording stopped: {text}; the simulation goes on'))

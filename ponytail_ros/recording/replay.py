@@ -7,6 +7,7 @@ Usage::
                     [--ticks auto|recorded|nominal] [--overwrite] [--quiet]
     ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
     ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
+    ponytail_replay repair IN.mcap OUT.mcap [--overwrite]    (a killed or damaged recording)
 
 Offline replay (no ROS graph, no sleeping; as fast as the machine allows): the head poses
 (``geometry_msgs/msg/PoseStamped`` or ``TransformStamped``) of any rosbag2 MCAP file -- one
@@ -52,9 +53,31 @@ recorded log times before each pose and at ``--clock-rate`` Hz in between, for n
 ``use_sim_time:=true``. For a node on the system clock use ``--no-clock --restamp`` (or its
 ``stamp_source:=receive``).
 
-Exit status: 0 on success, 2 on bad input (one line on stderr naming the file and topic: not an
-MCAP file, no such topic, not a head pose type, invalid parameters), 1 on an unexpected error. A
-truncated input (a recording whose writer was killed) replays what can be read, with a warning.
+Nothing is lost or wrong in silence:
+
+* a **damaged** input (changed bytes: a chunk or data-section CRC mismatch, a record that does
+  not fit its length) is refused with the byte offset and the problem (``BagReader``); ``repair``
+  keeps every intact record in a new file;
+* a **truncated** input (a recording whose writer was killed) replays what can be read, with a
+  warning saying where it is cut; ``repair`` makes it a complete, indexed file (``repair.py``);
+* a bag not written by the node is replayed in **log-time order** (as ``ros2 bag play``), with a
+  warning if it was stored out of that order; the node's own recordings in file order (the order
+  the node handled the messages);
+* head stamps on **another clock** than the log times (median offset over 5 s) are said on the
+  terminal with the fix, ``--stamp-source receive``; in such a bag a first stamp of exactly 0 is
+  a stamp, not "no stamp";
+* unknown ``--params`` names are warned with the closest known name; dropped input poses are
+  counted on the terminal; the last (partial) diagnostics period is written; a run in which
+  nothing could be simulated (every pose dropped) is an error saying why.
+
+Every recording and replay output also holds the segments as TF frames on ``/tf``
+(``--tf-prefix``, ``--no-tf``; ``tf.py``). On a terminal a progress bar (tqdm) shows the
+simulated time and the ETA; ``--quiet`` silences it, the summary and the warnings.
+
+Exit status: 0 on success (warnings on stderr), 2 on bad or damaged input (one line on stderr
+naming the file and the problem: not an MCAP file, damaged, truncated before the head topic, no
+such topic, not a head pose type, invalid parameters, nothing simulated), 1 on an unexpected
+error.
 """
 from __future__ import annotations
 
@@ -75,7 +98,8 @@ from ponytail_ros.ros.parameters import ParameterError, frame_names
 from ponytail_ros.ros.parameters import frame_topics as topics_of
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
-from .params import IGNORED_NAMES, resolve_values, unknown_names, values_from_metadata
+from .params import (IGNORED_NAMES, resolve_values, unknown_parameter_warnings,
+                     values_from_metadata, values_from_params_file)
 from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, resolve_topic,
                        stamp_ns)
 
@@ -108,16 +132,21 @@ class ReplayInput:
         try:
             self.reader = BagReader(self.path)
             self.topics = self.reader.topics()
-            self.metadata = self.reader.metadata()
+            self.metadata = self.reader.metadata()   # a full walk: finds a cut or damage
         except BagError as exc:
             raise ReplayError(str(exc)) from None
-        self.truncated = not _finished(self.path)
+        self.truncated = not self.reader.finished
+        #: "truncated at byte N of M: why" for a cut file, else None.
+        self.truncation = self.reader.truncation if self.truncated else None
         self.layout = None
         if RECORDING_METADATA in self.metadata:
             try:
                 self.layout = RunLayout.from_metadata(self.metadata[RECORDING_METADATA])
             except (KeyError, ValueError):
                 self.layout = None  # not ours after all: treat as a plain recording
+        #: Our recordings are replayed in the order the node handled the messages (file order,
+        #: see recorder.py); any other bag in log-time order, as rosbag2 plays it.
+        self.order = 'file' if self.layout is not None else 'log_time'
         self.recorded_parameters = self.metadata.get(PARAMETERS_METADATA)
         self.note = None
         if head_topic is None:
@@ -130,12 +159,24 @@ class ReplayInput:
         self.head_topic = head_topic
         if head_topic not in self.topics:
             recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
+            if self.truncated:
+                raise ReplayError(
+                    f'{self.path} is {self.truncation or "truncated (no footer)"}; the part '
+                    f'that can be read has no topic {head_topic} (recorded: {recorded or "none"})')
             raise ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
                               f'{recorded or "none"}); choose one with --head-topic')
         self.head_type = self.topics[head_topic]
         if self.head_type not in HEAD_TYPES:
             raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a head '
                               f'pose ({" or ".join(HEAD_TYPES)})')
+
+    def messages(self, topics):
+        """``BagReader.messages`` in this input's order (:attr:`order`)."""
+        return self.reader.messages(topics, order=self.order)
+
+    def truncated_warning(self) -> str:
+        return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '
+                f'can be read (ponytail_replay repair makes it a complete, indexed file)')
 
     @property
     def node(self) -> str:
@@ -176,15 +217,6 @@ class ReplayInput:
             return None
 
 
-def _finished(path: Path) -> bool:
-    with path.open('rb') as f:
-        size = f.seek(0, os.SEEK_END)
-        if size < 2 * len(_MCAP_MAGIC):
-            return False
-        f.seek(-len(_MCAP_MAGIC), os.SEEK_END)
-        return f.read() == _MCAP_MAGIC
-
-
 def _head_pose(msg, head_type):
     """(position, orientation) tuples of a PoseStamped or TransformStamped."""
     if head_type == HEAD_TYPES[0]:
@@ -204,7 +236,7 @@ class ReplayNode:
     recorded clock."""
 
     def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str,
-                 frame_types: Sequence[str] = ()):
+                 frame_types: Sequence[str] = (), zero_stamp_valid: bool = False):
         from ponytail_ros.ros.node_core import NodeCore
         self.core = NodeCore(values)
         self.runner = self.core.runner
@@ -213,6 +245,10 @@ class ReplayNode:
         self._frame_types = list(frame_types) or [HEAD_TYPES[0]] * len(self.core.frames)
         self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
         self._diag_next_ns = None
+        self._diag_last_ns = None
+        #: A zero header stamp is a real stamp (a simulator clock starting at 0), not "no
+        #: stamp", when the stream has other non-zero stamps.
+        self._zero_stamp_valid = zero_stamp_valid
 
     @property
     def values(self):
@@ -226,7 +262,12 @@ class ReplayNode:
     def head(self, msg, log_time_ns: int) -> None:
         self._recorder.head(msg, log_time_ns)
         p, q = _head_pose(msg, self._head_type)
-        self.core.push_head(msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
+        stamp = msg.header.stamp
+        if (self._zero_stamp_valid and stamp.sec == 0 and stamp.nanosec == 0
+                and self.core.stamp_source == 'header'):
+            self.runner.push(0.0, p, q, msg.header.frame_id)  # NodeCore would take "no stamp"
+            return
+        self.core.push_head(stamp, log_time_ns, p, q, msg.header.frame_id)
 
     # PonytailNode._on_frame_pose
     def frame(self, i: int, msg, log_time_ns: int) -> None:
@@ -268,6 +309,16 @@ class ReplayNode:
         self._diag_next_ns += self._diag_period_ns * max(
             1, (t_ns - self._diag_next_ns) // self._diag_period_ns + 1)
         self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+        self._diag_last_ns = t_ns
+
+    def final_diagnostics(self, t_ns: int) -> None:
+        """The last, partial period's diagnostics at the end of the input (the node's last
+        period ends when it is stopped; a replay's at its last tick), so that the drop and reset
+        counts in the file are the run's totals."""
+        if self._diag_next_ns is not None and t_ns != self._diag_last_ns \
+                and t_ns > self.core.window.t0_ns:
+            self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+            self._diag_last_ns = t_ns
 
     def diagnostics_message(self, t_ns: int):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -317,25 +368,59 @@ class ReplayResult:
 
 
 class _Progress:
-    """A one-line text progress bar on a TTY (stderr)."""
+    """A progress bar with ETA on a terminal (stderr): tqdm when installed (the ``pypi`` extra),
+    else one line of text. Called as ``progress(done_s, total_s_or_None, final=False)``."""
 
     def __init__(self, stream):
         self.stream = stream
         self.wall0 = time.perf_counter()
         self.last = 0.0
+        self.bar = None
+        self.done = 0.0
+        try:
+            import tqdm  # noqa: F401
+            self.tqdm = True
+        except ImportError:
+            self.tqdm = False
 
     def __call__(self, done_s: float, total_s: Optional[float] = None,
                  final: bool = False) -> None:
+        if self.tqdm:
+            self._tqdm(done_s, total_s, final)
+        else:
+            self._text(done_s, total_s, final)
+
+    def _tqdm(self, done_s, total_s, final):
+        from tqdm import tqdm
+        if self.bar is None:
+            self.bar = tqdm(total=round(total_s, 3) if total_s else None, file=self.stream,
+                            unit='s', unit_scale=False, desc='replay (simulated s)',
+                            dynamic_ncols=True, mininterval=0.1,
+                            bar_format='{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} '
+                                       '[{elapsed}<{remaining}, {rate_fmt}]' if total_s else None)
+        done_s = max(done_s, self.done)
+        if total_s:
+            done_s = min(done_s, self.bar.total)
+        self.bar.update(done_s - self.done)
+        self.done = done_s
+        if final:
+            self.bar.close()
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+    def _text(self, done_s, total_s, final):
         now = time.perf_counter()
         if not final and now - self.last < 0.1:
             return
         self.last = now
-        self.total = total_s
         wall = max(now - self.wall0, 1e-9)
-        if self.total:
-            frac = min(max(done_s / self.total, 0.0), 1.0)
+        if total_s:
+            frac = min(max(done_s / total_s, 0.0), 1.0)
             bar = '#' * int(30 * frac) + '-' * (30 - int(30 * frac))
-            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{self.total:.1f} s'
+            eta = wall * (1 - frac) / frac if frac > 0 else float('nan')
+            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{total_s:.1f} s, ETA {eta:.0f} s'
         else:
             text = f'{done_s:7.1f} s'
         self.stream.write(f'\r{text}  {done_s / wall:6.1f}x real time')
@@ -347,7 +432,9 @@ class _Progress:
 def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
            ticks: str = 'auto', overwrite: bool = False,
            progress: Optional[Callable[..., None]] = None,
-           warn: Optional[Callable[[str], None]] = None) -> ReplayResult:
+           warn: Optional[Callable[[str], None]] = None,
+           stamp_source: Optional[str] = None, tf: bool = True,
+           tf_prefix: Optional[str] = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -358,9 +445,14 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
             during the replay (often: throttle it).
         warn: called with each warning (default: ignored).
+        stamp_source: ``'header'`` or ``'receive'`` over the parameters' ``stamp_source``
+            (head stamps on another clock than the log times need ``'receive'``).
+        tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
+            ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
 
     Raises:
-        ReplayError: bad input or options (one-line message naming the file and topic).
+        ReplayError: bad input or options (one-line message naming the file and topic), a
+            damaged input, or a run in which every head pose was dropped.
     """
     warn = warn or (lambda text: None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -374,8 +466,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if inp.note:
         warn(inp.note)
     if inp.truncated:
-        warn(f'{inp.path} is truncated (no summary: its writer was killed?); replaying what '
-             f'can be read')
+        warn(inp.truncated_warning())
 
     try:
         values, source = resolve_values(params_file, inp.recorded_parameters, inp.node)
@@ -385,10 +476,23 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         raise ReplayError(f'{origin}: invalid parameters: {exc}') from None
     partial = values_from_metadata(inp.recorded_parameters) if (
         params_file is None and inp.recorded_parameters) else {}
-    unknown = unknown_names(partial) if partial else []
-    if unknown:
-        warn(f'ignoring unknown parameters: {", ".join(unknown)}')
+    if params_file is not None:
+        try:
+            partial = values_from_params_file(params_file, inp.node)
+        except ParameterError:
+            partial = {}
+    for text in unknown_parameter_warnings(partial):
+        warn(f'{params_file or inp.path}: {text}')
+    if stamp_source is not None:
+        if stamp_source not in ('header', 'receive'):
+            raise ReplayError(f'--stamp-source must be header or receive, not {stamp_source!r}')
+        values['stamp_source'] = stamp_source
     result.parameters_from = source if source == 'the recording' else Path(source).name
+
+    head_stamps = _head_stamps(inp)
+    clock_note = _foreign_clock(inp, head_stamps, values['stamp_source'])
+    if clock_note:
+        warn(clock_note)
 
     # Ticks: the node's own where possible.
     tick_topic = inp.tick_topic()
@@ -453,7 +557,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         recorder = RunRecorder(
             output_path, layout, parameters, head_type=inp.head_type, frame_types=frame_types,
             overwrite=overwrite,
-            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS,
+            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, tf=tf,
+            tf_prefix=(tf_prefix if tf_prefix is not None
+                       else inp.metadata.get(RECORDING_METADATA, {}).get('tf_prefix', '')),
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
                   'parameters_from': result.parameters_from})
     except BagError as exc:
@@ -462,7 +568,11 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             text = f'{output_path} already exists (use --overwrite to replace it)'
         raise ReplayError(text) from None
 
-    node = ReplayNode(values, recorder, inp.head_type, frame_types)
+    node = ReplayNode(values, recorder, inp.head_type, frame_types,
+                      # A node recording replays as the node ran (a zero stamp: the receive
+                      # time); in another bag whose stamps are set, 0 is a stamp (sim clock).
+                      zero_stamp_valid=(inp.layout is None
+                                        and any(stamp for stamp, _ in head_stamps)))
     span = inp.span_ns() if progress is not None else None
     t_start = span[0] if span else None
     total_s = (span[1] - span[0]) * 1e-9 if span else None
@@ -494,7 +604,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     next_tick = None
     last_log = None
     try:
-        for topic, _, msg, log_ns in inp.reader.messages(wanted):
+        for topic, _, msg, log_ns in inp.messages(wanted):
             if mode == 'nominal' and next_tick is not None:
                 while next_tick < log_ns:
                     do_tick(next_tick)
@@ -530,6 +640,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             while next_tick <= last_log:
                 do_tick(next_tick)
                 next_tick += period_ns
+        if result.last_tick_ns is not None:
+            node.final_diagnostics(result.last_tick_ns)
     except BagError as exc:
         recorder.close()
         output_path.unlink(missing_ok=True)
@@ -541,6 +653,23 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
         output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
+    dropped = {k: v for k, v in node.runner.dropped.items() if v}
+    reasons = ', '.join(f'{v} {k}' for k, v in sorted(dropped.items()))
+    if result.ticks == 0:
+        output_path.unlink(missing_ok=True)
+        why = (f'all {result.head_samples} head poses were dropped ({reasons})' if dropped
+               else f'no tick had the inputs it needs ({", ".join(node.runner.missing_inputs())}'
+                    f' missing)')
+        raise ReplayError(f'{inp.path}: nothing simulated: {why}'
+                          + (f'; {clock_note}' if clock_note else ''))
+    if dropped:
+        warn(f'{inp.path}: {sum(dropped.values())} of {result.head_samples + result.frame_samples}'
+             f' input poses dropped ({reasons})')
+    if inp.reader.out_of_order and inp.order == 'log_time':
+        warn(f'{inp.path}: {inp.reader.out_of_order} messages are stored out of log-time order; '
+             f'replayed in log-time order, as ros2 bag play does')
+    if inp.truncated and inp.reader.truncation:
+        inp.truncation = inp.reader.truncation
     if inp.truncated:
         warn(f'{inp.path}: replayed {result.head_samples} head poses and {result.ticks} ticks '
              f'(all that could be read)')
@@ -549,6 +678,42 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and t_start is not None:
         progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
     return result
+
+
+#: Head stamps further than this from their log times (median) are on another clock.
+FOREIGN_CLOCK_S = 5.0
+_STAMP_SAMPLE = 200
+
+
+def _head_stamps(inp: ReplayInput):
+    """(header stamp, log time) ns of the first head poses."""
+    out = []
+    try:
+        for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
+            out.append((stamp_ns(msg.header.stamp), log_ns))
+            if len(out) >= _STAMP_SAMPLE:
+                break
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    return out
+
+
+def _foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[str]:
+    """A warning if the head stamps are on another clock than the log times (a bag stamped
+    by a simulator clock from 0, or from another epoch) and would be used (``stamp_source:
+    header``): the head motion would be estimated on one clock and simulated on the other."""
+    if stamp_source != 'header':
+        return None
+    pairs = [(s, l) for s, l in head_stamps if s]
+    if not pairs:
+        return None
+    offset = float(np.median([s - l for s, l in pairs])) * 1e-9
+    if abs(offset) <= FOREIGN_CLOCK_S:
+        return None
+    return (f'{inp.path}: the head pose stamps on {inp.head_topic} are {offset:+.6g} s off their '
+            f'log times (another clock: a simulator from 0, or another machine); the replay '
+            f'would be physically wrong. Use --stamp-source receive (stamp_source: receive in '
+            f'the params file) to time the poses by their log times')
 
 
 def _used_frame_names(values) -> set:
@@ -819,14 +984,14 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     if inp.note:
         warn(inp.note)
     if inp.truncated:
-        warn(f'{inp.path} is truncated; playing what can be read')
+        warn(inp.truncated_warning().replace('replaying', 'playing'))
     topics = {inp.head_topic: inp.head_type}
     if inp.layout is not None:
         topics.update({t: inp.topics[t] for t in inp.layout.frame_topics
                        if inp.topics.get(t) in HEAD_TYPES})
     try:
         samples = [(topic, msg, log_ns, stamp_ns(msg.header.stamp)) for topic, _, msg, log_ns
-                   in inp.reader.messages(topics)]
+                   in inp.messages(topics)]
     except BagError as exc:
         raise ReplayError(str(exc)) from None
     if not any(topic == inp.head_topic for topic, *_ in samples):
@@ -894,10 +1059,13 @@ def _parser():
     p = argparse.ArgumentParser(
         prog='ponytail_replay',
         description='Re-simulate a recording offline (-o), compare two runs (compare / '
-                    '--compare) or play its head poses into a running graph (--live).',
+                    '--compare), play its head poses into a running graph (--live), or repair a '
+                    'cut-short or damaged recording (repair IN OUT).',
         epilog='Examples:  ponytail_replay run.mcap -o replayed.mcap --params config/ponytail.yaml'
                '   |   ponytail_replay compare run.mcap replayed.mcap --plot diff.png'
-               '   |   ponytail_replay --live run.mcap')
+               '   |   ponytail_replay --live run.mcap'
+               '   |   ponytail_replay repair killed.mcap fixed.mcap.  Exit status: 0 done, 2 bad '
+               'or damaged input (one line naming the file and the problem), 1 unexpected error.')
     p.add_argument('inputs', nargs='+', metavar='INPUT.mcap',
                    help='the recording (two with --compare)')
     p.add_argument('-o', '--output', metavar='OUTPUT.mcap', help='replay: the new recording')
@@ -908,8 +1076,17 @@ def _parser():
     p.add_argument('--ticks', choices=('auto', 'recorded', 'nominal'), default='auto',
                    help='tick at the node\'s recorded tick times or every 1/rate s (default '
                         'auto: recorded when available and the rate is unchanged)')
+    p.add_argument('--stamp-source', choices=('header', 'receive'),
+                   help='time head poses by their header stamps or their log (receive) times, '
+                        'over the parameters\' stamp_source (receive: stamps on another clock)')
+    p.add_argument('--no-tf', action='store_true',
+                   help='replay: do not record the segments as TF frames on /tf')
+    p.add_argument('--tf-prefix', metavar='PREFIX',
+                   help='replay: TF frames are PREFIX<chain>/<i> (default: as recorded, else '
+                        'none)')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUTPUT')
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no summary')
+    p.add_argument('-q', '--quiet', action='store_true',
+                   help='no progress bar, no summary, no warnings')
     p.add_argument('--compare', action='store_true', help='compare two recordings A B')
     p.add_argument('--plot', metavar='OUT.png', help='compare: also plot (matplotlib)')
     p.add_argument('--live', action='store_true',
@@ -925,9 +1102,42 @@ def _parser():
     return p
 
 
+def _repair_parser():
+    p = argparse.ArgumentParser(
+        prog='ponytail_replay repair',
+        description='Rewrite a recording cut short (a killed writer: no summary, index or '
+                    'footer) or damaged (changed bytes) as a complete, indexed MCAP file that '
+                    'every reader opens (rosbags, mcap, ros2 bag), keeping every intact record '
+                    'and saying what was lost.')
+    p.add_argument('input', metavar='IN.mcap')
+    p.add_argument('output', metavar='OUT.mcap')
+    p.add_argument('--overwrite', action='store_true', help='replace an existing OUT')
+    p.add_argument('-q', '--quiet', action='store_true', help='no summary')
+    return p
+
+
+def _check_plot_path(path) -> Optional[str]:
+    """Why ``--plot`` cannot be written there, or None."""
+    out = Path(path)
+    if out.is_dir():
+        return f'--plot {out}: is a directory, give a file name (e.g. diff.png)'
+    if not out.parent.is_dir():
+        return f'--plot {out}: folder {out.parent} does not exist'
+    if not os.access(out.parent, os.W_OK):
+        return f'--plot {out}: folder {out.parent} is not writable'
+    return None
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``ponytail_replay``; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+
+    def error(text):
+        print(f'ponytail_replay: error: {text}', file=sys.stderr)
+        return 2
+
+    if argv and argv[0] == 'repair':
+        return _main_repair(argv[1:], error)
     if argv and argv[0] == 'compare':
         argv = ['--compare'] + argv[1:]
     parser = _parser()
@@ -935,20 +1145,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if ros_args and not args.live:
         parser.error(f'unrecognized arguments: {" ".join(ros_args)}')
 
-    def error(text):
-        print(f'ponytail_replay: error: {text}', file=sys.stderr)
-        return 2
-
     def warn(text):
-        print(f'ponytail_replay: warning: {text}', file=sys.stderr)
+        if not args.quiet:
+            print(f'ponytail_replay: warning: {text}', file=sys.stderr)
 
     modes = sum((args.compare, args.live, args.output is not None))
     if modes != 1:
         parser.error('give exactly one of -o OUTPUT (replay), --compare A B, --live INPUT')
+    progress = None
     try:
         if args.compare:
             if len(args.inputs) != 2:
                 parser.error('--compare takes two recordings: A B')
+            if args.plot:
+                problem = _check_plot_path(args.plot)
+                if problem:
+                    return error(problem)
             comps, *_, values_a, values_b = compare(*args.inputs)
             print(format_comparison(args.inputs[0], args.inputs[1], comps, values_a, values_b))
             if args.plot:
@@ -956,6 +1168,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     print(f'plot: {plot_comparison(comps, args.plot)}')
                 except ImportError:
                     return error('--plot needs matplotlib (pip install matplotlib)')
+                except (OSError, ValueError) as exc:
+                    return error(f'--plot {args.plot}: cannot write it: '
+                                 f'{getattr(exc, "strerror", None) or exc}')
             return 0
         if len(args.inputs) != 1:
             parser.error('give one input recording')
@@ -964,7 +1179,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        progress=progress, warn=None if args.quiet else warn)
+                        progress=progress, warn=warn, stamp_source=args.stamp_source,
+                        tf=not args.no_tf, tf_prefix=args.tf_prefix)
         if not args.quiet:
             print(result.summary(args.inputs[0]))
         return 0
@@ -972,6 +1188,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return error(exc)
     except KeyboardInterrupt:
         return 130
+    finally:
+        if progress is not None:
+            progress.close()
+
+
+def _main_repair(argv, error) -> int:
+    from .repair import RepairError, repair
+    args = _repair_parser().parse_args(argv)
+    try:
+        result = repair(args.input, args.output, overwrite=args.overwrite)
+    except RepairError as exc:
+        return error(exc)
+    for problem in result.damage:
+        print(f'ponytail_replay: warning: {args.input}: skipped a damaged part: '
+              f'{problem.describe(result.input_size)}', file=sys.stderr)
+    if not args.quiet:
+        print(result.summary(args.input))
+    return 0
 
 
 def _main_live(args, ros_args, warn, error) -> int:

@@ -70,6 +70,8 @@ class HeadDemoNode(Node):
                                        rng(0.01, 100.0, 'Play speed.')).value
         best_effort = self.declare_parameter('best_effort', False, ParameterDescriptor(
             description='Publish best effort instead of reliable', read_only=True)).value
+        if kind not in MOTIONS:
+            raise ValueError(f'motion = {kind!r} is not one of: {", ".join(MOTIONS)}')
         self.motion = make_motion(kind, list(origin), scale)
         qos = QoSProfile(depth=10, reliability=(ReliabilityPolicy.BEST_EFFORT if best_effort
                                                 else ReliabilityPolicy.RELIABLE))
@@ -98,9 +100,19 @@ class HeadDemoNode(Node):
         self._pub.publish(msg)
 
 
+HELP = f"""usage: ponytail_head_demo [-h] [--ros-args -p rate:=60.0 -p motion:=script
+                          -r __ns:=/alice]
+
+{__doc__.split(chr(10), 1)[1].strip()}
+
+Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the parameter)."""
+
+
 def main(args=None):
     """Entry point of ``ponytail_head_demo``; returns the exit code."""
-    return run_node('ponytail_head_demo', HeadDemoNode, args)
+    from rclpy.exceptions import ParameterException
+    return run_node('ponytail_head_demo', HeadDemoNode, args,
+                    bad_input=(ParameterException, ValueError), help_text=HELP)
 
 
 if __name__ == '__main__':

@@ -24,7 +24,18 @@ Topics (all relative, so a namespace per character scales out; no global state):
   solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state
   and each frame's (``frame <name>``: none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
-  name carries the namespace.
+  name carries the namespace;
+* publishes ``/tf`` (``tf2_msgs/TFMessage``) when ``tf2_msgs`` is importable (a sourced ROS 2
+  workspace; the PyPI wheels lack it) and ``tf.publish`` (default true): each segment as the frame
+  ``<tf.prefix><chain>/<i>``, child of the head pose's frame, every tick. Without ``tf2_msgs``
+  nothing is published (said once if ``tf.publish`` was set explicitly); recordings hold ``/tf``
+  either way.
+
+Start-up says on the terminal: parameter-file or ``-p`` names that are no parameter of the node
+(with the closest known name), ``tf.publish`` without ``tf2_msgs``, another node with the same
+name in the same namespace (it doubles every topic; checked for the first 5 s). Live changes
+naming no parameter, or of the wrong type, are refused with a reason in words; head stamps on
+another clock than the node's are said on the terminal with the fix (``stamp_source:=receive``).
 
 Each tick advances the chains by the clock's elapsed time (``use_sim_time`` and ``/clock`` work;
 late or skipped timer periods are caught up, at most ``solver.max_steps_per_call`` steps). The
@@ -71,6 +82,20 @@ _PARAM_TYPES = {
     'double3': Parameter.Type.DOUBLE_ARRAY, 'double4': Parameter.Type.DOUBLE_ARRAY,
     'doubles': Parameter.Type.DOUBLE_ARRAY,
     'strings': Parameter.Type.STRING_ARRAY,
+}
+
+
+#: Parameter types in words, for refusals.
+_TYPE_WORDS = {
+    Parameter.Type.BOOL: 'a bool (true or false)',
+    Parameter.Type.INTEGER: 'an integer',
+    Parameter.Type.DOUBLE: 'a number (double, e.g. 0.5)',
+    Parameter.Type.STRING: 'a string',
+    Parameter.Type.BYTE_ARRAY: 'a list of bytes',
+    Parameter.Type.BOOL_ARRAY: 'a list of bools',
+    Parameter.Type.INTEGER_ARRAY: 'a list of integers',
+    Parameter.Type.DOUBLE_ARRAY: 'a list of numbers (doubles, e.g. [0.0, 0.0, -9.81])',
+    Parameter.Type.STRING_ARRAY: 'a list of strings',
 }
 
 
@@ -143,6 +168,10 @@ class PonytailNode(Node):
         self.core = NodeCore(values)
         self.core.runner.on_drop = self._on_drop
         self._check_input_topics()
+        #: Warnings said at start-up about the parameters given (unknown names; tf).
+        self.startup_warnings = []
+        self._declare_tf_parameters()
+        self._warn_unknown_overrides()
 
         if len(self._chains) == 1:
             topics = ['segment_poses']
@@ -161,6 +190,8 @@ class PonytailNode(Node):
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
                                  for f, sub in zip(self._frames, self._frame_subs)}}
+        #: /tf live (tf2_msgs importable and tf.publish), else None.
+        self._tf_pub = self._make_tf_publisher()
         self._timer = self.create_timer(1.0 / values['rate'], self._on_tick)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._diag_timer = self.create_timer(values['diagnostics_period'],
@@ -180,17 +211,103 @@ class PonytailNode(Node):
             self._recorder = RunRecorder.for_node(
                 self, values['record_path'], self._chains, self._head_sub,
                 self._pose_pubs, self._marker_pub, self._diag_pub,
-                frames=self._frames, frame_subscriptions=self._frame_subs)
+                frames=self._frames, frame_subscriptions=self._frame_subs,
+                tf_prefix=self._tf_prefix)
         if self._recorder is not None:
             self._pose_pubs = [self._recorder.recording(p) for p in self._pose_pubs]
             self._marker_pub = self._recorder.recording(self._marker_pub)
             self._diag_pub = self._recorder.recording(self._diag_pub)
         scene = self.core.scene
         inputs = ', '.join(['head_pose'] + list(self.core.frame_topics))
+        #: Set (and logged once) when another node with this node's name is in the graph.
+        self.duplicate_name_warning = None
+        self._name_checks = 0
+        self._name_timer = self.create_timer(1.0, self._check_duplicate_name, clock=self._steady)
         self.get_logger().info(
             f'Simulating {len(self._chains)} chain(s) {self._chains} '
             f'({scene.n_segments} segments, {len(scene.colliders)} collider(s)) at '
             f'{values["rate"]:g} Hz; {inputs} -> {", ".join(topics)}, segment_markers')
+
+    # -- start-up checks ------------------------------------------------------------------
+    def _declare_tf_parameters(self):
+        """``tf.publish`` / ``tf.prefix``: the segments as TF frames ``<prefix><chain>/<i>``
+        (children of the head pose's frame) on ``/tf`` live, when ``tf2_msgs`` is importable, and
+        always in recordings. Node-only (they do not change the simulation)."""
+        self.declare_parameter('tf.publish', True, ParameterDescriptor(
+            description='Publish every segment as a TF frame on /tf (needs tf2_msgs: a sourced '
+                        'ROS 2 workspace; recordings hold /tf regardless)', read_only=True))
+        self.declare_parameter('tf.prefix', '', ParameterDescriptor(
+            description='TF frames of the segments are <tf.prefix><chain>/<i> (i from 0 at the '
+                        'root), children of the head pose frame', read_only=True))
+        self._tf_prefix = str(self.get_parameter('tf.prefix').value)
+
+    def _make_tf_publisher(self):
+        if not self.get_parameter('tf.publish').value:
+            return None
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            if 'tf.publish' in self._parameter_overrides:   # asked for explicitly
+                self._startup_warning(
+                    'tf.publish is true but tf2_msgs is not installed (the ROS 2 PyPI wheels do '
+                    'not ship it): the segments are not published on /tf. Source a ROS 2 '
+                    'workspace that has tf2_msgs; recordings (record_path) hold /tf regardless')
+            return None
+        from rclpy.qos import QoSProfile as _QoS
+        from ponytail_ros.recording.tf import TF_QOS_DEPTH, TF_TOPIC
+        self._tf_message = TFMessage
+        return self.create_publisher(TFMessage, TF_TOPIC, _QoS(depth=TF_QOS_DEPTH))
+
+    def _publish_tf(self, poses):
+        from geometry_msgs.msg import TransformStamped
+        from ponytail_ros.recording.tf import segment_frame
+        msg = self._tf_message()
+        for chain, array in zip(self._chains, poses):
+            for i, pose in enumerate(array.poses):
+                t = TransformStamped()
+                t.header = array.header
+                t.child_frame_id = segment_frame(self._tf_prefix, chain, i)
+                t.transform.translation.x = pose.position.x
+                t.transform.translation.y = pose.position.y
+                t.transform.translation.z = pose.position.z
+                t.transform.rotation = pose.orientation
+                msg.transforms.append(t)
+        self._tf_pub.publish(msg)
+
+    def _startup_warning(self, text):
+        self.startup_warnings.append(text)
+        self.get_logger().warning(text)
+
+    def _warn_unknown_overrides(self):
+        """Overrides (params file, ``-p``) that name no parameter of this node are ignored by
+        rclpy without a word: say so, with the closest known name (a typo)."""
+        from ponytail_ros.recording.params import unknown_parameter_warning
+        known = set(self._param_names) | {'tf.publish', 'tf.prefix'}
+        for name in sorted(self._parameter_overrides):
+            if name in known or self.has_parameter(name):
+                continue
+            self._startup_warning(
+                f'{unknown_parameter_warning(name, known)}: not a parameter of '
+                f'{self.get_fully_qualified_name()} (params file or -p)')
+
+    def _check_duplicate_name(self):
+        """Another node with this name in this namespace doubles every topic: warn once.
+        Checked every second for the first 5 s (discovery takes a moment)."""
+        self._name_checks += 1
+        try:
+            same = [1 for name, ns in self.get_node_names_and_namespaces()
+                    if name == self.get_name() and ns == self.get_namespace()]
+        except Exception:  # noqa: BLE001 - the graph is unavailable during shutdown
+            same = []
+        if len(same) > 1:
+            fqn = self.get_fully_qualified_name()
+            self.duplicate_name_warning = (
+                f'{len(same)} nodes named {fqn} are running: each publishes on the same '
+                f'topics, so every topic is doubled. Give each character its own namespace '
+                f'(-r __ns:=/bob) or node name (-r __node:=ponytail_bob)')
+            self.get_logger().warning(self.duplicate_name_warning)
+        if self.duplicate_name_warning is not None or self._name_checks >= 5:
+            self._name_timer.cancel()
 
     def _check_input_topics(self):
         """Every frame reads its own topic, not the head's nor another frame's (as resolved
@@ -256,6 +373,33 @@ class PonytailNode(Node):
 
     def _definition(self, name):
         return definition(name, self._chains, self._colliders, self._frames)
+
+    def set_parameters_atomically(self, parameter_list):
+        """As rclpy's, but an unknown name or a wrong type is refused with a reason in words
+        (rclpy says "Wrong parameter type, expected '2' got '4'" and "Invalid access to
+        undeclared parameter(s)"); this is what ``ros2 param set`` calls."""
+        reason = self._refusal(self._pre_set_parameters(list(parameter_list)))
+        if reason is not None:
+            self.get_logger().warning(f'Rejected parameter change: {reason}')
+            return SetParametersResult(successful=False, reason=reason)
+        return super().set_parameters_atomically(parameter_list)
+
+    def _refusal(self, params):
+        from ponytail_ros.recording.params import closest_name
+        for p in params:
+            if not self.has_parameter(p.name):
+                close = closest_name(p.name, self._parameters)
+                hint = f' (did you mean {close!r}?)' if close else ''
+                return (f'{p.name!r} is not a parameter of {self.get_fully_qualified_name()}'
+                        f'{hint}')
+            descriptor = self.describe_parameter(p.name)
+            if (descriptor.dynamic_typing or p.type_ == Parameter.Type.NOT_SET
+                    or p.type_.value == descriptor.type):
+                continue
+            want = _TYPE_WORDS.get(Parameter.Type(descriptor.type), 'another type')
+            got = _TYPE_WORDS.get(p.type_, p.type_.name.lower())
+            return f'{p.name} must be {want}, not {got} ({p.value!r})'
+        return None
 
     def _pre_set_parameters(self, params):
         out = []
@@ -348,6 +492,8 @@ class PonytailNode(Node):
         for pub, msg in zip(self._pose_pubs, tick.poses):
             pub.publish(msg)
         wall_published = time.perf_counter()
+        if self._tf_pub is not None:
+            self._publish_tf(tick.poses)
         if tick.markers is not None:
             self._marker_pub.publish(tick.markers)
         out, rep = tick.output, tick.output.report
@@ -388,6 +534,16 @@ class PonytailNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self._diag_pub.publish(msg)
+        if 'clocks differ' in msg.status[0].message:
+            # Said on the terminal too, with the fix, not only inside /diagnostics.
+            age = next((kv.value for kv in msg.status[0].values
+                        if kv.key == 'head input age (s)'), '?')
+            self._log_throttled(
+                'clock', 30.0, 'warning',
+                f'Head pose stamps on {self._input_topics["head"]} are {age} s off this node\'s '
+                f'clock (another clock: a simulator, another machine, use_sim_time on one side '
+                f'only): the motion is estimated wrongly. Fix: stamp_source:=receive (time poses '
+                f'by their arrival), or run both on the same clock (use_sim_time)')
 
     def destroy_node(self):
         """Finalise the recording (if any), then destroy the node."""
@@ -397,9 +553,35 @@ class PonytailNode(Node):
         return super().destroy_node()
 
 
+def _help() -> str:
+    """``ponytail_node --help``: usage, topics and the global parameters with their meaning."""
+    lines = [
+        'usage: ponytail_node [-h] [--ros-args --params-file config/ponytail.yaml '
+        '-p name:=value -r __ns:=/alice]',
+        '',
+        'Simulates chains (ponytails, tails, ropes, swords) hanging from the head pose on '
+        'head_pose (geometry_msgs/PoseStamped); publishes segment_poses (PoseArray), '
+        'segment_markers, /diagnostics and, with tf2_msgs installed, /tf. record_path:=run.mcap '
+        'records the run for ponytail_replay.',
+        '',
+        'Parameters (ros2 param describe /ponytail <name> for ranges; per chain: '
+        '<chain>.n_segments, <chain>.length, <chain>.damping, ...):',
+    ]
+    for pdef in GLOBAL_PARAMS:
+        lines.append(f'  {pdef.name} (default {pdef.default!r}): '
+                     f'{" ".join(str(pdef.description).split())}')
+    lines += ['  tf.publish (default True), tf.prefix (default \'\'): segments as TF frames '
+              '<tf.prefix><chain>/<i>',
+              '',
+              'Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the '
+              'parameter and the allowed values).']
+    return '\n'.join(lines)
+
+
 def main(args=None):
     """Entry point of ``ponytail_node``; returns the exit code."""
-    return run_node('ponytail_node', PonytailNode, args, bad_input=(ParameterError, ParameterException))
+    return run_node('ponytail_node', PonytailNode, args,
+                    bad_input=(ParameterError, ParameterException), help_text=_help())
 
 
 if __name__ == '__main__':
