@@ -4,7 +4,7 @@ head poses into a running graph.
 Usage::
 
     ponytail_replay INPUT.mcap -o OUTPUT.mcap [--params FILE.yaml] [--head-topic /head_pose]
-                    [--ticks auto|recorded|nominal] [--overwrite] [--quiet]
+                    [--ticks auto|recorded|nominal] [--look-ahead] [--overwrite] [--quiet]
     ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
     ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
 
@@ -37,11 +37,22 @@ and the output is written exactly as the node records a run (same topics, types,
   its ``segment_poses`` and ``segment_markers`` bit for bit: ``ReplayNode`` makes exactly the
   node's ``ChainRunner`` calls with the same floats (it mirrors ``PonytailNode``'s callbacks;
   ``test_replay.py`` checks the two stay in step).
+* Look-ahead (``--look-ahead``): every head pose is known ahead of time, so each tick is run
+  only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it have been pushed (the frames' and
+  the parameter changes in between are applied in file order), and the head is estimated at
+  the tick time itself (no delay) by a centred fit through the poses on both sides: the
+  estimator settings of ``LOOK_AHEAD_VALUES`` (degree 5 through the 6 nearest poses: it
+  interpolates, for animation; noisy tracker data wants the default replay) and
+  ``output_stamp: simulated``. The output's parameters record them. Input resets (a teleport,
+  a frame change) then take effect up to ``LOOK_AHEAD_SAMPLES`` poses early. Not bit-exact with
+  the live run, by design: the default replay is.
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 
 Compare: per chain, the tip (last segment's far end; segment length from the recorded
-parameters, else the joint spacing) of two runs at the same stamps -- or, when the tick times
+parameters, else the joint spacing) of two runs at the same stamps (each run's ``output_stamp``
+is read from its parameters and printed: ``tick`` stamps label a chain simulated ``delay``
+earlier, ``simulated`` ones its own time; recordings without it are ``tick``) -- or, when the tick times
 differ (a nominal replay of a live run), at the nearest stamps within half a tick -- printed as
 RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
 time and both tips' coordinates.
@@ -64,6 +75,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
@@ -87,6 +99,12 @@ _MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: replay, so that no wall-time effect changes the bytes.
 _OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
 _NA = 'n/a (replay)'
+#: Look-ahead replay: head poses logged after a tick that are pushed before it is run.
+LOOK_AHEAD_SAMPLES = 16
+#: Look-ahead replay: parameters replaced (no delay; a centred interpolating fit; honest stamps).
+LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
+                     'output_stamp': 'simulated', 'head.degree': 5, 'head.min_samples': 6,
+                     'head.window': 0.005}
 
 
 class ReplayError(Exception):
@@ -345,7 +363,7 @@ class _Progress:
 
 
 def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
-           ticks: str = 'auto', overwrite: bool = False,
+           ticks: str = 'auto', overwrite: bool = False, look_ahead: bool = False,
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
@@ -355,6 +373,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         head_topic: the head topic; None: the recorded node's, else ``/head_pose`` (or the only
             head pose topic).
         ticks: ``'auto'``, ``'recorded'`` or ``'nominal'``.
+        look_ahead: estimate the head from poses on both sides of each tick (module
+            docstring).
         progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
             during the replay (often: throttle it).
         warn: called with each warning (default: ignored).
@@ -389,6 +409,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if unknown:
         warn(f'ignoring unknown parameters: {", ".join(unknown)}')
     result.parameters_from = source if source == 'the recording' else Path(source).name
+    if look_ahead:
+        values = {**values, **LOOK_AHEAD_VALUES}
 
     # Ticks: the node's own where possible.
     tick_topic = inp.tick_topic()
@@ -455,7 +477,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             overwrite=overwrite,
             chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS,
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
-                  'parameters_from': result.parameters_from})
+                  'parameters_from': result.parameters_from,
+                  'head_estimation': 'look-ahead' if look_ahead else 'live'})
     except BagError as exc:
         text = str(exc)
         if 'already exists' in text:
@@ -490,6 +513,25 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         if progress is not None and t_start is not None:
             progress((t_ns - t_start) * 1e-9, total_s)
 
+    # Look-ahead: ticks and parameter changes wait until LOOK_AHEAD_SAMPLES head poses logged
+    # after them are in; without it they run at once.
+    pending: List[Tuple[int, Callable, tuple]] = []
+    recent_heads: Any = deque(maxlen=LOOK_AHEAD_SAMPLES)
+
+    def schedule(t_ns, fn, *args):
+        if look_ahead:
+            pending.append((t_ns, fn, args))
+        else:
+            fn(*args)
+
+    def run_due(flush=False):
+        full = len(recent_heads) == LOOK_AHEAD_SAMPLES
+        while pending and (flush or (full and pending[0][0] < recent_heads[0])):
+            _, fn, args = pending.pop(0)
+            fn(*args)
+
+    # Ticks of a node recording are its poses' log times when their stamps are not tick times.
+    recorded_stamp = _recorded_value(inp.recorded_parameters, 'output_stamp', 'tick')
     period_ns = int(round(1e9 / values['rate']))
     next_tick = None
     last_log = None
@@ -497,10 +539,12 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         for topic, _, msg, log_ns in inp.reader.messages(wanted):
             if mode == 'nominal' and next_tick is not None:
                 while next_tick < log_ns:
-                    do_tick(next_tick)
+                    schedule(next_tick, do_tick, next_tick)
                     next_tick += period_ns
             if topic == inp.head_topic:
                 node.head(msg, log_ns)
+                recent_heads.append(log_ns)
+                run_due()
                 result.head_samples += 1
                 last_log = log_ns if last_log is None else max(last_log, log_ns)
                 if next_tick is None:
@@ -520,16 +564,20 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                 if msg.node == inp.layout.node:
                     changed = _event_values(msg)
                     if changed:
-                        node.set_parameters(changed, log_ns)
+                        schedule(log_ns, node.set_parameters, changed, log_ns)
                         result.parameter_changes += 1
                         if 'rate' in changed:
-                            period_ns = int(round(1e9 / node.values['rate']))
+                            # (look-ahead: the change is still pending; its value as given)
+                            period_ns = int(round(1e9 / float(
+                                changed['rate'] if look_ahead else node.values['rate'])))
             else:
-                do_tick(stamp_ns(msg.header.stamp))
+                t_tick = log_ns if recorded_stamp == 'simulated' else stamp_ns(msg.header.stamp)
+                schedule(t_tick, do_tick, t_tick)
         if mode == 'nominal' and next_tick is not None and last_log is not None:
             while next_tick <= last_log:
-                do_tick(next_tick)
+                schedule(next_tick, do_tick, next_tick)
                 next_tick += period_ns
+        run_due(flush=True)
     except BagError as exc:
         recorder.close()
         output_path.unlink(missing_ok=True)
@@ -549,6 +597,14 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and t_start is not None:
         progress((result.last_tick_ns - t_start) * 1e-9, total_s, final=True)
     return result
+
+
+def _recorded_value(recorded: Optional[Mapping[str, str]], name: str, default: Any) -> Any:
+    """A parameter's value in a recording's parameters metadata (JSON), else ``default``."""
+    try:
+        return json.loads(recorded[name])
+    except (KeyError, TypeError, ValueError):
+        return default
 
 
 def _used_frame_names(values) -> set:
@@ -730,6 +786,13 @@ def compare(path_a, path_b):
 def format_comparison(path_a, path_b, comparisons, values_a=None, values_b=None) -> str:
     """The comparison as text: the files, the parameters that differ, a table per chain."""
     lines = [f'A: {path_a}', f'B: {path_b}']
+    stamps = [(values or {}).get('output_stamp', 'tick') for values in (values_a, values_b)]
+    lines.append(f'output stamps: A {stamps[0]}, B {stamps[1]} ' + (
+        '(tick: the chain simulated a delay before its stamp, root on the head at the stamp)'
+        if 'tick' in stamps else '(the time of each state)'))
+    if stamps[0] != stamps[1]:
+        lines.append('warning: A and B stamp differently: tips matched by stamp are the chain '
+                     'at times a delay apart')
     if values_a and values_b:
         diff = [k for k in sorted(set(values_a) | set(values_b))
                 if k not in ('record_path',) and values_a.get(k) != values_b.get(k)]
@@ -908,6 +971,10 @@ def _parser():
     p.add_argument('--ticks', choices=('auto', 'recorded', 'nominal'), default='auto',
                    help='tick at the node\'s recorded tick times or every 1/rate s (default '
                         'auto: recorded when available and the rate is unchanged)')
+    p.add_argument('--look-ahead', action='store_true',
+                   help='estimate the head from poses on both sides of each tick (no delay, '
+                        'simulated-time stamps): the most accurate re-simulation of recorded '
+                        'animation')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUTPUT')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar, no summary')
     p.add_argument('--compare', action='store_true', help='compare two recordings A B')
@@ -964,7 +1031,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        progress=progress, warn=None if args.quiet else warn)
+                        look_ahead=args.look_ahead, progress=progress, warn=None if args.quiet else warn)
         if not args.quiet:
             print(result.summary(args.inputs[0]))
         return 0
