@@ -186,8 +186,9 @@ GLOBAL_PARAMS = (
     ParamDef('head.window', 0.1, 'double', 'Head estimation: samples within this of the '
              'evaluation time enter the local polynomial fit, s (widened to the nearest '
              'head.degree + 3 samples at low rates).', 0.005, 2.0),
-    ParamDef('head.degree', 3, 'int', 'Head estimation: degree of the polynomial in time.',
-             1, 5),
+    ParamDef('head.degree', 3, 'int', 'Head estimation: degree of the polynomial in time '
+             '(above 5 only with head.min_samples = head.degree + 1 on exact poses: '
+             'interpolation, look-ahead replay).', 1, 9),
     ParamDef('head.min_samples', 0, 'int', 'Head estimation: the fit uses at least this many '
              'of the nearest samples (widening head.window); 0 = head.degree + 3. '
              'head.degree + 1 makes it interpolate (exact animation poses, look-ahead '
