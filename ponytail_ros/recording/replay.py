@@ -41,7 +41,7 @@ and the output is written exactly as the node records a run (same topics, types,
   only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it have been pushed (the frames' and
   the parameter changes in between are applied in file order), and the head is estimated at
   the tick time itself (no delay) by a centred fit through the poses on both sides: the
-  estimator settings of ``LOOK_AHEAD_VALUES`` (degree 7 through the 8 nearest poses: it
+  estimator settings of ``LOOK_AHEAD_VALUES`` (degree 9 through the 10 nearest poses: it
   interpolates, for animation; noisy tracker data wants the default replay) and
   ``output_stamp: simulated``. The output's parameters record them. Input resets (a teleport,
   a frame change) then take effect up to ``LOOK_AHEAD_SAMPLES`` poses early. Not bit-exact with
@@ -103,7 +103,7 @@ _NA = 'n/a (replay)'
 LOOK_AHEAD_SAMPLES = 16
 #: Look-ahead replay: parameters replaced (no delay; a centred interpolating fit; honest stamps).
 LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
-                     'output_stamp': 'simulated', 'head.degree': 7, 'head.min_samples': 8,
+                     'output_stamp': 'simulated', 'head.degree': 9, 'head.min_samples': 10,
                      'head.window': 0.005}
 
 

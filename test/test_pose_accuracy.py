@@ -1,0 +1,262 @@
+"""Driven by head poses as accurately as by the head's formulas (issue 13).
+
+The moving head of ``../shared/reference/`` (sway 5 cm at 1.5 Hz, yaw 0.6 rad at 0.8 Hz) is
+written as ``geometry_msgs/PoseStamped`` bags by a third-party writer (``rosbags``) at several
+rates, replayed with ``ponytail_replay`` on the reference's 10-segment scene, and the tip (far
+end of the last segment, world frame, m) compared with the reference trajectory
+``ponytail_N10_moving_hanging`` over its valid window. The chain starts at the first pose, at
+rest relative to the head (moving with it), as the reference does.
+
+Internal step RK4 at 1/2000 s (the core's own error on this file is then below the bounds
+asserted; a finer step only moves the figures towards the estimation error): see the README
+(Driven by poses) for the figures and the commands.
+"""
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ponytail_ros.core import ChainSpec, Scene
+from ponytail_ros.core.head import HeadMotion, KinematicState, SwayYawMotion
+from ponytail_ros.core.reference import default_reference_dir, load_reference
+from ponytail_ros.core.rotations import quat_from_rotvec, quat_rotate, quat_conjugate
+from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
+
+REFERENCE = default_reference_dir() / 'ponytail_N10_moving_hanging.json'
+#: Bag time of the reference's t = 0 (a zero stamp means "unstamped" to the node).
+T0_NS = 100_000_000_000
+DT = 1.0 / 2000
+RATES = (30, 60, 120, 1000)
+TICK_RATE = 100.0           # the reference's sample period: outputs at its times
+
+
+def _need_reference():
+    if not REFERENCE.exists():
+        pytest.skip(f'{REFERENCE} not found: the shared reference trajectories '
+                    '(../shared/reference/) are not checked out next to the repository')
+
+
+def write_pose_bag(directory, rate, duration=3.2, motion=None):
+    """A rosbag2 MCAP bag (written by ``rosbags``) of ``motion``'s poses on ``/head_pose`` at
+    ``rate`` Hz from bag time ``T0_NS``; each pose is the motion at its own (ns) stamp, log
+    time = stamp. Returns the ``.mcap`` file."""
+    rosbag2 = pytest.importorskip('rosbags.rosbag2')
+    typesys = pytest.importorskip('rosbags.typesys')
+    store = typesys.get_typestore(getattr(typesys.Stores, 'ROS2_KILTED',
+                                          typesys.Stores.LATEST))
+    T = store.types
+    motion = motion or SwayYawMotion()
+    directory = Path(directory)
+    with rosbag2.Writer(directory, version=9,
+                        storage_plugin=rosbag2.StoragePlugin.MCAP) as writer:
+        msgtype = 'geometry_msgs/msg/PoseStamped'
+        conn = writer.add_connection('/head_pose', msgtype, typestore=store)
+        for k in range(int(round(duration * rate)) + 1):
+            ns = T0_NS + int(round(k * 1e9 / rate))
+            s = motion.state_at((ns - T0_NS) * 1e-9)
+            p, q = s.position[0].tolist(), s.orientation[0].tolist()
+            msg = T[msgtype](
+                header=T['std_msgs/msg/Header'](
+                    stamp=T['builtin_interfaces/msg/Time'](sec=ns // 10**9,
+                                                          nanosec=ns % 10**9),
+                    frame_id='world'),
+                pose=T['geometry_msgs/msg/Pose'](
+                    position=T['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+                    orientation=T['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2],
+                                                                  w=q[3])))
+            writer.write(conn, ns, store.serialize_cdr(msg, msgtype))
+    return next(directory.glob('*.mcap'))
+
+
+def reference_params(path, dt=DT, **extra):
+    """A node params file of the reference scene (10 segments, no damping, stiffness or
+    drag), RK4 at ``dt``, ticks at ``TICK_RATE``."""
+    values = {'rate': TICK_RATE, 'chains': ['ponytail'], 'colliders': [],
+              'gravity': [0.0, 0.0, -9.81], 'markers': {'style': 'off'},
+              'solver': {'integrator': 'rk4', 'dt': dt, 'max_steps_per_call': 100000},
+              'ponytail': {'n_segments': 10, 'length': 0.4, 'mass': 0.1, 'radius': 0.01,
+                           'attach': [-0.1, 0.0, 0.05], 'rest_direction': [0.0, 0.0, -1.0],
+                           'damping': 0.0, 'stiffness': 0.0, 'drag_linear': 0.0,
+                           'drag_quadratic': 0.0}}
+    values.update(extra)
+    Path(path).write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}))
+    return path
+
+
+def tip_track(path):
+    """(t from the reference's start, s; tips ``(k, 3)``) of a replay's output, by stamp."""
+    from ponytail_ros.recording.replay import load_chain_runs
+    runs, values = load_chain_runs(path)
+    run = runs['ponytail']
+    return (run.stamps - T0_NS) * 1e-9, run.tips, values
+
+
+@pytest.fixture(scope='module')
+def replays(tmp_path_factory):
+    """Look-ahead and live replays of the reference head at every rate in ``RATES``."""
+    _need_reference()
+    from ponytail_ros.recording.replay import replay
+    d = tmp_path_factory.mktemp('pose_bags')
+    params_la = reference_params(d / 'look_ahead.yaml')
+    # Live: the node's defaults (2 input periods of delay, cubic fit over 0.1 s), stamped
+    # with the simulated time so that the comparison is at the chain's own time.
+    params_live = reference_params(d / 'live.yaml', output_stamp='simulated')
+    out = {}
+    for rate in RATES:
+        bag = write_pose_bag(d / f'head_{rate}', rate)
+        for mode, params in (('look_ahead', params_la), ('live', params_live)):
+            path = d / f'{mode}_{rate}.mcap'
+            replay(bag, path, params_file=params, look_ahead=mode == 'look_ahead')
+            out[mode, rate] = tip_track(path)
+    return out
+
+
+def reference_tip():
+    ref = load_reference(REFERENCE)
+    ok = ref.t <= ref.window() + 1e-9
+    return ref.t[ok], ref.points[-1][ok]
+
+
+def errors_against_reference(track):
+    """Tip distance (m) to the reference at its sample times that the run reports."""
+    t, tips, _ = track
+    t_ref, tip_ref = reference_tip()
+    stamps = {round(x, 6): i for i, x in enumerate(t)}
+    idx = [(k, stamps[round(x, 6)]) for k, x in enumerate(t_ref) if round(x, 6) in stamps]
+    assert len(idx) >= len(t_ref) - 2          # every reference time but the start
+    k, i = np.array(idx).T
+    return np.linalg.norm(tips[i] - tip_ref[k], axis=1)
+
+
+@pytest.mark.parametrize('rate, bound', [(1000, 1e-4), (120, 1e-3), (30, 5e-3)])
+def test_look_ahead_replay_of_a_rosbags_pose_bag_matches_the_reference(replays, rate, bound):
+    t, _, values = replays['look_ahead', rate]
+    assert values['output_stamp'] == 'simulated'       # the stamp says what it shows
+    d = errors_against_reference(replays['look_ahead', rate])
+    assert np.sqrt(np.mean(d * d)) <= bound
+
+
+def _pairwise(replays, mode, t_end=3.0):
+    """Largest RMS and max tip distance (m) between two rates' runs over the common span up
+    to ``t_end`` (cubic splines through each run's outputs at their own stamps: live outputs
+    are stamped t - delay, a different delay per rate)."""
+    from scipy.interpolate import CubicSpline
+    t_lo = max(replays[mode, rate][0][0] for rate in RATES)
+    grid = np.arange(np.ceil(t_lo * TICK_RATE), np.floor(t_end * TICK_RATE) + 1) / TICK_RATE
+    tracks = {rate: CubicSpline(*replays[mode, rate][:2])(grid) for rate in RATES}
+    worst_rms = worst_max = 0.0
+    for i, a in enumerate(RATES):
+        for b in RATES[i + 1:]:
+            d = np.linalg.norm(tracks[a] - tracks[b], axis=1)
+            worst_rms = max(worst_rms, float(np.sqrt(np.mean(d * d))))
+            worst_max = max(worst_max, float(d.max()))
+    return worst_rms, worst_max
+
+
+def test_look_ahead_replay_is_frame_rate_independent(replays):
+    """30, 60, 120 and 1000 Hz bags of one motion: tip tracks within 1 mm RMS of each other
+    over 3 s (the whip near 2.8 s amplifies the remaining differences: the max is larger,
+    see the README)."""
+    rms, _ = _pairwise(replays, 'look_ahead')
+    assert rms <= 1e-3
+
+
+def test_live_replay_frame_rate_dependence_is_bounded(replays):
+    """The live estimate (causal, delayed, smoothed) depends on the input rate: bounded by
+    the figure measured and stated in the README."""
+    rms, _ = _pairwise(replays, 'live')
+    assert rms <= LIVE_PAIRWISE_RMS
+
+
+#: Largest RMS tip distance between live replays of 30/60/120/1000 Hz bags, m (README).
+LIVE_PAIRWISE_RMS = 0.1
+
+
+# -- start-up whip ---------------------------------------------------------------------------
+
+class RunAndTurn(HeadMotion):
+    """The head running at ``speed`` m/s along world +X while turning at ``rate`` rad/s about
+    world +Z (constant), at 1.6 m; exact derivatives."""
+
+    def __init__(self, speed=2.0, rate=3.0, t_jump=None, jump=(1.0, 0.0, 0.0)):
+        self.speed, self.rate = float(speed), float(rate)
+        self.t_jump, self.jump = t_jump, np.asarray(jump, dtype=float)
+
+    def state_at(self, t):
+        p = np.array([self.speed * t, 0.0, 1.6])
+        if self.t_jump is not None and t >= self.t_jump:
+            p = p + self.jump
+        return KinematicState(
+            position=p[None], orientation=quat_from_rotvec(np.array([0.0, 0.0, self.rate * t]))[None],
+            linear_velocity=np.array([[self.speed, 0.0, 0.0]]),
+            angular_velocity=np.array([[0.0, 0.0, self.rate]]),
+            linear_acceleration=np.zeros((1, 3)), angular_acceleration=np.zeros((1, 3)))
+
+
+ATTACH = (-0.09, 0.0, 0.06)
+
+
+def _ponytail():
+    return Scene(chains=(ChainSpec(name='ponytail', n_segments=8, length=0.3, mass=0.1,
+                                   radius=0.03, attach=ATTACH, damping=1e-3,
+                                   drag_linear=0.02),))
+
+
+def relative_tip_speeds(outs, motion, t_from, window=0.1):
+    """Speed (m/s) of the tip relative to the head (the rate of change of its position in the
+    head frame) between consecutive outputs in ``[t_from, t_from + window]``, at the outputs'
+    own (simulated) times."""
+    seg = 0.3 / 8
+    from ponytail_ros.core.rotations import quat_axis_x
+    pts = []
+    for o in outs:
+        if not (t_from - 1e-9 <= o.t_state <= t_from + window + 1e-9):
+            continue
+        tip = o.origins[-1] + quat_axis_x(o.orientations[-1:])[0] * seg
+        s = motion.state_at(o.t_state)
+        local = quat_rotate(quat_conjugate(s.orientation[0]), tip - s.position[0])
+        pts.append((o.t_state, local))
+    assert len(pts) >= 8
+    t = np.array([p[0] for p in pts])
+    x = np.array([p[1] for p in pts])
+    return np.linalg.norm(np.diff(x, axis=0), axis=1) / np.diff(t)
+
+
+#: Bound on the tip's speed relative to the head in the first 100 ms (m/s): the chain starts
+#: moving with the head, so only the physical response to the turn (centrifugal swing-out,
+#: ω² r ≈ 0.8 m/s² at the attachment) moves it; starting at rest in the world instead, the tip
+#: lags the head at ≈ |v + ω × r| ≈ 2 m/s.
+WHIP_BOUND = 0.15
+
+
+@pytest.mark.parametrize('input_rate', [30.0, 120.0])
+@pytest.mark.parametrize('case', ['start', 'teleport', 'rebuild'])
+def test_no_start_up_whip_on_a_running_turning_head(case, input_rate):
+    t_event = 0.0 if case == 'start' else 0.6
+    motion = RunAndTurn(t_jump=t_event if case == 'teleport' else None)
+    r = ChainRunner(_ponytail(), RunnerSettings(output_stamp='simulated'))
+    outs, tp, tt = [], 0.0, 0.0
+    rebuilt = False
+    while tt < t_event + 0.3:
+        while tp <= tt + 1e-12:
+            s = motion.state_at(tp)
+            r.push(tp, s.position[0], s.orientation[0], 'world')
+            tp += 1.0 / input_rate
+        if case == 'rebuild' and not rebuilt and tt >= t_event:
+            scene = _ponytail()        # a structural change: the chain is rebuilt
+            r.set_scene(replace(scene, chains=(replace(scene.chains[0], radius=0.031),)))
+            rebuilt = True
+        o = r.tick(tt)
+        if o is not None:
+            outs.append(o)
+        tt += 1.0 / 120.0
+    if case != 'start':
+        assert r.resets[case] == 1
+        t_from = next(o.t_state for o in outs if o.reset_reason == case)
+    else:
+        t_from = outs[0].t_state
+        assert t_from <= 1.0 / input_rate             # from the first pose
+    assert r.resets['guard'] == 0
+    assert relative_tip_speeds(outs, motion, t_from).max() < WHIP_BOUND
