@@ -23,6 +23,8 @@ Subcommands (default ``all``):
              ready-made scene (``config/*.yaml``) costs: ``terms.csv/json``,
              ``scenes.csv/json``.
 ``refcheck`` this core's RK4 against every file of ``../shared/reference/``.
+``pose``     the head estimation's errors and the tip error they cause, live and look-ahead,
+             30-1000 Hz input with and without jitter (``pose_bench.py``; not in ``all``).
 ``report``   ``results.md``: all tables of the JSON files in the output directory, as markdown
              (also written at the end of ``all``).
 
@@ -58,6 +60,7 @@ from ponytail_ros.core.simulator import Simulator  # noqa: E402
 from . import measure as M  # noqa: E402
 from . import mujoco_chain as MJ  # noqa: E402
 from . import plots  # noqa: E402
+from . import pose_bench  # noqa: E402
 from .motions import crowd_motion, reference_motion  # noqa: E402
 from .scenes import (EXTRA_SCENES, REFERENCE_DIR, SCENES, BenchScene, make_scene,  # noqa: E402
                      ponytail_chain)
@@ -954,7 +957,7 @@ def cmd_report(prof, out, meta, log=print):
 # -- main -------------------------------------------------------------------------------------
 COMMANDS = {'trade': cmd_trade, 'scaling': cmd_scaling, 'mujoco': cmd_mujoco, 'batch': cmd_batch,
             'energy': cmd_energy, 'terms': cmd_terms, 'refcheck': cmd_refcheck,
-            'report': cmd_report}
+            'report': cmd_report, 'pose': pose_bench.cmd_pose}
 ALL = ('trade', 'scaling', 'mujoco', 'batch', 'energy', 'terms')
 
 
@@ -993,6 +996,8 @@ def build_parser():
                  energy='energy drift per integrator and step, still anchor, no damping',
                  terms='cost of each force term, collider and limit; of each ready-made scene',
                  refcheck="RK4 against every file of ../shared/reference/",
+                 pose='head estimation p, v, a, w, alpha and tip errors, live and look-ahead, '
+                      '30-1000 Hz input (pose_bench.py)',
                  report='results.md from the JSON files in --out',
                  all='trade, scaling, mujoco, batch, energy, terms, then report (the default)')
     for name in list(COMMANDS) + ['all']:
