@@ -260,3 +260,28 @@ def test_no_start_up_whip_on_a_running_turning_head(case, input_rate):
         assert t_from <= 1.0 / input_rate             # from the first pose
     assert r.resets['guard'] == 0
     assert relative_tip_speeds(outs, motion, t_from).max() < WHIP_BOUND
+
+
+# -- honest stamps through a recording ---------------------------------------------------------
+
+def test_simulated_stamps_are_recorded_and_a_replay_of_the_replay_is_bit_exact(tmp_path):
+    """A run with ``output_stamp: simulated`` (live estimation, stamps t - delay) records the
+    setting; replaying that recording with its own parameters ticks at its log times (not its
+    stamps) and reproduces it exactly; ``compare`` names the stamp modes."""
+    pytest.importorskip('rosbags')
+    from ponytail_ros.recording.replay import compare, format_comparison, replay
+    bag = write_pose_bag(tmp_path / 'head', 120, duration=0.6)
+    params = reference_params(tmp_path / 'p.yaml', dt=1 / 500, output_stamp='simulated')
+    first = replay(bag, tmp_path / 'a.mcap', params_file=params)
+    again = replay(tmp_path / 'a.mcap', tmp_path / 'b.mcap')
+    assert again.tick_mode == 'recorded' and again.ticks == first.ticks > 0
+    t_a, tips_a, values = tip_track(tmp_path / 'a.mcap')
+    t_b, tips_b, _ = tip_track(tmp_path / 'b.mcap')
+    assert values['output_stamp'] == 'simulated'
+    assert np.array_equal(t_a, t_b) and np.array_equal(tips_a, tips_b)
+    # The stamps are the simulated times: 2 input periods before the 100 Hz ticks.
+    ticks = np.round(t_a + 2 / 120, 9)
+    assert np.allclose(ticks * TICK_RATE, np.round(ticks * TICK_RATE), atol=1e-6)
+    comps, *_, va, vb = compare(tmp_path / 'a.mcap', tmp_path / 'b.mcap')
+    text = format_comparison('a', 'b', comps, va, vb)
+    assert 'output stamps: A simulated, B simulated' in text and comps[0].max == 0.0

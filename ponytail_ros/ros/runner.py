@@ -37,6 +37,22 @@ at two); the default, 2 periods, is 2 ms at 1 kHz, 17 ms at 120 Hz, 67 ms at 30 
 
 Decisions (documented for the node):
 
+* Start and resets at rest *relative to the anchor bodies*: every segment points along its rest
+  direction and moves rigidly with its anchor body, with the body's estimated linear and
+  angular velocity (``Simulator.reset`` with the estimated ``KinematicState``), never at rest
+  in the world while the head runs. A new history (the first poses, or the history restarted
+  by a teleport, a frame change or the clock going back) gives no velocity from one pose, so
+  the runner waits: nothing is published until every input the scene uses holds
+  ``START_SAMPLES`` (3) poses of its new history (2 input periods: 2 ms at 1 kHz, 67 ms at
+  30 Hz) or is stale; then the chain starts at the first pose of that history (or at
+  ``t - delay`` if that is later) and is advanced to ``t - delay`` in the same tick. A
+  rebuild or a guard reset keeps the history, so it starts at once with the current estimate.
+* Output stamp (``output_stamp``): ``tick`` labels the output with the tick time ``t`` while
+  the chain is the one simulated at ``t - delay`` with its roots moved onto the head at ``t``
+  (latency compensation): what a viewer should draw now. ``simulated`` labels the state with
+  its own time (``TickOutput.t_state``), without compensation: what an analysis pairing
+  messages by stamp (a bag comparison, a TF lookup) needs.
+
 * Stale: no sample accepted during the last ``stale_timeout`` s of clock time (measured on the
   node clock, not by the stamps, so that it works whatever the stamps' time base).
 * Frame: the frame of the first accepted pose (head or extra frame) is latched: it is the
