@@ -7,9 +7,9 @@ end of the last segment, world frame, m) compared with the reference trajectory
 ``ponytail_N10_moving_hanging`` over its valid window. The chain starts at the first pose, at
 rest relative to the head (moving with it), as the reference does.
 
-Internal step RK4 at 1/2000 s (the core's own error on this file is then below the bounds
-asserted; a finer step only moves the figures towards the estimation error): see the README
-(Driven by poses) for the figures and the commands.
+Internal step RK4 at 1/2000 s in look-ahead mode (the core's own error on this file is then
+below the bounds asserted; a finer step only moves the figures towards the estimation error),
+1/1000 s in live mode: see the README (Driven by head poses) for the figures and commands.
 """
 from dataclasses import replace
 from pathlib import Path
@@ -101,8 +101,9 @@ def replays(tmp_path_factory):
     d = tmp_path_factory.mktemp('pose_bags')
     params_la = reference_params(d / 'look_ahead.yaml')
     # Live: the node's defaults (2 input periods of delay, cubic fit over 0.1 s), stamped
-    # with the simulated time so that the comparison is at the chain's own time.
-    params_live = reference_params(d / 'live.yaml', output_stamp='simulated')
+    # with the simulated time so that the comparison is at the chain's own time; RK4 at
+    # 1/1000 s (the core's error there, ~1e-3 m, is far below the live estimate's).
+    params_live = reference_params(d / 'live.yaml', dt=1 / 1000, output_stamp='simulated')
     out = {}
     for rate in RATES:
         bag = write_pose_bag(d / f'head_{rate}', rate)
@@ -120,14 +121,15 @@ def reference_tip():
 
 
 def errors_against_reference(track):
-    """Tip distance (m) to the reference at its sample times that the run reports."""
+    """Tip distance (m) to the reference at its sample times within the run's span (a cubic
+    spline through the run's outputs: exact at look-ahead outputs, which are at those times;
+    live outputs are stamped t - delay)."""
+    from scipy.interpolate import CubicSpline
     t, tips, _ = track
     t_ref, tip_ref = reference_tip()
-    stamps = {round(x, 6): i for i, x in enumerate(t)}
-    idx = [(k, stamps[round(x, 6)]) for k, x in enumerate(t_ref) if round(x, 6) in stamps]
-    assert len(idx) >= len(t_ref) - 2          # every reference time but the start
-    k, i = np.array(idx).T
-    return np.linalg.norm(tips[i] - tip_ref[k], axis=1)
+    ok = (t_ref >= t[0] - 1e-9) & (t_ref <= t[-1] + 1e-9)
+    assert ok.sum() >= len(t_ref) - 8           # from the first output (≤ 70 ms)
+    return np.linalg.norm(CubicSpline(t, tips)(t_ref[ok]) - tip_ref[ok], axis=1)
 
 
 @pytest.mark.parametrize('rate, bound', [(1000, 1e-4), (120, 1e-3), (30, 5e-3)])
@@ -171,7 +173,7 @@ def test_live_replay_frame_rate_dependence_is_bounded(replays):
 
 
 #: Largest RMS tip distance between live replays of 30/60/120/1000 Hz bags, m (README).
-LIVE_PAIRWISE_RMS = 0.1
+LIVE_PAIRWISE_RMS = 0.08
 
 
 # -- start-up whip ---------------------------------------------------------------------------

@@ -16,6 +16,8 @@ stamps are exact but irregular; each pose is the head at its stamp).
    * ``live``: as the node does it: causal (only poses stamped before the tick), the node's
      default estimator (cubic over ``head.window`` 0.1 s) at ``t - delay`` with the default
      delay of 2 input periods (the latency, 2/rate, is listed, not counted as error);
+   * ``live_interp``: the same, but the cubic interpolates the 4 nearest poses
+     (``LIVE_INTERP``: for exact animation poses; it amplifies noise);
    * ``look_ahead``: as ``ponytail_replay --look-ahead``: every pose known, the estimator
      of ``LOOK_AHEAD_VALUES`` (degree 9 through the 10 nearest poses) at the tick itself.
 
@@ -44,7 +46,9 @@ from ponytail_ros.core.rotations import quat_axis_x
 
 RATES = (30.0, 60.0, 120.0, 250.0, 1000.0)
 JITTERS = (0.0, 0.2)
-MODES = ('live', 'look_ahead')
+MODES = ('live', 'live_interp', 'look_ahead')
+#: ``live_interp``: the live node with an interpolating cubic (exact animation poses).
+LIVE_INTERP = {'head.window': 0.005, 'head.degree': 3, 'head.min_samples': 4}
 #: The node's default delay, in input periods (``interpolation_delay_periods``).
 LIVE_DELAY_PERIODS = 2.0
 TICK_RATE = 100.0
@@ -70,11 +74,14 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
         for t, p, q in zip(ts, ps, qs):
             est.add(t, p, q)
     else:
-        est = HeadEstimator(delay=0.0)           # the node's defaults (RunnerSettings)
+        kw = {} if mode == 'live' else dict(window=LIVE_INTERP['head.window'],
+                                            degree=LIVE_INTERP['head.degree'],
+                                            min_samples=LIVE_INTERP['head.min_samples'])
+        est = HeadEstimator(delay=0.0, **kw)     # else the node's defaults (RunnerSettings)
         delay = LIVE_DELAY_PERIODS / rate
     i = 0
     for tick in ticks:
-        if mode == 'live':
+        if mode != 'look_ahead':
             while i < len(ts) and ts[i] <= tick:
                 est.add(ts[i], ps[i], qs[i])
                 i += 1
@@ -88,7 +95,7 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
 def chain_values(dt):
     """Node parameters of the reference's 10-segment scene, RK4 at ``dt``, ticks at 100 Hz,
     outputs stamped with their simulated time."""
-    return {'rate': TICK_RATE, 'chains': ['ponytail'], 'colliders': [],
+    return {'rate': TICK_RATE, 'head': {'max_samples': 128}, 'chains': ['ponytail'], 'colliders': [],
             'gravity': [0.0, 0.0, -9.81], 'markers': {'style': 'off'},
             'output_stamp': 'simulated',
             'solver': {'integrator': 'rk4', 'dt': dt, 'max_steps_per_call': 100000},
@@ -149,7 +156,10 @@ def tip_errors(rate, jitter, mode, dt, duration=3.0, seed=0, workdir=None, motio
         d = Path(d)
         bag = write_bag(d / 'head.mcap', ts, ps, qs)
         params = d / 'params.yaml'
-        params.write_text(yaml.safe_dump({'/**': {'ros__parameters': chain_values(dt)}}))
+        values = chain_values(dt)
+        if mode == 'live_interp':
+            values['head'].update({k.split('.')[1]: v for k, v in LIVE_INTERP.items()})
+        params.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}))
         out = d / 'out.mcap'
         replay(bag, out, params_file=params, look_ahead=mode == 'look_ahead')
         runs, _ = load_chain_runs(out)
