@@ -13,13 +13,17 @@ stamps are exact but irregular; each pose is the head at its stamp).
    acceleration p̈ (m/s²), and of the angular velocity ω (rad/s) and acceleration α (rad/s²),
    world frame, against the exact head at the time the estimate is for:
 
+   Stamps are rounded to whole ns, as in a bag (the poses are the head at the unrounded
+   times: a ≤ 0.5 ns inconsistency, which an interpolating fit at 1 kHz amplifies).
+
    * ``live``: as the node does it: causal (only poses stamped before the tick), the node's
      default estimator (cubic over ``head.window`` 0.1 s) at ``t - delay`` with the default
      delay of 2 input periods (the latency, 2/rate, is listed, not counted as error);
    * ``live_interp``: the same, but the cubic interpolates the 4 nearest poses
      (``LIVE_INTERP``: for exact animation poses; it amplifies noise);
    * ``look_ahead``: as ``ponytail_replay --look-ahead``: every pose known, the estimator
-     of ``LOOK_AHEAD_VALUES`` (degree 9 through the 10 nearest poses) at the tick itself.
+     of ``LOOK_AHEAD_VALUES`` (degree 9 over ±0.05 s, at least the 10 nearest poses) at
+     the tick itself.
 
 2. Tip error (``pose_tip.csv/json``): the reference's 10-segment chain (0.4 m, 0.1 kg, no
    damping) on that head for 3 s, replayed by ``ponytail_replay`` from a ``PoseStamped`` bag
@@ -27,6 +31,13 @@ stamps are exact but irregular; each pose is the head at its stamp).
    the same chain driven by the exact head formulas at every integrator stage, same RK4 step;
    RMS and max tip distance (m) at the outputs' times. The chain starts at the first pose, at
    rest relative to the head, in both.
+
+3. Against the reference (``--reference``; needs ``../shared/reference/``): the poses of
+   ``ponytail_N10_moving_hanging``'s head at 30, 60, 120 and 1000 Hz (regular, each at its
+   ns stamp, 3.2 s) replayed look-ahead (RK4 1/2000 s) and live with the node's defaults
+   (RK4 1/1000 s, simulated stamps); tip RMS / max against the file over its valid window,
+   and the largest RMS / max tip distance between two rates (the figures
+   ``test/test_pose_accuracy.py`` asserts, there from bags written by ``rosbags``).
 
 Not timed; CPU cost is ~1 ms per RK4 step of the NumPy core (tip part: minutes).
 """
@@ -67,6 +78,7 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
     """RMS errors ``{'p', 'v', 'a', 'w', 'alpha'}`` (SI, world frame) and the latency (s)."""
     motion = motion or SwayYawMotion()
     ts, ps, qs = sample_stream(motion, rate, duration, jitter=jitter, seed=seed)
+    ts = np.round(ts * 1e9) * 1e-9
     ticks = np.sort(np.random.default_rng(seed + 1).uniform(1.0, duration - 0.05, n_ticks))
     err = {k: [] for k, _ in KEYS}
     if mode == 'look_ahead':
@@ -224,6 +236,58 @@ def run(profile='quick', out=None, log=print, meta=None):
     return est_rows, tip_rows
 
 
+def reference_figures(log=print, rates=(30, 60, 120, 1000), workdir=None):
+    """Part 3 of the module docstring; returns rows of dicts."""
+    import yaml
+    from scipy.interpolate import CubicSpline
+    from ponytail_ros.core.reference import default_reference_dir, load_reference
+    from ponytail_ros.recording.replay import load_chain_runs, replay
+    ref = load_reference(default_reference_dir() / 'ponytail_N10_moving_hanging.json')
+    ok = ref.t <= ref.window() + 1e-9
+    t_ref, tip_ref = ref.t[ok], ref.points[-1][ok]
+    motion = SwayYawMotion()
+    rows, tracks = [], {}
+    log(f"{'mode':>10} {'rate':>6} {'RK4 dt':>8} {'tip RMS m':>10} {'tip max m':>10}")
+    with tempfile.TemporaryDirectory(dir=workdir) as d:
+        d = Path(d)
+        for rate in rates:
+            ns = [int(round(k * 1e9 / rate)) for k in range(int(round(3.2 * rate)) + 1)]
+            ts = np.array(ns) * 1e-9
+            states = [motion.state_at(t) for t in ts]
+            bag = write_bag(d / f'head_{rate}.mcap', ts,
+                            np.array([s.position[0] for s in states]),
+                            np.array([s.orientation[0] for s in states]))
+            for mode, dt in (('look_ahead', 1 / 2000), ('live', 1 / 1000)):
+                params = d / f'{mode}.yaml'
+                params.write_text(yaml.safe_dump({'/**': {'ros__parameters': chain_values(dt)}}))
+                out = d / f'{mode}_{rate}.mcap'
+                replay(bag, out, params_file=params, look_ahead=mode == 'look_ahead')
+                run = load_chain_runs(out)[0]['ponytail']
+                t = (run.stamps - BAG_T0_NS) * 1e-9
+                spline = CubicSpline(t, run.tips)
+                sel = (t_ref >= t[0] - 1e-9) & (t_ref <= t[-1] + 1e-9)
+                e = np.linalg.norm(spline(t_ref[sel]) - tip_ref[sel], axis=1)
+                tracks[mode, rate] = spline, t[0]
+                rows.append(dict(mode=mode, rate_hz=rate, dt=dt,
+                                 tip_rms_m=float(np.sqrt(np.mean(e * e))),
+                                 tip_max_m=float(e.max())))
+                log(f'{mode:>10} {rate:6.0f} {"1/" + format(1 / dt, ".0f"):>8} '
+                    f'{rows[-1]["tip_rms_m"]:10.2e} {rows[-1]["tip_max_m"]:10.2e}')
+    for mode in ('look_ahead', 'live'):
+        t_lo = max(tracks[mode, r][1] for r in rates)
+        grid = np.arange(np.ceil(t_lo * TICK_RATE), 3.0 * TICK_RATE + 1) / TICK_RATE
+        worst = [0.0, 0.0]
+        for i, a in enumerate(rates):
+            for b in rates[i + 1:]:
+                dist = np.linalg.norm(tracks[mode, a][0](grid) - tracks[mode, b][0](grid), axis=1)
+                worst = [max(worst[0], float(np.sqrt(np.mean(dist * dist)))),
+                         max(worst[1], float(dist.max()))]
+        rows.append(dict(mode=mode, rate_hz='pairwise', tip_rms_m=worst[0], tip_max_m=worst[1]))
+        log(f'{mode:>10} between rates, over 3 s: largest RMS {worst[0]:.2e} m, '
+            f'largest max {worst[1]:.2e} m')
+    return rows
+
+
 def cmd_pose(prof, out, meta, log=print):
     """``ponytail_bench pose``: the profile's name is in ``meta``."""
     return run(meta.get('profile', 'quick'), out, log, meta)
@@ -236,8 +300,18 @@ def main(argv=None):
     g.add_argument('--full', dest='profile', action='store_const', const='full')
     g.add_argument('--tiny', dest='profile', action='store_const', const='tiny')
     parser.add_argument('--out', default=None, help='write pose_*.csv/json here')
+    parser.add_argument('--reference', action='store_true',
+                        help='only part 3: replays of the shared reference head')
     args = parser.parse_args(argv)
-    run(args.profile or 'quick', args.out, lambda *a: print(*a, flush=True))
+    log = lambda *a: print(*a, flush=True)  # noqa: E731
+    if args.reference:
+        rows = reference_figures(log)
+        if args.out:
+            from ponytail_ros.bench.cli import make_meta, write_table
+            os.makedirs(args.out, exist_ok=True)
+            write_table(args.out, 'pose_reference', rows, make_meta('reference', 'pose'))
+        return
+    run(args.profile or 'quick', args.out, log)
 
 
 if __name__ == '__main__':

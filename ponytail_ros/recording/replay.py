@@ -38,14 +38,15 @@ and the output is written exactly as the node records a run (same topics, types,
   node's ``ChainRunner`` calls with the same floats (it mirrors ``PonytailNode``'s callbacks;
   ``test_replay.py`` checks the two stay in step).
 * Look-ahead (``--look-ahead``): every head pose is known ahead of time, so each tick is run
-  only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it have been pushed (the frames' and
-  the parameter changes in between are applied in file order), and the head is estimated at
-  the tick time itself (no delay) by a centred fit through the poses on both sides: the
-  estimator settings of ``LOOK_AHEAD_VALUES`` (degree 9 through the 10 nearest poses: it
-  interpolates, for animation; noisy tracker data wants the default replay) and
-  ``output_stamp: simulated``. The output's parameters record them. Input resets (a teleport,
-  a frame change) then take effect up to ``LOOK_AHEAD_SAMPLES`` poses early. Not bit-exact with
-  the live run, by design: the default replay is.
+  only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it, and ``LOOK_AHEAD_SPAN_NS`` of
+  them, have been pushed (the frames' poses and the parameter changes in between are applied
+  in file order), and the head is estimated at the tick time itself (no delay) by a centred
+  fit through the poses on both sides: the estimator settings of ``LOOK_AHEAD_VALUES``
+  (degree 9 over ±0.05 s, at least the 10 nearest poses: it interpolates at low rates and
+  smooths float rounding at high ones; for animation, noisy tracker data wants the default
+  replay) and ``output_stamp: simulated``. The output's parameters record them. Input resets
+  (a teleport, a frame change) then take effect up to that look-ahead early. Not bit-exact
+  with the live run, by design: the default replay is.
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 
@@ -99,12 +100,14 @@ _MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: replay, so that no wall-time effect changes the bytes.
 _OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
 _NA = 'n/a (replay)'
-#: Look-ahead replay: head poses logged after a tick that are pushed before it is run.
+#: Look-ahead replay: a tick runs once this many head poses logged after it, spanning at least
+#: LOOK_AHEAD_SPAN_NS (the fit's window), have been pushed.
 LOOK_AHEAD_SAMPLES = 16
+LOOK_AHEAD_SPAN_NS = 60_000_000
 #: Look-ahead replay: parameters replaced (no delay; a centred interpolating fit; honest stamps).
 LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
                      'output_stamp': 'simulated', 'head.degree': 9, 'head.min_samples': 10,
-                     'head.window': 0.005}
+                     'head.window': 0.05, 'head.max_samples': 512}
 
 
 class ReplayError(Exception):
@@ -517,6 +520,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     # after them are in; without it they run at once.
     pending: List[Tuple[int, Callable, tuple]] = []
     recent_heads: Any = deque(maxlen=LOOK_AHEAD_SAMPLES)
+    newest_head = [None]
 
     def schedule(t_ns, fn, *args):
         if look_ahead:
@@ -526,7 +530,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
 
     def run_due(flush=False):
         full = len(recent_heads) == LOOK_AHEAD_SAMPLES
-        while pending and (flush or (full and pending[0][0] < recent_heads[0])):
+        while pending and (flush or (full and pending[0][0] < recent_heads[0]
+                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS <= newest_head[0])):
             _, fn, args = pending.pop(0)
             fn(*args)
 
@@ -544,6 +549,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             if topic == inp.head_topic:
                 node.head(msg, log_ns)
                 recent_heads.append(log_ns)
+                newest_head[0] = log_ns if newest_head[0] is None else max(newest_head[0], log_ns)
                 run_due()
                 result.head_samples += 1
                 last_log = log_ns if last_log is None else max(last_log, log_ns)
