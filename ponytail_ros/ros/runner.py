@@ -42,7 +42,7 @@ Decisions (documented for the node):
   angular velocity (``Simulator.reset`` with the estimated ``KinematicState``), never at rest
   in the world while the head runs. A new history (the first poses, or the history restarted
   by a teleport, a frame change or the clock going back) gives no velocity from one pose, so
-  the runner waits: nothing is published until every input the scene uses holds
+  the runner waits: nothing is published until every input a chain hangs from holds
   ``START_SAMPLES`` (3) poses of its new history (2 input periods: 2 ms at 1 kHz, 67 ms at
   30 Hz) or is stale; then the chain starts at the first pose of that history (or at
   ``t - delay`` if that is later) and is advanced to ``t - delay`` in the same tick. A
@@ -503,8 +503,8 @@ class ChainRunner:
     def tick(self, t):
         """Advance to node clock time ``t`` (s); ``TickOutput``, or None while an input the
         scene uses (the head, a frame) has no accepted pose yet (``missing_inputs``), or, at
-        a start or after a teleport or frame change, fewer than ``START_SAMPLES`` poses of its
-        new history (and is not stale)."""
+        a start or after a teleport or frame change, while an input a chain hangs from has
+        fewer than ``START_SAMPLES`` poses of its new history (and is not stale)."""
         t = float(t)
         if self._last_tick is not None and t < self._last_tick:
             self._restart('clock_backwards')
@@ -603,28 +603,31 @@ class ChainRunner:
         self._t_frame = t_head
         return report
 
-    def _used_inputs(self, scene=None):
-        """``(estimator, history start, stale(t))`` of the inputs ``scene`` (default: the
-        current one) uses."""
+    def _anchor_inputs(self, scene=None):
+        """``(estimator, history start, stale(t))`` of the inputs some chain of ``scene``
+        (default: the current one) hangs from: the bodies whose motion the chain starts with
+        (a collider's body does not enter the start)."""
         scene = scene or self.scene
-        used = _used_bodies(scene)
+        anchors = {c.anchor_body for c in scene.chains}
         out = []
-        if 0 in used:
+        if 0 in anchors:
             out.append((self.estimator, self._head_start, self.head_stale))
-        for i in _used_frames(scene, len(self.frames)):
-            out.append((self.frame_estimators[i], self._frame_start[i],
-                        lambda t, i=i: self.frame_stale(i, t)))
+        for i in range(len(self.frames)):
+            if 1 + i in anchors:
+                out.append((self.frame_estimators[i], self._frame_start[i],
+                            lambda t, i=i: self.frame_stale(i, t)))
         return out
 
     def _ready(self, t, scene):
-        """Every input ``scene`` uses holds ``START_SAMPLES`` poses, or is stale."""
+        """Every input a chain of ``scene`` hangs from holds ``START_SAMPLES`` poses, or is
+        stale."""
         return all(len(e) >= START_SAMPLES or stale(t)
-                   for e, _, stale in self._used_inputs(scene))
+                   for e, _, stale in self._anchor_inputs(scene))
 
     def _start_time(self, t_head):
         """Where a (re)start begins: the first pose of the newest used history when it is
         before ``t_head`` (so a replay starts where its poses do), else ``t_head``."""
-        starts = [s for _, s, _ in self._used_inputs() if s is not None]
+        starts = [s for _, s, _ in self._anchor_inputs() if s is not None]
         return min(max(starts), t_head) if starts else t_head
 
     def _apply_tunables(self, scene):
