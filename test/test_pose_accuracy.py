@@ -11,18 +11,15 @@ Internal step RK4 at 1/2000 s in look-ahead mode (the core's own error on this f
 below the bounds asserted; a finer step only moves the figures towards the estimation error),
 1/1000 s in live mode: see the README (Driven by head poses) for the figures and commands.
 """
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from ponytail_ros.core import ChainSpec, Scene
-from ponytail_ros.core.head import HeadMotion, KinematicState, SwayYawMotion
+from ponytail_ros.bench.pose_bench import WHIP_BOUND, start_whip
+from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.reference import default_reference_dir, load_reference
-from ponytail_ros.core.rotations import quat_from_rotvec, quat_rotate, quat_conjugate
-from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
 
 REFERENCE = default_reference_dir() / 'ponytail_N10_moving_hanging.json'
 #: Bag time of the reference's t = 0 (a zero stamp means "unstamped" to the node).
@@ -178,90 +175,19 @@ LIVE_PAIRWISE_RMS = 0.08
 
 # -- start-up whip ---------------------------------------------------------------------------
 
-class RunAndTurn(HeadMotion):
-    """The head running at ``speed`` m/s along world +X while turning at ``rate`` rad/s about
-    world +Z (constant), at 1.6 m; exact derivatives."""
-
-    def __init__(self, speed=2.0, rate=3.0, t_jump=None, jump=(1.0, 0.0, 0.0)):
-        self.speed, self.rate = float(speed), float(rate)
-        self.t_jump, self.jump = t_jump, np.asarray(jump, dtype=float)
-
-    def state_at(self, t):
-        p = np.array([self.speed * t, 0.0, 1.6])
-        if self.t_jump is not None and t >= self.t_jump:
-            p = p + self.jump
-        return KinematicState(
-            position=p[None], orientation=quat_from_rotvec(np.array([0.0, 0.0, self.rate * t]))[None],
-            linear_velocity=np.array([[self.speed, 0.0, 0.0]]),
-            angular_velocity=np.array([[0.0, 0.0, self.rate]]),
-            linear_acceleration=np.zeros((1, 3)), angular_acceleration=np.zeros((1, 3)))
-
-
-ATTACH = (-0.09, 0.0, 0.06)
-
-
-def _ponytail():
-    return Scene(chains=(ChainSpec(name='ponytail', n_segments=8, length=0.3, mass=0.1,
-                                   radius=0.03, attach=ATTACH, damping=1e-3,
-                                   drag_linear=0.02),))
-
-
-def relative_tip_speeds(outs, motion, t_from, window=0.1):
-    """Speed (m/s) of the tip relative to the head (the rate of change of its position in the
-    head frame) between consecutive outputs in ``[t_from, t_from + window]``, at the outputs'
-    own (simulated) times."""
-    seg = 0.3 / 8
-    from ponytail_ros.core.rotations import quat_axis_x
-    pts = []
-    for o in outs:
-        if not (t_from - 1e-9 <= o.t_state <= t_from + window + 1e-9):
-            continue
-        tip = o.origins[-1] + quat_axis_x(o.orientations[-1:])[0] * seg
-        s = motion.state_at(o.t_state)
-        local = quat_rotate(quat_conjugate(s.orientation[0]), tip - s.position[0])
-        pts.append((o.t_state, local))
-    assert len(pts) >= 8
-    t = np.array([p[0] for p in pts])
-    x = np.array([p[1] for p in pts])
-    return np.linalg.norm(np.diff(x, axis=0), axis=1) / np.diff(t)
-
-
-#: Bound on the tip's speed relative to the head in the first 100 ms (m/s): the chain starts
-#: moving with the head, so only the physical response to the turn (centrifugal swing-out,
-#: ω² r ≈ 0.8 m/s² at the attachment) moves it; starting at rest in the world instead, the tip
-#: lags the head at ≈ |v + ω × r| ≈ 2 m/s.
-WHIP_BOUND = 0.15
-
-
 @pytest.mark.parametrize('input_rate', [30.0, 120.0])
 @pytest.mark.parametrize('case', ['start', 'teleport', 'rebuild'])
 def test_no_start_up_whip_on_a_running_turning_head(case, input_rate):
-    t_event = 0.0 if case == 'start' else 0.6
-    motion = RunAndTurn(t_jump=t_event if case == 'teleport' else None)
-    r = ChainRunner(_ponytail(), RunnerSettings(output_stamp='simulated'))
-    outs, tp, tt = [], 0.0, 0.0
-    rebuilt = False
-    while tt < t_event + 0.3:
-        while tp <= tt + 1e-12:
-            s = motion.state_at(tp)
-            r.push(tp, s.position[0], s.orientation[0], 'world')
-            tp += 1.0 / input_rate
-        if case == 'rebuild' and not rebuilt and tt >= t_event:
-            scene = _ponytail()        # a structural change: the chain is rebuilt
-            r.set_scene(replace(scene, chains=(replace(scene.chains[0], radius=0.031),)))
-            rebuilt = True
-        o = r.tick(tt)
-        if o is not None:
-            outs.append(o)
-        tt += 1.0 / 120.0
-    if case != 'start':
-        assert r.resets[case] == 1
-        t_from = next(o.t_state for o in outs if o.reset_reason == case)
-    else:
-        t_from = outs[0].t_state
+    """A head running at 2 m/s and turning at 3 rad/s: at the node's start, after a teleport
+    and after a rebuild, the chain starts moving with it, so the tip's speed relative to the
+    head in the first 100 ms stays below ``WHIP_BOUND`` (``pose_bench.start_whip``)."""
+    speeds, runner, t_from = start_whip(case, input_rate)
+    if case == 'start':
         assert t_from <= 1.0 / input_rate             # from the first pose
-    assert r.resets['guard'] == 0
-    assert relative_tip_speeds(outs, motion, t_from).max() < WHIP_BOUND
+    else:
+        assert runner.resets[case] == 1
+    assert runner.resets['guard'] == 0
+    assert speeds.max() < WHIP_BOUND
 
 
 # -- honest stamps through a recording ---------------------------------------------------------

@@ -39,6 +39,11 @@ stamps are exact but irregular; each pose is the head at its stamp).
    and the largest RMS / max tip distance between two rates (the figures
    ``test/test_pose_accuracy.py`` asserts, there from bags written by ``rosbags``).
 
+4. Start-up whip (``--whip``): a head running at 2 m/s and turning at 3 rad/s (``RunAndTurn``),
+   the node's defaults; the largest speed of the tip relative to the head (in the head frame)
+   in the first 100 ms after the node's start, a teleport (1 m jump) and a rebuild, at 30, 120
+   and 1000 Hz input (the figures ``test/test_pose_accuracy.py`` bounds by ``WHIP_BOUND``).
+
 Not timed; CPU cost is ~1 ms per RK4 step of the NumPy core (tip part: minutes).
 """
 import argparse
@@ -51,9 +56,9 @@ import numpy as np
 
 from ponytail_ros.bench.head_estimation_bench import sample_stream
 from ponytail_ros.core import ChainSpec, Scene, Simulator, SolverSpec
-from ponytail_ros.core.head import SwayYawMotion
+from ponytail_ros.core.head import HeadMotion, KinematicState, SwayYawMotion
 from ponytail_ros.core.head_estimation import HeadEstimator
-from ponytail_ros.core.rotations import quat_axis_x
+from ponytail_ros.core.rotations import quat_axis_x, quat_conjugate, quat_from_rotvec, quat_rotate
 
 RATES = (30.0, 60.0, 120.0, 250.0, 1000.0)
 JITTERS = (0.0, 0.2)
@@ -107,7 +112,8 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
 def chain_values(dt):
     """Node parameters of the reference's 10-segment scene, RK4 at ``dt``, ticks at 100 Hz,
     outputs stamped with their simulated time."""
-    return {'rate': TICK_RATE, 'head': {'max_samples': 128}, 'chains': ['ponytail'], 'colliders': [],
+    return {'rate': TICK_RATE, 'head': {'max_samples': 128},
+            'chains': ['ponytail'], 'colliders': [],
             'gravity': [0.0, 0.0, -9.81], 'markers': {'style': 'off'},
             'output_stamp': 'simulated',
             'solver': {'integrator': 'rk4', 'dt': dt, 'max_steps_per_call': 100000},
@@ -288,6 +294,104 @@ def reference_figures(log=print, rates=(30, 60, 120, 1000), workdir=None):
     return rows
 
 
+# -- start-up whip -----------------------------------------------------------------------------
+
+class RunAndTurn(HeadMotion):
+    """The head running at ``speed`` m/s along world +X while turning at ``rate`` rad/s about
+    world +Z (constant), at 1.6 m, jumping by ``jump`` (m) at ``t_jump`` (a teleport); exact
+    derivatives."""
+
+    def __init__(self, speed=2.0, rate=3.0, t_jump=None, jump=(1.0, 0.0, 0.0)):
+        self.speed, self.rate = float(speed), float(rate)
+        self.t_jump, self.jump = t_jump, np.asarray(jump, dtype=float)
+
+    def state_at(self, t):
+        p = np.array([self.speed * t, 0.0, 1.6])
+        if self.t_jump is not None and t >= self.t_jump:
+            p = p + self.jump
+        return KinematicState(
+            position=p[None],
+            orientation=quat_from_rotvec(np.array([0.0, 0.0, self.rate * t]))[None],
+            linear_velocity=np.array([[self.speed, 0.0, 0.0]]),
+            angular_velocity=np.array([[0.0, 0.0, self.rate]]),
+            linear_acceleration=np.zeros((1, 3)), angular_acceleration=np.zeros((1, 3)))
+
+
+#: Bound on the tip's speed relative to the head in the first 100 ms after a (re)start on
+#: ``RunAndTurn`` (m/s): the chain starts moving with the head, so only the physical response
+#: to the turn (centrifugal swing-out, ω² r ≈ 0.8 m/s² at the attachment) moves it; a chain
+#: started at rest in the world lags the head at ≈ |v + ω × r| ≈ 2 m/s instead.
+WHIP_BOUND = 0.15
+WHIP_SEGMENTS, WHIP_LENGTH = 8, 0.3
+
+
+def whip_scene(radius=0.03):
+    """A ponytail: 8 segments, 0.3 m, 0.1 kg, damping 1e-3, linear drag 0.02."""
+    return Scene(chains=(ChainSpec(name='ponytail', n_segments=WHIP_SEGMENTS,
+                                   length=WHIP_LENGTH, mass=0.1, radius=radius,
+                                   attach=(-0.09, 0.0, 0.06), damping=1e-3,
+                                   drag_linear=0.02),))
+
+
+def relative_tip_speeds(outs, motion, t_from, window=0.1):
+    """Speed (m/s) of the tip relative to the head (the rate of change of its position in the
+    head frame) between consecutive outputs in ``[t_from, t_from + window]``, at the outputs'
+    own (simulated) times ``TickOutput.t_state``."""
+    seg = WHIP_LENGTH / WHIP_SEGMENTS
+    pts = []
+    for o in outs:
+        if not (t_from - 1e-9 <= o.t_state <= t_from + window + 1e-9):
+            continue
+        tip = o.origins[-1] + quat_axis_x(o.orientations[-1:])[0] * seg
+        s = motion.state_at(o.t_state)
+        pts.append((o.t_state, quat_rotate(quat_conjugate(s.orientation[0]),
+                                           tip - s.position[0])))
+    t = np.array([p[0] for p in pts])
+    x = np.array([p[1] for p in pts])
+    return np.linalg.norm(np.diff(x, axis=0), axis=1) / np.diff(t)
+
+
+def start_whip(case, input_rate, tick_rate=120.0, t_event=0.6):
+    """Relative tip speeds (m/s) in the first 100 ms after ``case`` (``'start'``: the node's
+    first output; ``'teleport'``: a 1 m jump of the running head at ``t_event``;
+    ``'rebuild'``: a structural change at ``t_event``), the node's defaults with
+    ``output_stamp: simulated``. Returns ``(speeds, runner, t_from)``."""
+    from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
+    t_event = 0.0 if case == 'start' else t_event
+    motion = RunAndTurn(t_jump=t_event if case == 'teleport' else None)
+    r = ChainRunner(whip_scene(), RunnerSettings(output_stamp='simulated'))
+    outs, tp, tt, rebuilt = [], 0.0, 0.0, False
+    while tt < t_event + 0.3:
+        while tp <= tt + 1e-12:
+            s = motion.state_at(tp)
+            r.push(tp, s.position[0], s.orientation[0], 'world')
+            tp += 1.0 / input_rate
+        if case == 'rebuild' and not rebuilt and tt >= t_event:
+            r.set_scene(whip_scene(radius=0.031))        # structural: rebuilt at rest
+            rebuilt = True
+        o = r.tick(tt)
+        if o is not None:
+            outs.append(o)
+        tt += 1.0 / tick_rate
+    if case == 'start':
+        t_from = outs[0].t_state
+    else:
+        t_from = next(o.t_state for o in outs if o.reset_reason == case)
+    return relative_tip_speeds(outs, motion, t_from), r, t_from
+
+
+def whip_figures(log=print):
+    rows = []
+    log(f"{'case':>9} {'input Hz':>8} {'max relative tip speed m/s':>27}  (bound {WHIP_BOUND})")
+    for case in ('start', 'teleport', 'rebuild'):
+        for rate in (30.0, 120.0, 1000.0):
+            v, r, _ = start_whip(case, rate)
+            rows.append(dict(case=case, input_hz=rate, max_relative_tip_speed=float(v.max()),
+                             guard_resets=r.resets['guard']))
+            log(f'{case:>9} {rate:8.0f} {v.max():27.3f}')
+    return rows
+
+
 def cmd_pose(prof, out, meta, log=print):
     """``ponytail_bench pose``: the profile's name is in ``meta``."""
     return run(meta.get('profile', 'quick'), out, log, meta)
@@ -302,8 +406,13 @@ def main(argv=None):
     parser.add_argument('--out', default=None, help='write pose_*.csv/json here')
     parser.add_argument('--reference', action='store_true',
                         help='only part 3: replays of the shared reference head')
+    parser.add_argument('--whip', action='store_true',
+                        help='only part 4: start-up whip on a running, turning head')
     args = parser.parse_args(argv)
     log = lambda *a: print(*a, flush=True)  # noqa: E731
+    if args.whip:
+        whip_figures(log)
+        return
     if args.reference:
         rows = reference_figures(log)
         if args.out:

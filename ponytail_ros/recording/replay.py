@@ -53,7 +53,8 @@ and the output is written exactly as the node records a run (same topics, types,
 Compare: per chain, the tip (last segment's far end; segment length from the recorded
 parameters, else the joint spacing) of two runs at the same stamps (each run's ``output_stamp``
 is read from its parameters and printed: ``tick`` stamps label a chain simulated ``delay``
-earlier, ``simulated`` ones its own time; recordings without it are ``tick``) -- or, when the tick times
+earlier, ``simulated`` ones its own time; recordings without it are ``tick``) -- or, when the
+tick times
 differ (a nominal replay of a live run), at the nearest stamps within half a tick -- printed as
 RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
 time and both tips' coordinates.
@@ -1037,7 +1038,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        look_ahead=args.look_ahead, progress=progress, warn=None if args.quiet else warn)
+                        look_ahead=args.look_ahead, progress=progress,
+                        warn=None if args.quiet else warn)
         if not args.quiet:
             print(result.summary(args.inputs[0]))
         return 0
