@@ -54,10 +54,9 @@ Compare: per chain, the tip (last segment's far end; segment length from the rec
 parameters, else the joint spacing) of two runs at the same stamps (each run's ``output_stamp``
 is read from its parameters and printed: ``tick`` stamps label a chain simulated ``delay``
 earlier, ``simulated`` ones its own time; recordings without it are ``tick``) -- or, when the
-tick times
-differ (a nominal replay of a live run), at the nearest stamps within half a tick -- printed as
-RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
-time and both tips' coordinates.
+tick times differ (a nominal replay of a live run), at the nearest stamps within half a tick --
+printed as RMS / max / final distance with the parameters that differ; ``--plot`` draws the
+distance over time and both tips' coordinates.
 
 Live: the head poses (and the recorded frames' poses, on their topics) are published at the
 recorded pace (``--rate`` scales it) on the recorded head topic, with ``/clock`` from the
