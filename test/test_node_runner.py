@@ -8,7 +8,8 @@ from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rota
 from ponytail_ros.ros.head_script import PHASES, HeadScript
 from ponytail_ros.ros.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
                                          check_values)
-from ponytail_ros.ros.runner import ChainRunner, RunnerSettings, structural_change
+from ponytail_ros.ros.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
+                                     structural_change)
 
 ATTACH = np.array([-0.09, 0.0, 0.06])
 Q_ID = (0.0, 0.0, 0.0, 1.0)
@@ -58,6 +59,9 @@ def test_nothing_before_the_first_pose_then_chain_hangs_from_the_attachment():
     for k in range(30):
         r.push(1.02 + k * 0.01, p, q, 'map')
         out = r.tick(1.02 + k * 0.01)
+        if k < START_SAMPLES - 1:     # no velocity estimate yet: nothing published
+            assert out is None
+            continue
         check_chain(out, np.full(8, 0.3 / 8))
         assert np.linalg.norm(out.origins[0] - attach_point(p, q)) < 1e-9
     assert out.frame_id == 'map'
@@ -159,15 +163,22 @@ def test_teleport_resets_the_chain_at_rest_at_the_new_pose():
     r = ChainRunner(scene(), RunnerSettings(teleport_distance=0.5, teleport_angle=1.0))
     drive(r, SwayYawMotion(), 0.0, 1.0)
     p_new = np.array([5.0, 0.0, 1.6])
-    r.push(1.0, p_new, Q_ID, 'world')
-    out = r.tick(1.0)
+
+    def hold(t, q):
+        """The new pose held at 100 Hz: nothing until its history has START_SAMPLES poses."""
+        outs = []
+        for k in range(START_SAMPLES):
+            r.push(t + 0.01 * k, p_new, q, 'world')
+            outs.append(r.tick(t + 0.01 * k))
+        assert all(o is None for o in outs[:-1])
+        return outs[-1]
+    out = hold(1.0, Q_ID)
     assert out.reset_reason == 'teleport' and r.resets['teleport'] == 1
     assert np.linalg.norm(out.origins[0] - attach_point(p_new, Q_ID)) < 1e-9
     # At rest along gravity: every segment points straight down.
     assert np.allclose(quat_axis_x(out.orientations), [0.0, 0.0, -1.0], atol=1e-9)
     # A pure rotation beyond teleport_angle also counts.
-    r.push(1.01, p_new, quat_from_rotvec(np.array([0.0, 0.0, 1.5])), 'world')
-    assert r.tick(1.01).reset_reason == 'teleport'
+    assert hold(1.1, quat_from_rotvec(np.array([0.0, 0.0, 1.5]))).reset_reason == 'teleport'
 
 
 def test_stale_head_holds_the_last_pose_and_the_chain_settles():

@@ -50,6 +50,7 @@ from .commands import (  # one line per command, as in COMMANDS
     batch,
     energy,
     mujoco,
+    pose,
     refcheck,
     report,
     scaling,
@@ -72,6 +73,7 @@ COMMANDS: dict[str, ModuleType] = {
     'energy': energy,
     'terms': terms,
     'refcheck': refcheck,
+    'pose': pose,
     'report': report,
 }
 #: What ``all`` (the default) runs, before ``report``.

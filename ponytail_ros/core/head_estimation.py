@@ -49,6 +49,14 @@ node should set one or two ``sample_period`` for low-rate streams). For noisy tr
 (mocap, VR) use ``window`` 0.15–0.2 s and a delay of 1–2 periods: at 120 Hz with 1 mrad noise
 that brings α from 79 % to 18–32 %.
 
+Look-ahead (offline, every sample known, ``ponytail_replay --look-ahead``): with samples on
+both sides of the evaluation time and ``min_samples = degree + 1`` the fit interpolates the
+nearest ``degree + 1`` poses, a centred finite-difference stencil of that order for the
+derivatives: for exact, smooth animation poses the error falls as (Ω·period)^(degree - 1) for
+the acceleration, so high degrees (the replay uses 9) recover the head's derivatives almost
+exactly; on noisy or kinked poses a high degree rings and amplifies the noise (use the
+smoothing defaults instead). ``ponytail_ros/bench/pose_bench.py`` measures both modes.
+
 Stale streams: between the newest sample and ``max_extrapolation`` after it the fit is
 extrapolated, for the first half at full speed, then time is smoothly braked (a C² time warp) so
 that velocity and acceleration decay to exactly zero at ``t_last + max_extrapolation``; later the

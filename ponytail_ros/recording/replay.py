@@ -4,7 +4,7 @@ head poses into a running graph.
 Usage::
 
     ponytail_replay INPUT.mcap -o OUTPUT.mcap [--params FILE.yaml] [--head-topic /head_pose]
-                    [--ticks auto|recorded|nominal] [--overwrite] [--quiet]
+                    [--ticks auto|recorded|nominal] [--look-ahead] [--overwrite] [--quiet]
     ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
     ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
     ponytail_replay repair IN.mcap OUT.mcap [--overwrite]    (a killed or damaged recording)
@@ -38,14 +38,26 @@ and the output is written exactly as the node records a run (same topics, types,
   its ``segment_poses`` and ``segment_markers`` bit for bit: ``ReplayNode`` makes exactly the
   node's ``ChainRunner`` calls with the same floats (it mirrors ``PonytailNode``'s callbacks;
   ``test_replay.py`` checks the two stay in step).
+* Look-ahead (``--look-ahead``): every head pose is known ahead of time, so each tick is run
+  only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it, and ``LOOK_AHEAD_SPAN_NS`` of
+  them, have been pushed (the frames' poses and the parameter changes in between are applied
+  in file order), and the head is estimated at the tick time itself (no delay) by a centred
+  fit through the poses on both sides: the estimator settings of ``LOOK_AHEAD_VALUES``
+  (degree 9 over ±0.05 s, at least the 10 nearest poses: it interpolates at low rates and
+  smooths float rounding at high ones; for animation, noisy tracker data wants the default
+  replay) and ``output_stamp: simulated``. The output's parameters record them. Input resets
+  (a teleport, a frame change) then take effect up to that look-ahead early. Not bit-exact
+  with the live run, by design: the default replay is.
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 
 Compare: per chain, the tip (last segment's far end; segment length from the recorded
-parameters, else the joint spacing) of two runs at the same stamps -- or, when the tick times
-differ (a nominal replay of a live run), at the nearest stamps within half a tick -- printed as
-RMS / max / final distance with the parameters that differ; ``--plot`` draws the distance over
-time and both tips' coordinates.
+parameters, else the joint spacing) of two runs at the same stamps (each run's ``output_stamp``
+is read from its parameters and printed: ``tick`` stamps label a chain simulated ``delay``
+earlier, ``simulated`` ones its own time; recordings without it are ``tick``) -- or, when the
+tick times differ (a nominal replay of a live run), at the nearest stamps within half a tick --
+printed as RMS / max / final distance with the parameters that differ; ``--plot`` draws the
+distance over time and both tips' coordinates.
 
 Live: the head poses (and the recorded frames' poses, on their topics) are published at the
 recorded pace (``--rate`` scales it) on the recorded head topic, with ``/clock`` from the
@@ -87,6 +99,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
@@ -111,6 +124,14 @@ _MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: replay, so that no wall-time effect changes the bytes.
 _OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
 _NA = 'n/a (replay)'
+#: Look-ahead replay: a tick runs once this many head poses logged after it, spanning at least
+#: LOOK_AHEAD_SPAN_NS (the fit's window), have been pushed.
+LOOK_AHEAD_SAMPLES = 16
+LOOK_AHEAD_SPAN_NS = 60_000_000
+#: Look-ahead replay: parameters replaced (no delay; a centred interpolating fit; honest stamps).
+LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
+                     'output_stamp': 'simulated', 'head.degree': 9, 'head.min_samples': 10,
+                     'head.window': 0.05, 'head.max_samples': 512}
 
 
 class ReplayError(Exception):
@@ -430,7 +451,7 @@ class _Progress:
 
 
 def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
-           ticks: str = 'auto', overwrite: bool = False,
+           ticks: str = 'auto', overwrite: bool = False, look_ahead: bool = False,
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
@@ -442,6 +463,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         head_topic: the head topic; None: the recorded node's, else ``/head_pose`` (or the only
             head pose topic).
         ticks: ``'auto'``, ``'recorded'`` or ``'nominal'``.
+        look_ahead: estimate the head from poses on both sides of each tick (module
+            docstring).
         progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
             during the replay (often: throttle it).
         warn: called with each warning (default: ignored).
@@ -488,6 +511,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             raise ReplayError(f'--stamp-source must be header or receive, not {stamp_source!r}')
         values['stamp_source'] = stamp_source
     result.parameters_from = source if source == 'the recording' else Path(source).name
+    if look_ahead:
+        values = {**values, **LOOK_AHEAD_VALUES}
 
     head_stamps = _head_stamps(inp)
     clock_note = _foreign_clock(inp, head_stamps, values['stamp_source'])
@@ -561,7 +586,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             tf_prefix=(tf_prefix if tf_prefix is not None
                        else inp.metadata.get(RECORDING_METADATA, {}).get('tf_prefix', '')),
             info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
-                  'parameters_from': result.parameters_from})
+                  'parameters_from': result.parameters_from,
+                  'head_estimation': 'look-ahead' if look_ahead else 'live'})
     except BagError as exc:
         text = str(exc)
         if 'already exists' in text:
@@ -600,6 +626,27 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         if progress is not None and t_start is not None:
             progress((t_ns - t_start) * 1e-9, total_s)
 
+    # Look-ahead: ticks and parameter changes wait until LOOK_AHEAD_SAMPLES head poses logged
+    # after them are in; without it they run at once.
+    pending: List[Tuple[int, Callable, tuple]] = []
+    recent_heads: Any = deque(maxlen=LOOK_AHEAD_SAMPLES)
+    newest_head = [None]
+
+    def schedule(t_ns, fn, *args):
+        if look_ahead:
+            pending.append((t_ns, fn, args))
+        else:
+            fn(*args)
+
+    def run_due(flush=False):
+        full = len(recent_heads) == LOOK_AHEAD_SAMPLES
+        while pending and (flush or (full and pending[0][0] < recent_heads[0]
+                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS <= newest_head[0])):
+            _, fn, args = pending.pop(0)
+            fn(*args)
+
+    # Ticks of a node recording are its poses' log times when their stamps are not tick times.
+    recorded_stamp = _recorded_value(inp.recorded_parameters, 'output_stamp', 'tick')
     period_ns = int(round(1e9 / values['rate']))
     next_tick = None
     last_log = None
@@ -607,10 +654,13 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         for topic, _, msg, log_ns in inp.messages(wanted):
             if mode == 'nominal' and next_tick is not None:
                 while next_tick < log_ns:
-                    do_tick(next_tick)
+                    schedule(next_tick, do_tick, next_tick)
                     next_tick += period_ns
             if topic == inp.head_topic:
                 node.head(msg, log_ns)
+                recent_heads.append(log_ns)
+                newest_head[0] = log_ns if newest_head[0] is None else max(newest_head[0], log_ns)
+                run_due()
                 result.head_samples += 1
                 last_log = log_ns if last_log is None else max(last_log, log_ns)
                 if next_tick is None:
@@ -630,16 +680,20 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                 if msg.node == inp.layout.node:
                     changed = _event_values(msg)
                     if changed:
-                        node.set_parameters(changed, log_ns)
+                        schedule(log_ns, node.set_parameters, changed, log_ns)
                         result.parameter_changes += 1
                         if 'rate' in changed:
-                            period_ns = int(round(1e9 / node.values['rate']))
+                            # (look-ahead: the change is still pending; its value as given)
+                            period_ns = int(round(1e9 / float(
+                                changed['rate'] if look_ahead else node.values['rate'])))
             else:
-                do_tick(stamp_ns(msg.header.stamp))
+                t_tick = log_ns if recorded_stamp == 'simulated' else stamp_ns(msg.header.stamp)
+                schedule(t_tick, do_tick, t_tick)
         if mode == 'nominal' and next_tick is not None and last_log is not None:
             while next_tick <= last_log:
-                do_tick(next_tick)
+                schedule(next_tick, do_tick, next_tick)
                 next_tick += period_ns
+        run_due(flush=True)
         if result.last_tick_ns is not None:
             node.final_diagnostics(result.last_tick_ns)
     except BagError as exc:
@@ -714,6 +768,14 @@ def _foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional
             f'log times (another clock: a simulator from 0, or another machine); the replay '
             f'would be physically wrong. Use --stamp-source receive (stamp_source: receive in '
             f'the params file) to time the poses by their log times')
+
+
+def _recorded_value(recorded: Optional[Mapping[str, str]], name: str, default: Any) -> Any:
+    """A parameter's value in a recording's parameters metadata (JSON), else ``default``."""
+    try:
+        return json.loads(recorded[name])
+    except (KeyError, TypeError, ValueError):
+        return default
 
 
 def _used_frame_names(values) -> set:
@@ -895,6 +957,13 @@ def compare(path_a, path_b):
 def format_comparison(path_a, path_b, comparisons, values_a=None, values_b=None) -> str:
     """The comparison as text: the files, the parameters that differ, a table per chain."""
     lines = [f'A: {path_a}', f'B: {path_b}']
+    stamps = [(values or {}).get('output_stamp', 'tick') for values in (values_a, values_b)]
+    lines.append(f'output stamps: A {stamps[0]}, B {stamps[1]} ' + (
+        '(tick: the chain simulated a delay before its stamp, root on the head at the stamp)'
+        if 'tick' in stamps else '(the time of each state)'))
+    if stamps[0] != stamps[1]:
+        lines.append('warning: A and B stamp differently: tips matched by stamp are the chain '
+                     'at times a delay apart')
     if values_a and values_b:
         diff = [k for k in sorted(set(values_a) | set(values_b))
                 if k not in ('record_path',) and values_a.get(k) != values_b.get(k)]
@@ -1084,6 +1153,10 @@ def _parser():
     p.add_argument('--tf-prefix', metavar='PREFIX',
                    help='replay: TF frames are PREFIX<chain>/<i> (default: as recorded, else '
                         'none)')
+    p.add_argument('--look-ahead', action='store_true',
+                   help='estimate the head from poses on both sides of each tick (no delay, '
+                        'simulated-time stamps): the most accurate re-simulation of recorded '
+                        'animation')
     p.add_argument('--overwrite', action='store_true', help='replace an existing OUTPUT')
     p.add_argument('-q', '--quiet', action='store_true',
                    help='no progress bar, no summary, no warnings')
@@ -1179,8 +1252,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         progress = _Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        progress=progress, warn=warn, stamp_source=args.stamp_source,
-                        tf=not args.no_tf, tf_prefix=args.tf_prefix)
+                        progress=progress, warn=None if args.quiet else warn,
+                        stamp_source=args.stamp_source, tf=not args.no_tf,
+                        tf_prefix=args.tf_prefix, look_ahead=args.look_ahead)
         if not args.quiet:
             print(result.summary(args.inputs[0]))
         return 0

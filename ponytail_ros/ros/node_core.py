@@ -26,7 +26,7 @@ __all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'time_msg']
 #: ``RunnerSettings`` fields that follow their parameters live.
 LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
                  'teleport_distance', 'teleport_angle', 'stale_timeout', 'window', 'degree',
-                 'max_extrapolation', 'max_gap', 'quat_tolerance')
+                 'min_samples', 'max_extrapolation', 'max_gap', 'quat_tolerance')
 
 #: Diagnostics keys of wall-clock timing (the node measures them; a replay has none).
 TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'tick time max (ms)',
@@ -134,7 +134,7 @@ class NodeCore:
             self._chain_msgs = self._make_chain_messages(scene)
         # No frame set and no head pose seen (chains hanging from the world only): 'world'.
         frame = self.values['frame_id'] or out.frame_id or 'world'
-        stamp = time_msg(t_ns)
+        stamp = time_msg(self.stamp_ns(t_ns, out))
         model = self.runner.sim.model
         poses = [cm.fill_poses(out.origins[model.chain_slice(c)],
                                out.orientations[model.chain_slice(c)], frame, stamp)
@@ -149,6 +149,14 @@ class NodeCore:
         if out.reset_reason == 'guard':
             win.guard_resets += 1
         return NodeTick(out, frame, poses, self._markers(out, frame, stamp))
+
+    def stamp_ns(self, t_ns: int, out: TickOutput) -> int:
+        """The outputs' stamp (ns) of the tick at ``t_ns``: the tick time (``output_stamp:
+        tick``) or the time of the published chain state (``simulated``), in whole ns of the
+        tick time so that a zero delay gives the tick's own stamp."""
+        if self.values['output_stamp'] != 'simulated':
+            return t_ns
+        return t_ns - int(round((out.t - out.t_state) * 1e9))
 
     def _markers(self, out, frame, stamp):
         style = self.values['markers.style']
@@ -168,7 +176,9 @@ class NodeCore:
             delete = delete or changed
             markers.extend(ms)
         ms, changed = self._collider_markers.markers(
-            self.runner.scene.colliders, self.runner.bodies_at(out.t), style, frame, stamp)
+            self.runner.scene.colliders,
+            self.runner.bodies_at(out.t_state if self.values['output_stamp'] == 'simulated'
+                                  else out.t), style, frame, stamp)
         delete = delete or changed
         markers.extend(ms)
         if delete:

@@ -38,7 +38,7 @@ Live or not (``ParamDef.live``):
   current head pose on the next tick (a reset with reason ``'rebuild'``);
 * read-only (fixed at start-up): ``chains`` (it decides the topics), ``colliders`` (it decides
   the parameters), ``frames`` and every ``<frame>.topic`` (they decide the subscriptions),
-  ``stamp_source``,
+  ``stamp_source``, ``output_stamp``,
   ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``, ``record_path``.
 
 This module does not import rclpy (the descriptors are built by the node).
@@ -52,7 +52,7 @@ import numpy as np
 from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DAMPING_METHODS,
                                      INTEGRATORS, LINEAR_SOLVERS, MAX_COLLIDERS, MAX_LIMIT,
                                      MAX_SEGMENTS, Scene, SceneError, SolverSpec)
-from .runner import RunnerSettings
+from .runner import OUTPUT_STAMPS, RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',
            'ParameterError', 'chain_param_name', 'check_values', 'build_scene',
@@ -146,6 +146,12 @@ GLOBAL_PARAMS = (
     ParamDef('latency_compensation', True, 'bool', 'Translate each output chain by its '
              'attachment point\'s displacement over the delay (extrapolated head), so that its '
              'root stays on the current head; the swing itself still lags by the delay.'),
+    ParamDef('output_stamp', 'tick', 'string', 'Stamp of the published chain: tick (the tick '
+             'time; the chain is the one simulated at tick - delay with its root moved onto the '
+             'current head, latency_compensation: for rendering now) or simulated (the time of '
+             'the state itself, no latency compensation: for analysis, pairing with the head '
+             'by stamp). Recorded with the parameters; ponytail_replay compare reads it.',
+             choices=OUTPUT_STAMPS, live=False),
     ParamDef('stale_timeout', 0.25, 'double', 'No head pose accepted for this long (s): the '
              'head is stale (last pose held, warning in diagnostics); likewise for each of the '
              'frames. A pose in a new frame_id is adopted once every input is stale.',
@@ -180,8 +186,13 @@ GLOBAL_PARAMS = (
     ParamDef('head.window', 0.1, 'double', 'Head estimation: samples within this of the '
              'evaluation time enter the local polynomial fit, s (widened to the nearest '
              'head.degree + 3 samples at low rates).', 0.005, 2.0),
-    ParamDef('head.degree', 3, 'int', 'Head estimation: degree of the polynomial in time.',
-             1, 5),
+    ParamDef('head.degree', 3, 'int', 'Head estimation: degree of the polynomial in time '
+             '(above 5 only with head.min_samples = head.degree + 1 on exact poses: '
+             'interpolation, look-ahead replay).', 1, 9),
+    ParamDef('head.min_samples', 0, 'int', 'Head estimation: the fit uses at least this many '
+             'of the nearest samples (widening head.window); 0 = head.degree + 3. '
+             'head.degree + 1 makes it interpolate (exact animation poses, look-ahead '
+             'replay).', 0, 1000),
     ParamDef('head.max_extrapolation', 0.1, 'double', 'Head estimation: how far past the newest '
              'sample the head motion is extrapolated (braking to a stop), s; later the last pose '
              'is held.', 0.0, 2.0),
@@ -552,7 +563,9 @@ def build_runner_settings(values):
         max_extrapolation=float(values['head.max_extrapolation']),
         max_gap=float(values['head.max_gap']),
         quat_tolerance=float(values['head.quat_tolerance']),
-        max_samples=int(values['head.max_samples']))
+        max_samples=int(values['head.max_samples']),
+        min_samples=int(values['head.min_samples']),
+        output_stamp=str(values['output_stamp']))
 
 
 def check_values(values, chains, changed=None):

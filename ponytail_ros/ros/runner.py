@@ -37,6 +37,22 @@ at two); the default, 2 periods, is 2 ms at 1 kHz, 17 ms at 120 Hz, 67 ms at 30 
 
 Decisions (documented for the node):
 
+* Start and resets at rest *relative to the anchor bodies*: every segment points along its rest
+  direction and moves rigidly with its anchor body, with the body's estimated linear and
+  angular velocity (``Simulator.reset`` with the estimated ``KinematicState``), never at rest
+  in the world while the head runs. A new history (the first poses, or the history restarted
+  by a teleport, a frame change or the clock going back) gives no velocity from one pose, so
+  the runner waits: nothing is published until every input a chain hangs from holds
+  ``START_SAMPLES`` (3) poses of its new history (2 input periods: 2 ms at 1 kHz, 67 ms at
+  30 Hz) or is stale; then the chain starts at the first pose of that history (or at
+  ``t - delay`` if that is later) and is advanced to ``t - delay`` in the same tick. A
+  rebuild or a guard reset keeps the history, so it starts at once with the current estimate.
+* Output stamp (``output_stamp``): ``tick`` labels the output with the tick time ``t`` while
+  the chain is the one simulated at ``t - delay`` with its roots moved onto the head at ``t``
+  (latency compensation): what a viewer should draw now. ``simulated`` labels the state with
+  its own time (``TickOutput.t_state``), without compensation: what an analysis pairing
+  messages by stamp (a bag comparison, a TF lookup) needs.
+
 * Stale: no sample accepted during the last ``stale_timeout`` s of clock time (measured on the
   node clock, not by the stamps, so that it works whatever the stamps' time base).
 * Frame: the frame of the first accepted pose (head or extra frame) is latched: it is the
@@ -92,6 +108,16 @@ TUNABLE_SCENE_FIELDS = ('gravity', 'wind')
 #: Slew rate of the effective interpolation delay (s of delay change per s of clock time).
 DELAY_SLEW = 0.5
 
+#: Poses a new input history (the first, or one restarted by a teleport, a frame change or the
+#: clock going back) must hold before the chain starts on it: with three the estimate has a
+#: velocity and angular velocity (a quadratic through them), so the chain can start moving
+#: with its anchor body instead of at rest in the world. A stale input starts with what it has.
+START_SAMPLES = 3
+#: Resets after which the head history is new (the chain waits for ``START_SAMPLES``).
+HISTORY_RESETS = ('teleport', 'frame_changed')
+#: ``output_stamp`` values: what the stamp of the published state means.
+OUTPUT_STAMPS = ('tick', 'simulated')
+
 # ``advance_frame(..., head_prev=)`` (both ends of a frame's anchor track from one estimate)
 # where the core offers it.
 _HEAD_PREV = 'head_prev' in inspect.signature(Simulator.advance_frame).parameters
@@ -112,8 +138,13 @@ class RunnerSettings:
         teleport_angle: rad; a rotation of the head pose beyond this resets the chain.
         stale_timeout: s; no accepted sample for this long → the head is stale.
         max_queue: samples queued between ticks (bounded work per tick).
+        output_stamp: ``'tick'``: the output is the chain at ``t - delay`` with its roots moved
+            onto the head at ``t`` (``latency_compensation``), labelled ``t`` (for rendering
+            now); ``'simulated'``: the chain exactly as simulated, labelled with its own time
+            ``TickOutput.t_state`` (for analysis: pairs with the head by stamp); no latency
+            compensation.
         window, degree, max_extrapolation, max_gap, quat_tolerance, max_samples: of the
-            ``HeadEstimator``.
+            ``HeadEstimator``; ``min_samples``: its ``min_samples`` (0: ``degree + 3``).
     """
 
     interpolation_delay: float = 0.0
@@ -130,11 +161,14 @@ class RunnerSettings:
     max_gap: float = 0.5
     quat_tolerance: float = 1e-3
     max_samples: int = 128
+    min_samples: int = 0
+    output_stamp: str = 'tick'
 
     def estimator(self):
         return HeadEstimator(window=self.window, degree=self.degree, delay=0.0,
                              max_extrapolation=self.max_extrapolation, max_gap=self.max_gap,
-                             quat_tolerance=self.quat_tolerance, max_samples=self.max_samples)
+                             quat_tolerance=self.quat_tolerance, max_samples=self.max_samples,
+                             min_samples=self.min_samples or None)
 
 
 @dataclass
@@ -144,6 +178,10 @@ class TickOutput:
     Attributes:
         t: tick time (node clock), s.
         t_head: head time the chain was advanced to, ``t - delay``, s.
+        t_state: time of the chain state in ``origins``/``orientations`` before latency
+            compensation, s: ``t_head``, or the previous frame's time when this tick was merged
+            into the next (closer than one internal step). The honest stamp
+            (``output_stamp: simulated``).
         frame_id: the head pose's frame (the simulation's world frame).
         origins: ``(n, 3)`` proximal joint of every segment, all chains concatenated (latency
             compensated if on).
@@ -166,6 +204,7 @@ class TickOutput:
     head_stale: bool
     newest_stamp: float
     accepted: int
+    t_state: float = None
 
 
 def structural_change(old, new):
@@ -206,6 +245,9 @@ class ChainRunner:
         self._queue = deque(maxlen=max(1, int(self.settings.max_queue)))
         self._frame_queues = [deque(maxlen=self._queue.maxlen) for _ in self.frames]
         self._frame_last_accept = [None] * len(self.frames)
+        # Stamp of the first sample of the current history of the head / of each frame.
+        self._head_start = None
+        self._frame_start = [None] * len(self.frames)
         #: Samples accepted per frame, since start.
         self.frame_accepted_total = [0] * len(self.frames)
         self._pending_scene = None
@@ -250,7 +292,8 @@ class ChainRunner:
         self.settings = replace(self.settings, **changes)
         s = self.settings
         for e in (self.estimator, *self.frame_estimators):
-            e.window, e.degree, e.min_samples = float(s.window), int(s.degree), int(s.degree) + 3
+            e.window, e.degree = float(s.window), int(s.degree)
+            e.min_samples = int(s.min_samples) or int(s.degree) + 3
             e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
             e.quat_tolerance = float(s.quat_tolerance)
 
@@ -413,6 +456,8 @@ class ChainRunner:
                 continue
             accepted += 1
             quiet = False
+            if len(est) == 1:
+                self._head_start = est.last_stamp
             self._last_accept_tick = t_tick
             if self.frame_id is None or restart == 'frame_changed':
                 self.frame_id = frame
@@ -447,6 +492,8 @@ class ChainRunner:
             if reason is not None:
                 self._drop(reason, t, name)
                 continue
+            if len(est) == 1:
+                self._frame_start[i] = est.last_stamp
             self._frame_last_accept[i] = t_tick
             self.frame_accepted_total[i] += 1
             if self.frame_id is None or adopt:
@@ -455,7 +502,9 @@ class ChainRunner:
     # -- the tick ------------------------------------------------------------------------------
     def tick(self, t):
         """Advance to node clock time ``t`` (s); ``TickOutput``, or None while an input the
-        scene uses (the head, a frame) has no accepted pose yet (``missing_inputs``)."""
+        scene uses (the head, a frame) has no accepted pose yet (``missing_inputs``), or, at
+        a start or after a teleport or frame change, while an input a chain hangs from has
+        fewer than ``START_SAMPLES`` poses of its new history (and is not stale)."""
         t = float(t)
         if self._last_tick is not None and t < self._last_tick:
             self._restart('clock_backwards')
@@ -464,6 +513,11 @@ class ChainRunner:
         self._last_tick = t
         accepted = self._drain(t)
         if self.missing_inputs(self._pending_scene or self.scene):
+            return None
+        starting = self.sim is None or self._pending_reset in HISTORY_RESETS
+        if starting and not self._ready(t, self._pending_scene or self.scene):
+            # A new history: wait for a velocity estimate (``START_SAMPLES``); nothing is
+            # published meanwhile, a pending reset or scene stays pending.
             return None
         self.ticks += 1
 
@@ -485,34 +539,36 @@ class ChainRunner:
 
         report = StepReport()
         reset_reason = None
-        if self.sim is None or rebuild:
-            if self.sim is not None:
-                reset_reason = 'rebuild'
-            self.sim = Simulator(self.scene, head=head, t0=t_head)
-            self._t_frame = t_head
+        if self.sim is None or rebuild or self._pending_reset is not None:
+            # (Re)start at rest relative to the anchor bodies, moving with their estimated
+            # velocity and angular velocity; after a new history, from its first pose.
+            t0 = self._start_time(t_head) if starting else t_head
+            head0 = head if t0 == t_head else self.bodies_at(t0)
+            if self.sim is None or rebuild:
+                if self.sim is not None:
+                    reset_reason = 'rebuild'
+                self.sim = Simulator(self.scene, head=head0, t0=t0)
+            else:
+                if scene is not None:
+                    self._apply_tunables(scene)     # not structural
+                reset_reason = self._pending_reset
+                self.sim.reset(head0, t0)
+            self._t_frame = t0
             self._pending_reset = None
+            if t_head - t0 >= self.sim.dt:
+                report = self._advance(t_head, head, head0)
         else:
             if scene is not None:
                 self._apply_tunables(scene)     # not structural
-            if self._pending_reset is not None:
-                reset_reason = self._pending_reset
-                self.sim.reset(head, t_head)
-                self._t_frame = t_head
-            elif t_head - self._t_frame >= self.sim.dt:
+            if t_head - self._t_frame >= self.sim.dt:
                 # Frames closer than one internal step are merged into the next: the core's
                 # anchor track between two frames extrapolates up to a step beyond them, which
                 # explodes for a vanishing frame interval.
-                if _HEAD_PREV:
-                    # Both ends of the frame from this tick's estimate: the refit estimate
-                    # disagrees slightly with the previous tick's, and bridging that within
-                    # one frame would be an acceleration spike.
-                    report = self.sim.advance_frame(
-                        t_head, head, head_prev=self.bodies_at(self._t_frame))
-                else:
-                    report = self.sim.advance_frame(t_head, head)
-                self._t_frame = t_head
-                if report.reset_reason is not None:
-                    reset_reason = 'guard'
+                report = self._advance(t_head, head, self.bodies_at(self._t_frame))
+        if report.reset_reason is not None:
+            if reset_reason is not None:
+                self.resets[reset_reason] += 1
+            reset_reason = 'guard'
         self._pending_reset = None
         if reset_reason is not None:
             self.resets[reset_reason] += 1
@@ -523,7 +579,7 @@ class ChainRunner:
         self.dropped_time_total += report.dropped_time
         # The chain at the frame time itself (not up to one internal step behind it).
         origins, quats = self.sim.segment_poses(self._t_frame)
-        if self.settings.latency_compensation:
+        if self.settings.latency_compensation and self.settings.output_stamp == 'tick':
             # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
             # moved onto the attachment point of the head estimated at t.
             m = self.sim.model
@@ -533,7 +589,46 @@ class ChainRunner:
             t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
             orientations=quats, report=report, reset_reason=reset_reason,
             head_stale=self.head_stale(t),
-            newest_stamp=self._newest_stamp, accepted=accepted)
+            newest_stamp=self._newest_stamp, accepted=accepted, t_state=self._t_frame)
+
+    def _advance(self, t_head, head, head_prev):
+        """``sim.advance_frame`` to ``t_head``; both ends of the frame from this tick's
+        estimate (``head_prev``: the bodies at the previous frame's time): the refit estimate
+        disagrees slightly with the previous tick's, and bridging that within one frame would
+        be an acceleration spike."""
+        if _HEAD_PREV:
+            report = self.sim.advance_frame(t_head, head, head_prev=head_prev)
+        else:
+            report = self.sim.advance_frame(t_head, head)
+        self._t_frame = t_head
+        return report
+
+    def _anchor_inputs(self, scene=None):
+        """``(estimator, history start, stale(t))`` of the inputs some chain of ``scene``
+        (default: the current one) hangs from: the bodies whose motion the chain starts with
+        (a collider's body does not enter the start)."""
+        scene = scene or self.scene
+        anchors = {c.anchor_body for c in scene.chains}
+        out = []
+        if 0 in anchors:
+            out.append((self.estimator, self._head_start, self.head_stale))
+        for i in range(len(self.frames)):
+            if 1 + i in anchors:
+                out.append((self.frame_estimators[i], self._frame_start[i],
+                            lambda t, i=i: self.frame_stale(i, t)))
+        return out
+
+    def _ready(self, t, scene):
+        """Every input a chain of ``scene`` hangs from holds ``START_SAMPLES`` poses, or is
+        stale."""
+        return all(len(e) >= START_SAMPLES or stale(t)
+                   for e, _, stale in self._anchor_inputs(scene))
+
+    def _start_time(self, t_head):
+        """Where a (re)start begins: the first pose of the newest used history when it is
+        before ``t_head`` (so a replay starts where its poses do), else ``t_head``."""
+        starts = [s for _, s, _ in self._anchor_inputs() if s is not None]
+        return min(max(starts), t_head) if starts else t_head
 
     def _apply_tunables(self, scene):
         old = self.scene
