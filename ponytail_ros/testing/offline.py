@@ -19,6 +19,7 @@ from typing import Any, Dict, List, Mapping, Optional, Union
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Pose, PoseArray
 
 from ponytail_ros.ros.node_core import NodeCore, time_msg
 
@@ -45,6 +46,21 @@ def stamp_msg(t: float) -> Time:
     return time_msg(stamp_ns(t))
 
 
+def _copy_pose_array(msg: PoseArray) -> PoseArray:
+    out = PoseArray()
+    out.header.frame_id = msg.header.frame_id
+    out.header.stamp = Time(sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec)
+    poses = []
+    for p in msg.poses:
+        c = Pose()
+        c.position.x, c.position.y, c.position.z = p.position.x, p.position.y, p.position.z
+        o = p.orientation
+        c.orientation.x, c.orientation.y, c.orientation.z, c.orientation.w = o.x, o.y, o.z, o.w
+        poses.append(c)
+    out.poses = poses
+    return out
+
+
 def _config(params: Union[Config, str, Path, None],
             overrides: Optional[Mapping[str, Any]]) -> Config:
     if isinstance(params, Config):
@@ -54,7 +70,7 @@ def _config(params: Union[Config, str, Path, None],
 
 def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duration: float, *,
                 overrides: Optional[Mapping[str, Any]] = None, input_rate: float = 100.0,
-                frame_id: str = 'world') -> Trace:
+                frame_id: str = 'world', keep_markers: bool = False) -> Trace:
     """Run the node's core on sim time for ``duration`` s (ticks at ``k / rate``).
 
     Args:
@@ -67,10 +83,13 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         overrides: parameter overrides on top of ``params`` (dotted names).
         input_rate: Hz, for a motion function.
         frame_id: the head poses' ``header.frame_id``.
+        keep_markers: keep a copy of every ``MarkerArray`` (off by default: copying them
+            costs about as much as a cheap chain's physics).
 
     Returns:
-        The ``Trace``: every published ``PoseArray`` (per topic), ``MarkerArray`` and a
-        ``DiagnosticArray`` every ``diagnostics_period`` s of sim time.
+        The ``Trace``: every ``PoseArray`` the node would publish (per topic), the
+        ``MarkerArray``s if ``keep_markers``, and a ``DiagnosticArray`` every
+        ``diagnostics_period`` s of sim time.
     """
     config = _config(params, overrides)
     samples: List[PoseSample] = head_samples(head, duration, input_rate)
@@ -98,8 +117,8 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
             builder.record(core.runner, tick.output, tick.frame_id)
             # (copies: the core refills the same message objects every tick)
             for tp, msg in zip(topics, tick.poses):
-                poses[tp].append(copy.deepcopy(msg))
-            if tick.markers is not None:
+                poses[tp].append(_copy_pose_array(msg))
+            if keep_markers and tick.markers is not None:
                 markers.append(copy.deepcopy(tick.markers))
         if t_ns >= next_diag:
             status = core.diagnostic_status(t_ns, diag_period * 1e-9, '/ponytail')
