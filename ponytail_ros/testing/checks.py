@@ -52,6 +52,12 @@ def _over(values: np.ndarray, bound: float) -> int:
     return int(np.count_nonzero(np.any(values.reshape(values.shape[0], -1) > bound, axis=1)))
 
 
+def _first_over(trace: Trace, idx: np.ndarray, values: np.ndarray, bound: float) -> str:
+    """'; first over the bound at t = ... s' (ticks ``idx``, values ``(len(idx), ...)``)."""
+    over = np.flatnonzero(np.any(values.reshape(values.shape[0], -1) > bound, axis=1))
+    return f'; first over at t = {trace.t[idx[over[0]]]:.3f} s' if over.size else ''
+
+
 def joint_gaps(trace: Trace) -> np.ndarray:
     """``(T, n)`` distance, m, between the two sides of every joint of the published chains:
     joint 1 of a chain = its root against its attachment point on the head, joint ``j > 1`` =
@@ -83,7 +89,7 @@ def assert_joints_closed(trace: Trace, tolerance: float = 1e-6,
         raise CheckFailed(
             f'joint gap {worst:.3g} m > tolerance {tolerance:g} m: chain {chain!r}, joint {seg} '
             f'({where}), at {trace.where(int(idx[k]))}; {_over(gaps, tolerance)} of '
-            f'{idx.size} ticks over the tolerance')
+            f'{idx.size} ticks over the tolerance{_first_over(trace, idx, gaps, tolerance)}')
     return worst
 
 
@@ -122,7 +128,8 @@ def assert_no_penetration(trace: Trace, max_depth: float = 1e-3,
         raise CheckFailed(
             f'penetration depth {worst:.3g} m > max_depth {max_depth:g} m: chain {chain!r} '
             f'segment {seg} inside collider {names[cols[j]]!r} at {trace.where(int(idx[k]))}; '
-            f'{_over(depth, max_depth)} of {idx.size} ticks over the bound')
+            f'{_over(depth, max_depth)} of {idx.size} ticks over the bound'
+            f'{_first_over(trace, idx, depth, max_depth)}')
     return worst
 
 

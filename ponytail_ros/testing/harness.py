@@ -151,6 +151,8 @@ class Harness:
         head_qos: QoS (or depth) of the tester's ``head_pose`` publisher.
         timeout: s of wall time any single wait may take (times ``TIMEOUT_SCALE``).
         node_name: the node's name.
+        measure: measure every tick for the ``Trace`` (default: with sim time only, so that
+            a wall-clock test's node is not slowed down).
 
     The configuration is validated first, without ROS (``load_config``): a bad params file
     fails with the parameter named before any node exists.
@@ -161,9 +163,10 @@ class Harness:
                  namespace: Optional[str] = None, domain_id: Optional[int] = None,
                  discovery: Optional[str] = 'OFF', topics: Optional[Sequence[str]] = None,
                  head_qos: Union[int, QoSProfile] = 10, timeout: float = 10.0,
-                 node_name: str = 'ponytail') -> None:
+                 node_name: str = 'ponytail', measure: Optional[bool] = None) -> None:
         self.config: Config = load_config(params, overrides)
         self.sim_time = bool(sim_time)
+        self._measure = self.sim_time if measure is None else bool(measure)
         self.timeout = float(timeout)
         self.domain_id = default_domain_id() if domain_id is None else int(domain_id)
         self.context = Context()
@@ -226,7 +229,7 @@ class Harness:
             result = tick(t_ns)
             self._tick_calls += 1
             self._last_tick_ns = t_ns
-            if result is not None:
+            if result is not None and self._measure:
                 self._builder.record(core.runner, result.output, result.frame_id)
                 model = core.runner.sim.model
                 out = result.output
@@ -240,7 +243,8 @@ class Harness:
         # Wall-clock head stream (sim_time=False): published at 100 Hz while set.
         self.head: Optional[HeadStream] = None
         self.last_sent: Optional[float] = None
-        self._stream_timer = self.tester.create_timer(0.01, self._publish_head)
+        if not self.sim_time:
+            self.tester.create_timer(0.01, self._publish_head)
         self._clock_ns = 0
         self._sent: int = 0
         self._checked: Dict[str, int] = {}
@@ -284,21 +288,23 @@ class Harness:
             self.executor.spin_once(timeout_sec=0.005)
         return bool(pred())
 
-    def _wait(self, pred: Callable[[], bool], what: str) -> None:
-        if not self.spin_until(pred, self.timeout):
-            raise HarnessTimeout(f'timed out after {self.timeout * TIMEOUT_SCALE:g} s of wall '
+    def _wait(self, pred: Callable[[], bool], what: str,
+              timeout: Optional[float] = None) -> None:
+        timeout = self.timeout if timeout is None else float(timeout)
+        if not self.spin_until(pred, timeout):
+            raise HarnessTimeout(f'timed out after {timeout * TIMEOUT_SCALE:g} s of wall '
                                  f'time waiting for {what}')
 
-    def last_diagnostics(self, since: int = 0) -> Dict[str, str]:
+    def last_diagnostics(self, since: int = 0, timeout: Optional[float] = None) -> Dict[str, str]:
         """Values of the newest ``/diagnostics`` message received after ``since`` of them
-        (waits for one)."""
-        self._wait(lambda: len(self.diagnostics) > since, 'a /diagnostics message')
+        (waits up to ``timeout`` s, default the harness's, times ``TIMEOUT_SCALE``)."""
+        self._wait(lambda: len(self.diagnostics) > since, 'a /diagnostics message', timeout)
         return diagnostic_values(self.diagnostics[-1])
 
-    def fresh_diagnostics(self) -> Dict[str, str]:
+    def fresh_diagnostics(self, timeout: Optional[float] = None) -> Dict[str, str]:
         """Values of a ``/diagnostics`` message whose whole window started after this call."""
         n = len(self.diagnostics)
-        self._wait(lambda: len(self.diagnostics) > n + 1, 'two /diagnostics messages')
+        self._wait(lambda: len(self.diagnostics) > n + 1, 'two /diagnostics messages', timeout)
         return diagnostic_values(self.diagnostics[-1])
 
     # -- sim time ----------------------------------------------------------------------------
