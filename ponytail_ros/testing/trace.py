@@ -55,9 +55,13 @@ class Trace:
             for the instant the published chain shows (``t`` with latency compensation, else
             ``t_head``), m: where the chain's root belongs.
         depth: ``(T, n, K)`` penetration of each segment (a capsule along its whole length) into
-            each collider placed on that same head estimate, m; > 0 inside, <= 0 clear,
-            ``-inf`` where the segment does not collide.
-        swing, twist: ``(T, n)`` joint angles as the limits see them, rad.
+            each collider, m; > 0 inside, <= 0 clear, ``-inf`` where the segment does not
+            collide. Judged on the chain as simulated: for head time ``t_head`` against the
+            kinematic bodies at ``t_head`` (the published chain is that chain translated so its
+            root sits on the head at ``t``; drawn against a head that has turned on over the
+            delay it can show up to ω × delay × reach more).
+        swing, twist: ``(T, n)`` joint angles as the limits see them, rad (the chain as
+            simulated, relative to the anchor body at ``t_head``).
         kinetic, potential: ``(T, C)`` energy of each chain in the simulator's state after the
             tick (its last internal step), J; potential ``-m x·g``.
         steps: ``(T,)`` internal steps taken per tick.
@@ -188,11 +192,18 @@ class TickMeter:
     def measure(self, runner: ChainRunner, out: TickOutput) -> _Measured:
         sim = runner.sim
         model = sim.model
-        t_geom = out.t if runner.settings.latency_compensation else out.t_head
-        bodies = runner.bodies_at(t_geom)
-        anchors = sim.anchors(bodies)
+        # Where the published roots belong: the head estimated at t (latency compensation),
+        # else at t_head.
+        t_root = out.t if runner.settings.latency_compensation else out.t_head
+        anchors = sim.anchors(runner.bodies_at(t_root))
+        # The chain as simulated: the published one put back on its anchor at t_head, judged
+        # against the bodies at t_head.
+        bodies = runner.bodies_at(out.t_head)
+        sim_anchors = sim.anchors(bodies)
         q = out.orientations
-        x = out.origins + half_vectors(model.length, q)
+        origins = out.origins + (sim_anchors.position
+                                 - out.origins[model.chain_start])[model.chain_of]
+        x = origins + half_vectors(model.length, q)
         k = bodies.n_bodies
         body_origins = bodies.point_kinematics(np.arange(k), np.zeros((k, 3)))
         models = self._models(runner.scene)
@@ -200,7 +211,7 @@ class TickMeter:
         far = np.full((model.n_chains, 3), _FAR)
         for j, m in enumerate(models):
             depth[:, j] = segment_depths(m, x, q, far, body_origins)
-        swing, twist = joint_angles(model, q, anchors.orientation)
+        swing, twist = joint_angles(model, q, sim_anchors.orientation)
         ke, pe = sim.energy()
         return _Measured(out.t, out.t_head, out.origins.copy(), q.copy(),
                          np.array(anchors.position, dtype=float), depth, swing, twist,
