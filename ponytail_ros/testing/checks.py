@@ -140,7 +140,8 @@ def assert_within_joint_limits(trace: Trace, tolerance: float = 2e-5,
     within). Joints without a limit are not judged."""
     idx = _window(trace, since)
     model_limits = _limits(trace)
-    worst_value, worst = -np.inf, None
+    worst_value = -np.inf
+    worst: Optional[Tuple[str, int, int, float, float, int]] = None
     for kind, angles, limit in (('swing', trace.swing[idx], model_limits[0]),
                                 ('twist', np.abs(trace.twist[idx]), model_limits[1])):
         on = np.isfinite(limit)
@@ -155,12 +156,12 @@ def assert_within_joint_limits(trace: Trace, tolerance: float = 2e-5,
     if worst is None:
         raise CheckFailed('no joint of this scene has a swing or twist limit: nothing to check')
     if worst_value > tolerance:
-        kind, k, j, angle, limit, n_over = worst
-        chain, seg = _segment_name(trace, j)
+        kind, tick, joint, angle, bound, n_over = worst
+        chain, seg = _segment_name(trace, joint)
         raise CheckFailed(
-            f'{kind} angle {angle:.4g} rad exceeds its limit {limit:.4g} rad by '
+            f'{kind} angle {angle:.4g} rad exceeds its limit {bound:.4g} rad by '
             f'{worst_value:.3g} rad > tolerance {tolerance:g} rad: chain {chain!r} joint {seg} '
-            f'at {trace.where(int(idx[k]))}; {n_over} of {idx.size} ticks over')
+            f'at {trace.where(int(idx[tick]))}; {n_over} of {idx.size} ticks over')
     return worst_value
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 from typing import Callable, Iterable, List, NamedTuple, Optional, Sequence, Tuple, Union
 
-import numpy as np
 
 __all__ = ['PoseSample', 'Motion', 'HeadInput', 'sample_motion', 'head_samples', 'still',
            'stamp_ns']
@@ -28,7 +27,8 @@ class PoseSample(NamedTuple):
 Motion = Callable[[float], Tuple[Sequence[float], Sequence[float]]]
 #: What a run accepts as head input: samples (``PoseSample`` or ``(t, position, orientation)``
 #: tuples, stamps increasing) or a ``Motion`` (sampled at ``input_rate``).
-HeadInput = Union[Motion, Iterable[Union[PoseSample, Tuple[float, Sequence[float], Sequence[float]]]]]
+SampleLike = Union[PoseSample, Tuple[float, Sequence[float], Sequence[float]]]
+HeadInput = Union[Motion, Iterable[SampleLike]]
 
 
 def stamp_ns(t: float) -> int:
@@ -75,6 +75,6 @@ def head_samples(head: HeadInput, duration: Optional[float] = None,
 def still(position: Sequence[float] = (0.0, 0.0, 1.6),
           orientation: Sequence[float] = (0.0, 0.0, 0.0, 1.0)) -> Motion:
     """A head at rest at ``position`` (m) with ``orientation`` (x, y, z, w)."""
-    p = np.asarray(position, dtype=float).copy()
-    q = np.asarray(orientation, dtype=float).copy()
+    p = tuple(float(x) for x in position)
+    q = tuple(float(x) for x in orientation)
     return lambda t: (p, q)

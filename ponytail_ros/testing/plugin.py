@@ -1,5 +1,6 @@
-"""pytest plugin of ponytail_ros (registered as the ``pytest11`` entry point ``ponytail_ros.testing.plugin``,
-so ``pip install ponytail_ros`` is enough; or ``-p ponytail_ros.testing.plugin``).
+"""pytest plugin of ponytail_ros: registered as the ``pytest11`` entry point
+``ponytail_ros.testing.plugin``, so ``pip install ponytail_ros`` is enough (or pass
+``-p ponytail_ros.testing.plugin``).
 
 Fixtures:
 
