@@ -259,3 +259,27 @@ def test_the_parallel_check_sees_interference_when_both_runs_share_a_localhost_g
         disturbed.append('error' in r or not r['same_as_offline'] or r['n'] != 60
                          or r['resets'] != [])
     assert any(disturbed)
+
+
+@pytest.mark.ros
+def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path):
+    """Head poses from a bag (``bag_samples``) drive the node exactly as the same poses given
+    as a list: the same ticks, the same chain."""
+    pytest.importorskip('rclpy')
+    from geometry_msgs.msg import PoseStamped
+    from ponytail_ros.recording.bag import BagWriter
+    from ponytail_ros.testing import bag_samples, sample_motion
+    from ponytail_ros.testing.harness import pose_msg
+    from ponytail_ros.testing.motion import stamp_ns
+    samples = sample_motion(walk, 0.5)
+    path = tmp_path / 'take.mcap'
+    with BagWriter(path) as bag:
+        bag.add_topic('/head_pose', PoseStamped)
+        for s in samples:
+            bag.write('/head_pose', pose_msg(s.t, s.position, s.orientation), stamp_ns(s.t))
+    read = bag_samples(path)
+    assert [stamp_ns(s.t) for s in read] == [stamp_ns(s.t) for s in samples]
+    run = ponytail(PARAMS).run(read, 0.5)
+    reference = run_offline(PARAMS, samples, 0.5)
+    assert run.n_ticks == 30
+    assert np.array_equal(run.origins, reference.origins)
