@@ -283,3 +283,22 @@ def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path)
     reference = run_offline(PARAMS, samples, 0.5)
     assert run.n_ticks == 30
     assert np.array_equal(run.origins, reference.origins)
+
+
+@pytest.mark.ros
+def test_extra_frames_are_fed_on_their_topics_as_offline(ponytail):
+    """A scene with a forearm frame (``config/ponytail_arm.yaml``) publishes nothing without the
+    forearm's poses, and with them the harness (on ``left_forearm_pose``) and the offline path
+    give the same chain; the forearm capsule, held clear, is never touched."""
+    pytest.importorskip('rclpy')
+    arm_params = ROOT / 'config' / 'ponytail_arm.yaml'
+    head = still((0.0, 0.0, 1.6))
+    forearm = still((0.3, 0.4, 1.2))
+    assert run_offline(arm_params, head, 0.2).n_ticks == 0
+    run = ponytail(arm_params).run(head, 0.3, frames={'left_forearm': forearm})
+    reference = run_offline(arm_params, head, 0.3, frames={'left_forearm': forearm})
+    assert run.n_ticks == reference.n_ticks == 36                     # 0.3 s at 120 Hz
+    assert np.array_equal(run.origins, reference.origins)
+    assert assert_no_penetration(run, max_depth=0.0, colliders=['left_forearm_capsule']) < -0.1
+    with pytest.raises(ValueError, match="no frame 'right_forearm'"):
+        run_offline(arm_params, head, 0.1, frames={'right_forearm': forearm})

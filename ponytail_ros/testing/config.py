@@ -10,7 +10,7 @@ from typing import Any, Dict, List, Mapping, Optional, Union
 from ponytail_ros.core.scene import Scene
 from ponytail_ros.recording.params import (complete_values, scene_and_settings, unknown_names,
                                            values_from_params_file)
-from ponytail_ros.ros.parameters import ParameterError, collider_names
+from ponytail_ros.ros.parameters import ParameterError, collider_names, frame_names, frame_topics
 from ponytail_ros.ros.runner import RunnerSettings
 
 __all__ = ['Config', 'load_config', 'ParameterError']
@@ -28,6 +28,8 @@ class Config:
         overrides: the overrides applied on top of the file, name -> value.
         chains: chain names, in the node's order (``segment_poses/<chain>`` topics).
         colliders: collider names, in the node's order.
+        frames: extra kinematic frame names (``frames``), in the node's order.
+        frame_topics: their pose topics (relative, ``<frame>.topic``), in that order.
         scene: the core ``Scene`` the node builds from the values.
         settings: the runner's input-handling settings.
     """
@@ -37,6 +39,8 @@ class Config:
     overrides: Dict[str, Any]
     chains: List[str]
     colliders: List[str]
+    frames: List[str]
+    frame_topics: List[str]
     scene: Scene
     settings: RunnerSettings
 
@@ -83,4 +87,5 @@ def load_config(params_file: Optional[PathLike] = None,
     values = complete_values(partial)
     chains, scene, settings = scene_and_settings(values)
     return Config(values=values, params_file=path, overrides=extra, chains=list(chains),
-                  colliders=list(collider_names(values)), scene=scene, settings=settings)
+                  colliders=list(collider_names(values)), frames=list(frame_names(values)),
+                  frame_topics=list(frame_topics(values)), scene=scene, settings=settings)

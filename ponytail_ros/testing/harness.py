@@ -48,7 +48,7 @@ from ponytail_ros.ros.node_core import NodeTick, time_msg
 
 from .config import Config, load_config
 from .motion import HeadInput, PoseSample, head_samples, stamp_ns
-from .offline import n_ticks, stamp_msg, tick_period_ns
+from .offline import _frame_samples, n_ticks, stamp_msg, tick_period_ns
 from .trace import Trace, TraceBuilder
 
 __all__ = ['Harness', 'HarnessError', 'HarnessTimeout', 'default_domain_id', 'pose_msg',
@@ -193,6 +193,9 @@ class Harness:
         self.tester = rclpy.create_node(node_name + '_tester', context=self.context, **kw)
         self.head_pub = self.tester.create_publisher(PoseStamped, 'head_pose', head_qos)
         self.clock_pub = self.tester.create_publisher(Clock, '/clock', 10)
+        #: One publisher per extra kinematic frame (``frames``), on its ``<frame>.topic``.
+        self.frame_pubs = [self.tester.create_publisher(PoseStamped, tp, head_qos)
+                           for tp in self.config.frame_topics]
         topics = list(topics) if topics is not None else self.config.pose_topics
         #: Every ``PoseArray`` received, per topic, in arrival order.
         self.poses: Dict[str, List[PoseArray]] = {tp: [] for tp in topics}
@@ -217,11 +220,15 @@ class Harness:
         self._tick_calls = 0
         self._last_tick_ns: Optional[int] = None
         self._builder = TraceBuilder(self.config)
-        push_head, tick = core.push_head, core.tick
+        push_head, push_frame, tick = core.push_head, core.push_frame, core.tick
 
         def counting_push(*args: Any, **kwargs: Any) -> None:
             self._received += 1
             push_head(*args, **kwargs)
+
+        def counting_push_frame(*args: Any, **kwargs: Any) -> None:
+            self._received += 1
+            push_frame(*args, **kwargs)
 
         def measured_tick(t_ns: int) -> Optional[NodeTick]:
             result = tick(t_ns)
@@ -237,6 +244,7 @@ class Harness:
                 self._ticks.append((t_ns, arrays, result.markers is not None))
             return result
         core.push_head = counting_push  # type: ignore[method-assign]
+        core.push_frame = counting_push_frame  # type: ignore[method-assign]
         core.tick = measured_tick  # type: ignore[method-assign]
         # Wall-clock head stream (sim_time=False): published at 100 Hz while set.
         self.head: Optional[HeadStream] = None
@@ -320,13 +328,15 @@ class Harness:
         return diagnostic_values(self.diagnostics[-1])
 
     def run(self, head: HeadInput, duration: float, *, input_rate: float = 100.0,
-            frame_id: str = 'world') -> Trace:
+            frame_id: str = 'world', frames: Optional[Mapping[str, HeadInput]] = None) -> Trace:
         """Drive the node by ``/clock`` for ``duration`` s of sim time more, feeding ``head``.
 
         ``head``: samples (``PoseSample`` / ``(t, position, orientation)``, stamps in s of sim
         time; the ones up to the run's end are sent, each before the first tick at or after
         its stamp), a motion function ``t -> (position, orientation)`` sampled every
         ``1 / input_rate`` s from t = 0, or a bag's samples (:func:`bag_samples`).
+        ``frames``: the extra kinematic frames' poses, frame name -> the same kinds of input
+        (published on each frame's topic after the head's, as ``run_offline`` pushes them).
         Returns the whole run so far as a ``Trace`` (every message received, each checked to
         be the one this harness's node published at that tick: raises ``HarnessError`` on
         anything else, e.g. cross-talk from another run).
@@ -338,18 +348,25 @@ class Harness:
         k0 = self._clock_ns // period
         end = stamp_ns(self._clock_ns * 1e-9 + duration)
         after = self._clock_ns if self._clock_ns > 0 else -1
-        samples = [s for s in head_samples(head, end * 1e-9, input_rate)
-                   if after < stamp_ns(s.t) <= end]
-        i = 0
+
+        def window(inputs: List[PoseSample]) -> List[PoseSample]:
+            return [s for s in inputs if after < stamp_ns(s.t) <= end]
+        feeds = [(self.head_pub, 'head pose', window(head_samples(head, end * 1e-9,
+                                                                   input_rate)))]
+        for name, pub, rows in zip(self.config.frames, self.frame_pubs,
+                                   _frame_samples(self.config, frames, end * 1e-9, input_rate)):
+            feeds.append((pub, f'pose of frame {name}', window(rows)))
+        nexts = [0] * len(feeds)
         for k in range(k0 + 1, k0 + n_ticks(duration, self.config.rate) + 1):
             t_ns = k * period
-            while i < len(samples) and stamp_ns(samples[i].t) <= t_ns:
-                s = samples[i]
-                self.head_pub.publish(pose_msg(s.t, s.position, s.orientation, frame_id))
-                self._sent += 1
-                i += 1
-                self._wait(lambda: self._received >= self._sent,
-                           f'the node to receive the head pose stamped {s.t:.6f} s')
+            for j, (pub, what, rows) in enumerate(feeds):
+                while nexts[j] < len(rows) and stamp_ns(rows[nexts[j]].t) <= t_ns:
+                    s = rows[nexts[j]]
+                    pub.publish(pose_msg(s.t, s.position, s.orientation, frame_id))
+                    self._sent += 1
+                    nexts[j] += 1
+                    self._wait(lambda: self._received >= self._sent,
+                               f'the node to receive the {what} stamped {s.t:.6f} s')
             self._step_clock(t_ns)
         self._wall += time.perf_counter() - wall0
         return self.trace()

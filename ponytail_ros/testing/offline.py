@@ -61,6 +61,17 @@ def _copy_pose_array(msg: PoseArray) -> PoseArray:
     return out
 
 
+def _frame_samples(config: Config, frames: Optional[Mapping[str, HeadInput]],
+                   duration: float, input_rate: float) -> List[List[PoseSample]]:
+    """Per frame of the config (in its order) its samples; a frame not given has none."""
+    given = dict(frames or {})
+    unknown = sorted(set(given) - set(config.frames))
+    if unknown:
+        raise ValueError(f'no frame {unknown[0]!r} in this config (frames: {config.frames})')
+    return [head_samples(given[f], duration, input_rate) if f in given else []
+            for f in config.frames]
+
+
 def _config(params: Union[Config, str, Path, None],
             overrides: Optional[Mapping[str, Any]]) -> Config:
     if isinstance(params, Config):
@@ -70,7 +81,8 @@ def _config(params: Union[Config, str, Path, None],
 
 def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duration: float, *,
                 overrides: Optional[Mapping[str, Any]] = None, input_rate: float = 100.0,
-                frame_id: str = 'world', keep_markers: bool = False) -> Trace:
+                frame_id: str = 'world', keep_markers: bool = False,
+                frames: Optional[Mapping[str, HeadInput]] = None) -> Trace:
     """Run the node's core on sim time for ``duration`` s (ticks at ``k / rate``).
 
     Args:
@@ -83,6 +95,8 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         overrides: parameter overrides on top of ``params`` (dotted names).
         input_rate: Hz, for a motion function.
         frame_id: the head poses' ``header.frame_id``.
+        frames: poses of the extra kinematic frames (``frames`` parameter: a forearm carrying
+            a collider), frame name -> samples or motion as for ``head`` (same world frame).
         keep_markers: keep a copy of every ``MarkerArray`` (off by default: copying them
             costs about as much as a cheap chain's physics).
 
@@ -93,6 +107,8 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
     """
     config = _config(params, overrides)
     samples: List[PoseSample] = head_samples(head, duration, input_rate)
+    frame_samples = _frame_samples(config, frames, duration, input_rate)
+    frame_next = [0] * len(frame_samples)
     core = NodeCore(config.values)
     builder = TraceBuilder(config)
     topics = config.pose_topics
@@ -111,6 +127,12 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
             s = samples[i]
             core.push_head(stamp_msg(s.t), last_ns, s.position, s.orientation, frame_id)
             i += 1
+        for f, fs in enumerate(frame_samples):
+            while frame_next[f] < len(fs) and stamp_ns(fs[frame_next[f]].t) <= t_ns:
+                s = fs[frame_next[f]]
+                core.push_frame(f, stamp_msg(s.t), last_ns, s.position, s.orientation,
+                                frame_id)
+                frame_next[f] += 1
         tick = core.tick(t_ns)
         last_ns = t_ns
         if tick is not None:

@@ -245,6 +245,11 @@ class TraceBuilder:
         def stack(name: str, shape: Tuple[int, ...]) -> np.ndarray:
             if not ticks:
                 return np.zeros((0,) + shape)
+            shapes = {np.shape(getattr(m, name)) for m in ticks}
+            if len(shapes) != 1:
+                raise ValueError(f'the chains changed shape during the run ({name}: '
+                                 f'{sorted(shapes)}; a structural parameter change rebuilt '
+                                 f'them): a Trace holds one layout, run each in its own')
             return np.stack([np.asarray(getattr(m, name), dtype=float) for m in ticks])
         return Trace(
             config=self.config,
