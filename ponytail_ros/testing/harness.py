@@ -254,6 +254,7 @@ class Harness:
         self._clock_ns = 0
         self._sent: int = 0
         self._checked: Dict[str, int] = {}
+        self._wall = 0.0          # s of wall time spent in run()
 
     # -- wall clock --------------------------------------------------------------------------
     def now(self) -> float:
@@ -370,8 +371,6 @@ class Harness:
             self._step_clock(t_ns)
         self._wall += time.perf_counter() - wall0
         return self.trace()
-
-    _wall = 0.0
 
     def _step_clock(self, t_ns: int) -> None:
         n_published = len(self._ticks)
