@@ -54,5 +54,11 @@ setup(
             'ponytail_replay = ponytail_ros.recording.replay:main',
             'ponytail_bench = ponytail_ros.bench.cli:main',
         ],
+        # pytest plugin: the ponytail / ponytail_offline fixtures (ponytail_ros.testing). Named
+        # after its module, so that "-p ponytail_ros.testing.plugin" and a conftest's
+        # pytest_plugins find it registered instead of registering it a second time.
+        'pytest11': [
+            'ponytail_ros.testing.plugin = ponytail_ros.testing.plugin',
+        ],
     },
 )

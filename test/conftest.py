@@ -4,11 +4,19 @@ ROS isolation: tests that talk over DDS use a ROS domain of their own per test r
 runs on one machine (two checkouts, CI jobs, pytest-xdist workers) never hear each other.
 ``ROS_DOMAIN_ID`` is set here, before any ``rclpy.init``, from ``PONYTAIL_TEST_DOMAIN_ID`` if
 given, else from the process id (1..101); child processes inherit it. Discovery is kept on this
-host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``).
+host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``). (``ponytail_ros.testing.Harness``, which
+most in-process tests use, goes further: discovery off for its own context.)
+
+The public pytest plugin (``ponytail_ros.testing.plugin``: fixtures ``ponytail``,
+``ponytail_params``, ``ponytail_offline``) is loaded here too, so the project's tests use the
+same fixtures a user gets from the installed entry point (registered under the same name, it is
+not loaded twice).
 """
 import os
 
 import pytest
+
+pytest_plugins = ['ponytail_ros.testing.plugin']
 
 TEST_DOMAIN_ID = int(os.environ.get('PONYTAIL_TEST_DOMAIN_ID', 1 + os.getpid() % 101))
 os.environ['ROS_DOMAIN_ID'] = str(TEST_DOMAIN_ID)

@@ -1,34 +1,31 @@
-"""The ponytail node in-process: head publisher, node and test subscriber in one
-``SingleThreadedExecutor`` on a fresh rclpy context per test (``ros_context`` in conftest.py),
-talking over DDS on this test run's own domain."""
+"""The ponytail node in-process, on the wall clock: head publisher, node and test subscriber in
+one ``SingleThreadedExecutor`` on a fresh rclpy context per test, talking over DDS with
+discovery off -- the public harness, ``ponytail_ros.testing.Harness``."""
 import math
-import os
-import time
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
-from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
 
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate  # noqa: E402
 from ponytail_ros.ros.head_demo import HeadDemoNode  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.testing import Harness as PublicHarness  # noqa: E402
+from ponytail_ros.testing.harness import TIMEOUT_SCALE, diagnostic_values  # noqa: E402,F401
+from ponytail_ros.testing.harness import pose_msg as _public_pose_msg  # noqa: E402
+
+#: (``/diagnostics`` values; ``TIMEOUT_SCALE`` and this are imported by other test modules.)
+diag_values = diagnostic_values
 
 pytestmark = pytest.mark.ros
-
-#: Waits (spin_until) are stretched by this factor: they only matter when a loaded machine is
-#: slow, and a passing test never waits for them to expire.
-TIMEOUT_SCALE = float(os.environ.get('PONYTAIL_TEST_TIMEOUT_SCALE', '4'))
 
 ATTACH = [-0.09, 0.0, 0.06]
 CHAIN = {'n_segments': 6, 'length': 0.3, 'mass': 0.1, 'radius': 0.03, 'attach': ATTACH,
@@ -55,13 +52,7 @@ def t_of(header):
 
 
 def pose_msg(t, p=P_HEAD, q=Q_TILT, frame='world'):
-    m = PoseStamped()
-    m.header.frame_id = frame
-    m.header.stamp = stamp(t) if isinstance(t, float) else t
-    m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(x) for x in p)
-    (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
-     m.pose.orientation.w) = (float(x) for x in q)
-    return m
+    return _public_pose_msg(stamp(t) if isinstance(t, float) else t, p, q, frame)
 
 
 def attach_point(p, q, attach=ATTACH):
@@ -85,86 +76,32 @@ def check_geometry(msg, n, length):
     return o, q
 
 
-def diag_values(msg):
-    return {kv.key: kv.value for kv in msg.status[0].values}
+class Harness(PublicHarness):
+    """The public harness on the wall clock (the node, a tester node publishing ``h.head`` at
+    100 Hz and collecting every output, one executor, a fresh context of its own with
+    discovery off), called as this module always called its harness: ``Harness(ctx, params)``
+    with ``Parameter`` overrides (``ctx`` is not used: the harness makes its own context), and
+    the names ``diags`` / ``fresh_diag`` that ``test_frames.py`` uses."""
 
-
-class Harness:
-    """The node under test, a tester node (publishers, subscribers) and one executor."""
-
-    def __init__(self, ctx, params=(), topics=('segment_poses',), namespace=None,
+    def __init__(self, ctx=None, params=(), topics=('segment_poses',), namespace=None,
                  head_qos=10):
-        self.ctx = ctx
-        kw = {'namespace': namespace} if namespace else {}
-        self.node = PonytailNode(context=ctx, parameter_overrides=list(params), **kw)
-        self.tester = rclpy.create_node('tester', context=ctx)
-        self.head_pub = self.tester.create_publisher(PoseStamped, 'head_pose', head_qos)
-        self.poses = {tp: [] for tp in topics}
-        for tp in topics:
-            self.tester.create_subscription(PoseArray, tp, self.poses[tp].append, 100)
-        self.markers, self.diags = [], []
-        self.tester.create_subscription(MarkerArray, 'segment_markers', self.markers.append, 100)
-        self.tester.create_subscription(DiagnosticArray, '/diagnostics', self.diags.append, 100)
-        self.executor = SingleThreadedExecutor(context=ctx)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.tester)
-        self.extra = []
-        self.head = None          # callable t -> (p, q, frame) published at 100 Hz when set
-        self.last_sent = None     # stamp of the last head pose it published
-        self.tester.create_timer(0.01, self._publish_head)
+        super().__init__(None, {p.name: p.value for p in params}, sim_time=False,
+                         topics=topics, namespace=namespace, head_qos=head_qos)
 
-    def now(self):
-        return self.tester.get_clock().now().nanoseconds * 1e-9
-
-    def _publish_head(self):
-        if self.head is not None:
-            t = self.now()
-            p, q, frame = self.head(t)
-            self.head_pub.publish(pose_msg(t, p, q, frame))
-            self.last_sent = t
-
-    def add(self, node):
-        self.executor.add_node(node)
-        self.extra.append(node)
-        return node
-
-    def spin_for(self, seconds):
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.005)
-
-    def spin_until(self, pred, timeout=5.0):
-        end = time.monotonic() + timeout * TIMEOUT_SCALE
-        while time.monotonic() < end:
-            if pred():
-                return True
-            self.executor.spin_once(timeout_sec=0.005)
-        return pred()
-
-    def last_diag(self, since=0):
-        """Values of the newest /diagnostics message received after ``since`` messages."""
-        assert self.spin_until(lambda: len(self.diags) > since, 3.0)
-        return diag_values(self.diags[-1])
+    @property
+    def diags(self):
+        return self.diagnostics
 
     def fresh_diag(self):
-        n = len(self.diags)
-        assert self.spin_until(lambda: len(self.diags) > n + 1, 3.0)
-        return diag_values(self.diags[-1])
-
-    def close(self):
-        self.executor.shutdown()
-        for n in self.extra:
-            n.destroy_node()
-        self.node.destroy_node()
-        self.tester.destroy_node()
+        return self.fresh_diagnostics(3.0)
 
 
 @pytest.fixture
-def harness(ros_context):
+def harness():
     made = []
 
     def make(*args, **kwargs):
-        h = Harness(ros_context, *args, **kwargs)
+        h = Harness(None, *args, **kwargs)
         made.append(h)
         return h
     yield make
@@ -178,7 +115,7 @@ def still(p=P_HEAD, q=Q_TILT, frame='world'):
 
 # -- geometry and following ------------------------------------------------------------------
 
-def test_head_demo_drives_the_chain_which_follows_the_head(harness, ros_context):
+def test_head_demo_drives_the_chain_which_follows_the_head(harness):
     # Enough steps per tick to catch up after any stall of a loaded test machine; and no
     # teleport reset when such a stall lets the yaw (±0.6 rad) move by more than the default
     # teleport_angle between two accepted samples (tested elsewhere).
@@ -186,7 +123,7 @@ def test_head_demo_drives_the_chain_which_follows_the_head(harness, ros_context)
                           latency_compensation=False, solver__max_steps_per_call=2400,
                           teleport_angle=3.0))
     origin = [0.5, -0.3, 1.6]
-    demo = h.add(HeadDemoNode(context=ros_context, parameter_overrides=[
+    demo = h.add(HeadDemoNode(context=h.context, parameter_overrides=[
         Parameter('motion', value='sway'), Parameter('origin', value=origin),
         Parameter('rate', value=100.0)]))
     heads = []
@@ -316,7 +253,7 @@ def test_every_bad_input_is_dropped_counted_and_harmless(harness):
     assert h.spin_until(lambda: all(r.dropped[k] == n for k, n in expected.items()), 3.0), \
         dict(r.dropped)
     assert sum(r.dropped.values()) == sum(expected.values())
-    d = h.fresh_diag()
+    d = h.fresh_diagnostics(3.0)
     for k, n in expected.items():
         assert d[f'dropped inputs: {k}'] == str(n)
     assert d['resets'] == '0' and d['head'] == 'ok'
@@ -345,7 +282,7 @@ def test_flood_of_head_poses_bounded_work_per_tick(harness):
         h.node._timer.reset()
         h.spin_for(0.02)
     assert h.spin_until(lambda: r.dropped['queue_overflow'] > 0, 3.0)
-    assert int(h.fresh_diag()['dropped inputs: queue_overflow']) > 0
+    assert int(h.fresh_diagnostics(3.0)['dropped inputs: queue_overflow']) > 0
     n = len(got)
     h.spin_for(0.2)
     assert len(got) > n
@@ -364,7 +301,7 @@ def test_frame_change_dropped_while_live_then_adopted_with_reset(harness):
     h.head = still(frame='map')           # the publisher switched for good
     assert h.spin_until(lambda: got[-1].header.frame_id == 'map', 3.0)
     assert r.resets['frame_changed'] == 1
-    d = h.fresh_diag()
+    d = h.fresh_diagnostics(3.0)
     assert int(d['dropped inputs: frame_changed']) >= 1 and d['resets: frame_changed'] == '1'
     assert d['head frame'] == 'map'
 
@@ -375,8 +312,8 @@ def test_stale_head_keeps_publishing_then_teleport_resets(harness):
     got = h.poses['segment_poses']
     assert h.spin_until(lambda: len(got) >= 30, 5.0)
     h.head = None                                   # the head stops publishing
-    d = h.fresh_diag()
-    d = h.fresh_diag()
+    d = h.fresh_diagnostics(3.0)
+    d = h.fresh_diagnostics(3.0)
     assert d['head'] == 'stale'
     n = len(got)
     assert h.spin_until(lambda: len(got) > n + 10, 2.0)
@@ -393,7 +330,7 @@ def test_stale_head_keeps_publishing_then_teleport_resets(harness):
     assert h.spin_until(lambda: len(got) > n + 2, 2.0)
     o, q = check_geometry(got[-1], 6, 0.3)
     assert np.linalg.norm(o[0] - attach_point(p_new, Q_TILT)) < 1e-6
-    assert h.fresh_diag()['resets: teleport'] == '1'
+    assert h.fresh_diagnostics(3.0)['resets: teleport'] == '1'
 
 
 # -- parameters ------------------------------------------------------------------------------
@@ -479,7 +416,7 @@ def test_live_tuning_applies_on_next_tick_and_structural_change_rebuilds(harness
 
 def test_use_sim_time_driven_by_clock(harness):
     h = harness(overrides(use_sim_time=True))
-    clock_pub = h.tester.create_publisher(Clock, '/clock', 10)
+    clock_pub = h.clock_pub
     got = h.poses['segment_poses']
     r = h.node.runner
     h.spin_for(0.2)

@@ -1,0 +1,304 @@
+"""The public testing API (``ponytail_ros.testing``): the offline path imports no rclpy, the
+in-process harness is driven by sim time and publishes exactly what the offline path computes,
+parallel harnesses do not hear each other, and every check fails with a message naming the
+quantity, the bound, where and when."""
+import dataclasses
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ponytail_ros
+from ponytail_ros.testing import (CheckFailed, PoseSample, assert_energy_does_not_grow,
+                                  assert_joints_closed, assert_no_penetration, assert_no_resets,
+                                  assert_tips_close, assert_within_joint_limits, joint_gaps,
+                                  load_config, n_ticks, run_offline, still, tick_period_ns)
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = ROOT / 'examples' / 'my_character.yaml'
+sys.path.insert(0, str(ROOT / 'examples'))
+from walk_cycle import walk, walk_then_stop  # noqa: E402
+
+#: The package under test's import root, for subprocesses.
+PACKAGE_ROOT = str(Path(ponytail_ros.__file__).resolve().parents[1])
+#: |attach| of the example's ponytail root from the skull centre, m.
+ROOT_RADIUS = math.hypot(-0.1034, 0.0377)
+
+
+def _env(**extra):
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join([PACKAGE_ROOT] + [p for p in
+                                        env.get('PYTHONPATH', '').split(os.pathsep) if p])
+    env.update(extra)
+    return env
+
+
+# -- offline ---------------------------------------------------------------------------------
+
+def test_offline_path_imports_no_rclpy_and_ticks_at_the_rate():
+    code = textwrap.dedent(f'''
+        import sys
+        from ponytail_ros.testing import run_offline, still, assert_joints_closed
+        run = run_offline({str(PARAMS)!r}, still(), 0.5)
+        assert_joints_closed(run)
+        print(run.n_ticks, 'rclpy' in sys.modules)
+    ''')
+    out = subprocess.run([sys.executable, '-c', code], env=_env(), capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ['30', 'False']          # 0.5 s at 60 Hz, no rclpy
+
+
+def test_config_errors_name_the_parameter():
+    with pytest.raises(ValueError, match='ponytail.length'):
+        load_config(PARAMS, {'ponytail.length': -1.0})
+    with pytest.raises(ValueError, match='ponytail.lenght'):
+        load_config(PARAMS, {'ponytail.lenght': 0.3})       # a typo is not silently ignored
+
+
+# -- the checks ------------------------------------------------------------------------------
+
+@pytest.fixture(scope='module')
+def walked():
+    return run_offline(PARAMS, walk, 1.0)
+
+
+def _number(pattern, text):
+    m = re.search(pattern, text)
+    assert m, text
+    return float(m.group(1))
+
+
+def test_penetration_check_passes_the_example_and_names_a_skull_grown_into_the_root(walked):
+    # The example holds the whole capsule out to within the inner half's sag (0.2 mm) plus
+    # dynamics; its own test bounds it by 1 mm.
+    assert assert_no_penetration(walked, max_depth=1e-3, since=0.05) < 1e-3
+    broken = run_offline(PARAMS, walk, 0.5, overrides={'skull.radius': 0.12})
+    with pytest.raises(CheckFailed) as err:
+        assert_no_penetration(broken, max_depth=1e-3, since=0.05)
+    text = str(err.value)
+    assert "collider 'skull'" in text and "chain 'ponytail' segment 1" in text
+    assert 'max_depth 0.001 m' in text and re.search(r'at t = \d+\.\d{3} s \(tick \d+ of 30\)',
+                                                     text)
+    # The root is fixed 0.11006 m from the centre: a 0.12 m skull (+ 0.02 m hair) holds it
+    # 0.0299 m deep, and no part of the first segment can be deeper than its root there.
+    depth = _number(r'penetration depth ([0-9.e-]+) m', text)
+    assert depth == pytest.approx(0.12 + 0.02 - ROOT_RADIUS, abs=1e-4)
+
+
+def test_joint_check_measures_every_joint_and_names_an_opened_one(walked):
+    gaps = joint_gaps(walked)
+    assert gaps.shape == (60, 8) and gaps.max() < 1e-12     # rigid chain, root on the head
+    assert assert_joints_closed(walked, tolerance=1e-9) < 1e-12
+    bad = dataclasses.replace(walked, origins=walked.origins.copy())
+    bad.origins[20, 3] += [0.0, 0.0, 2e-3]                 # segment 4 lifted off at tick 21
+    with pytest.raises(CheckFailed) as err:
+        assert_joints_closed(bad, tolerance=1e-6)
+    text = str(err.value)
+    assert _number(r'joint gap ([0-9.e-]+) m', text) == pytest.approx(2e-3, rel=1e-6)
+    assert "chain 'ponytail', joint 4 (between segments 3 and 4)" in text
+    assert f't = {walked.t[20]:.3f} s (tick 21 of 60)' in text and '1 of 60 ticks' in text
+
+
+def test_limit_check_names_the_joint_and_the_excess(walked):
+    limited = run_offline(PARAMS, walk, 1.0, overrides={'ponytail.swing_limit': 0.1})
+    # Judged against a 0.1 rad cone, the free chain swings far out (joint 2 to 0.48 rad) ...
+    judged = dataclasses.replace(walked, config=limited.config)
+    with pytest.raises(CheckFailed) as err:
+        assert_within_joint_limits(judged)
+    text = str(err.value)
+    k, j = np.unravel_index(np.argmax(walked.swing), walked.swing.shape)
+    assert f"chain 'ponytail' joint {j + 1} at t = {walked.t[k]:.3f} s" in text
+    assert _number(r'by ([0-9.e-]+) rad', text) == pytest.approx(walked.swing.max() - 0.1,
+                                                                 rel=1e-3)
+    # ... the limited one stays on its cone: its largest excess (published states are carried
+    # forward by ω over up to one internal step past the solver's state) is a small fraction.
+    excess = float(np.max(limited.swing - 0.1))
+    assert excess < 0.01 * (walked.swing.max() - 0.1)
+
+
+def test_tip_check_tells_a_small_tuning_change_from_a_large_one(walked):
+    slightly = run_offline(PARAMS, walk, 1.0, overrides={'ponytail.damping': 0.0012})
+    assert assert_tips_close(slightly, walked, max_distance=5e-3, rms=2e-3) < 5e-3
+    much = run_offline(PARAMS, walk, 1.0, overrides={'ponytail.damping': 0.01})
+    with pytest.raises(CheckFailed, match=r"tip distance [0-9.e-]+ m > max_distance 0.005 m: "
+                                          r"chain 'ponytail' at t = "):
+        assert_tips_close(much, walked, max_distance=5e-3)
+    with pytest.raises(CheckFailed, match='same instants'):
+        assert_tips_close(run_offline(PARAMS, walk, 0.5), walked, max_distance=1.0)
+
+
+def test_energy_check_on_a_stopped_head_and_on_a_walking_one():
+    run = run_offline(PARAMS, walk_then_stop, 3.0)
+    # Held still from t = 2 s: energy only ever falls (damping, drag, contacts).
+    assert assert_energy_does_not_grow(run, tolerance=1e-9, since=2.2) <= 0.0
+    with pytest.raises(CheckFailed, match=r"energy rose by [0-9.e-]+ J > tolerance 1e-06 J on "
+                                          r"a still head: chain 'ponytail', from "):
+        assert_energy_does_not_grow(run, since=0.0)          # while walking it is driven
+
+
+def test_reset_check_names_a_teleport_and_its_time():
+    head = still((0.0, 0.0, 1.6))
+    samples = [PoseSample(k / 100.0, tuple(head(0)[0]), tuple(head(0)[1])) for k in range(50)]
+    jumped = samples + [PoseSample(k / 100.0, (3.0, 0.0, 1.6), (0.0, 0.0, 0.0, 1.0))
+                        for k in range(50, 100)]
+    assert_no_resets(run_offline(PARAMS, samples, 1.0))
+    run = run_offline(PARAMS, jumped, 1.0)
+    with pytest.raises(CheckFailed) as err:
+        assert_no_resets(run)
+    text = str(err.value)
+    assert text.startswith('1 reset(s) of the chain at rest, expected none: teleport at t = ')
+    t = _number(r'at t = ([0-9.]+) s', text)
+    assert 0.5 <= t <= 0.5 + 2.0 / 60.0                      # the first tick that saw the jump
+    assert_no_resets(run, reasons=['guard'])                 # not a guard reset
+
+
+# -- the ROS harness -------------------------------------------------------------------------
+
+@pytest.mark.ros
+def test_harness_is_driven_by_sim_time_and_publishes_what_the_offline_path_computes(ponytail):
+    pytest.importorskip('rclpy')
+    import time
+
+    def slow_walk(t):                      # a head source 20 ms slow per pose: wall time
+        time.sleep(0.02)                   # must not matter
+        return walk(t)
+    h = ponytail(PARAMS)
+    run = h.run(slow_walk, 1.0)
+    period = tick_period_ns(60.0)
+    # Every tick at a /clock time, one per period of sim time, as many as sim time gives.
+    assert run.n_ticks == n_ticks(1.0, 60.0) == 60 and h.ticks == 60
+    assert np.array_equal(np.round(run.t * 1e9), period * np.arange(1, 61))
+    got = run.poses['segment_poses']
+    assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == \
+        [period * k for k in range(1, 61)]
+    assert len(run.markers) == 30                                       # markers.rate 30 Hz
+    # Bit for bit what the node's logic gives offline, without ROS and without sleeping.
+    offline = run_offline(PARAMS, walk, 1.0)
+    assert np.array_equal(run.origins, offline.origins)
+    assert np.array_equal(run.orientations, offline.orientations)
+    assert all(a == b for a, b in zip(got, offline.poses['segment_poses']))
+    assert h.publish_diagnostics()['resets'] == '0'
+
+
+PARALLEL = '''
+import json, sys, time
+sys.path.insert(0, {examples!r})
+from walk_cycle import walk
+from ponytail_ros.testing import Harness, run_offline
+offset = float(sys.argv[1])
+
+def head(t):
+    p, q = walk(t)
+    return (p[0] + offset, p[1], p[2]), q
+start = time.time()
+with Harness({params!r}, discovery=sys.argv[2], domain_id=42) as h:
+    error = None
+    try:
+        run = h.run(head, 1.0)
+    except Exception as exc:          # HarnessError: a message this node did not publish
+        error = f'{{type(exc).__name__}}: {{exc}}'
+    if error is None:
+        offline = run_offline({params!r}, head, 1.0)
+        roots = [[m.poses[0].position.x, m.poses[0].position.y, m.poses[0].position.z]
+                 for m in run.poses['segment_poses']]
+        result = dict(n=len(roots), roots=roots, anchors=run.anchors[:, 0].tolist(),
+                      same_as_offline=bool((run.origins == offline.origins).all()),
+                      resets=[r.reason for r in run.resets])
+    else:
+        result = dict(error=error)
+result.update(start=start, end=time.time())
+print(json.dumps(result))
+'''
+
+
+def _parallel(tmp_path, discovery):
+    script = tmp_path / 'parallel.py'
+    script.write_text(PARALLEL.format(examples=str(ROOT / 'examples'), params=str(PARAMS)))
+    procs = [subprocess.Popen([sys.executable, str(script), off, discovery], env=_env(),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for off in ('0.0', '5.0')]
+    results = []
+    for p in procs:
+        out, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    a, b = results
+    assert a['start'] < b['end'] and b['start'] < a['end']        # they did overlap
+    return results
+
+
+@pytest.mark.ros
+def test_two_harnesses_in_parallel_on_one_domain_do_not_hear_each_other(tmp_path):
+    pytest.importorskip('rclpy')
+    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF')):
+        assert 'error' not in r, r['error']
+        assert r['n'] == 60 and r['resets'] == []
+        roots, anchors = np.array(r['roots']), np.array(r['anchors'])
+        # Every PoseArray received is this run's: its root on this run's own head ...
+        assert np.max(np.linalg.norm(roots - anchors, axis=1)) < 1e-12
+        assert np.all(np.abs(roots[:, 0] - offset - 1.2 * np.arange(1, 61) / 60.0) < 0.2)
+        # ... and the physics is untouched: the same as this head offline.
+        assert r['same_as_offline']
+
+
+@pytest.mark.ros
+def test_the_parallel_check_sees_interference_when_both_runs_share_a_localhost_graph(tmp_path):
+    """The control: the same two runs on one domain with discovery LOCALHOST hear each other's
+    /clock and outputs, and the harness says so (or the run's content shows it)."""
+    pytest.importorskip('rclpy')
+    disturbed = []
+    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'LOCALHOST')):
+        disturbed.append('error' in r or not r['same_as_offline'] or r['n'] != 60
+                         or r['resets'] != [])
+    assert any(disturbed)
+
+
+@pytest.mark.ros
+def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path):
+    """Head poses from a bag (``bag_samples``) drive the node exactly as the same poses given
+    as a list: the same ticks, the same chain."""
+    pytest.importorskip('rclpy')
+    from geometry_msgs.msg import PoseStamped
+    from ponytail_ros.recording.bag import BagWriter
+    from ponytail_ros.testing import bag_samples, sample_motion
+    from ponytail_ros.testing.harness import pose_msg
+    from ponytail_ros.testing.motion import stamp_ns
+    samples = sample_motion(walk, 0.5)
+    path = tmp_path / 'take.mcap'
+    with BagWriter(path) as bag:
+        bag.add_topic('/head_pose', PoseStamped)
+        for s in samples:
+            bag.write('/head_pose', pose_msg(s.t, s.position, s.orientation), stamp_ns(s.t))
+    read = bag_samples(path)
+    assert [stamp_ns(s.t) for s in read] == [stamp_ns(s.t) for s in samples]
+    run = ponytail(PARAMS).run(read, 0.5)
+    reference = run_offline(PARAMS, samples, 0.5)
+    assert run.n_ticks == 30
+    assert np.array_equal(run.origins, reference.origins)
+
+
+@pytest.mark.ros
+def test_extra_frames_are_fed_on_their_topics_as_offline(ponytail):
+    """A scene with a forearm frame (``config/ponytail_arm.yaml``) publishes nothing without the
+    forearm's poses, and with them the harness (on ``left_forearm_pose``) and the offline path
+    give the same chain; the forearm capsule, held clear, is never touched."""
+    pytest.importorskip('rclpy')
+    arm_params = ROOT / 'config' / 'ponytail_arm.yaml'
+    head = still((0.0, 0.0, 1.6))
+    forearm = still((0.3, 0.4, 1.2))
+    assert run_offline(arm_params, head, 0.2).n_ticks == 0
+    run = ponytail(arm_params).run(head, 0.3, frames={'left_forearm': forearm})
+    reference = run_offline(arm_params, head, 0.3, frames={'left_forearm': forearm})
+    assert run.n_ticks == reference.n_ticks == 36                     # 0.3 s at 120 Hz
+    assert np.array_equal(run.origins, reference.origins)
+    assert assert_no_penetration(run, max_depth=0.0, colliders=['left_forearm_capsule']) < -0.1
+    with pytest.raises(ValueError, match="no frame 'right_forearm'"):
+        run_offline(arm_params, head, 0.1, frames={'right_forearm': forearm})
