@@ -23,6 +23,14 @@ os.environ['ROS_DOMAIN_ID'] = str(TEST_DOMAIN_ID)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
+def pytest_configure(config):
+    """Compile the simulation step once, in the main process, before any xdist worker starts:
+    the workers then load it from numba's cache instead of each paying the cold compile."""
+    if not hasattr(config, 'workerinput'):
+        from ponytail_ros.core.step import report_compile
+        report_compile()
+
+
 @pytest.fixture
 def ros_context():
     """A fresh, initialised ``rclpy`` context on the test domain; shut down afterwards."""
