@@ -1,0 +1,980 @@
+"""Compiled contacts and joint limits (numba, nopython, ``cache=True``, no fastmath).
+
+One call of ``resolve`` does what ``collision.Unilateral.resolve`` documents (the method is
+in the ``collision`` module docstring): broad phase, detection, the position passes, the
+limits' exact projection, the joints' velocity projection, the inelastic impulses and
+Coulomb friction. Nothing in it calls NumPy's linear algebra, SciPy or LAPACK: the joint
+system J M⁻¹ Jᵀ is factorised by ``chain_solve`` (block-tridiagonal Cholesky, O(n)) and each
+touching chain's small complementarity problem is solved here (principal pivoting with an
+exact dense solve, Lawson–Hanson active set as the fall-back).
+
+Data. A row r (a contact normal or a limit) is one line of ``R`` ``(k, NCOL)`` (floats) and of
+``I`` ``(k, 3)`` (integers), columns named below; its Jacobian acts on segment ``seg``
+(linear ``lin``, angular ``ang``) and, for a limit, on the parent segment (``ang_par``;
+``par = -1``: the anchor body, which never moves). ``depth`` (m or rad, > 0 violated),
+``sep = J_r u`` (m/s or rad/s, < 0 closing), ``mu`` (Coulomb friction), ``arm`` (contact
+point minus the segment's centre, m) and ``v_other`` (the collider material's velocity at the
+point, m/s). All vectors are in the world frame, SI units.
+
+The model's constants come in as tuples (``model_tuple``/``detector_tuple`` in
+``collision``): see ``resolve``.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from .chain_solve import factor as _chain_factor
+from .chain_solve import solve as _chain_solve
+from .limit_kernels import (add, cross, dot, norm, project_limits, q4, qaxis_x, qfrom_rotvec,
+                            qmul, qnormalize, scale, sub, v3, limit_terms)
+
+POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
+POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
+POSITION_SKIN = 1e-3         # m: contacts this close (plus 4× the deepest violation) join the
+                             # position LCP as inequalities (a correction must not push a
+                             # neighbouring segment in)
+ANGLE_SKIN = 1e-3            # rad: the same for limits
+VELOCITY_SKIN = 1e-4         # m: a contact this close is touching for the velocity stage
+SPECULATIVE_STEPS = 2.0      # a gap closing within this many steps joins the velocity stage
+ROOT_LEVER = 0.5             # a rooted first segment is tested on s in [ROOT_LEVER, 1]
+MAX_ROTATION = 0.25          # rad: largest rotation of one segment per position pass
+MOBILITY = 1e-8              # a row the jointed chain moves less than this fraction of its
+                             # free segment's mobility (a contact at the anchor) is left out
+REG = 1e-9                   # relative regularisation of the (unit-diagonal) Delassus matrix
+PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
+
+# Columns of a row.
+LIN, ANG, APAR, ARM, VOTH, DEPTH, SEP, MU, NCOL = 0, 3, 6, 9, 12, 15, 16, 17, 18
+SEG, PAR, CONTACT = 0, 1, 2
+
+# Status of ``resolve``.
+OK, NOT_POSITIVE_DEFINITE = 0, 1
+
+
+# -- the chain's configuration: half-vectors, inverse inertias, the factorised J M⁻¹ Jᵀ ------
+@njit(cache=True)
+def factor_chain(q, model, h, inv_I, C, Lo):
+    """At orientations ``q``: half-vectors ``h`` (centre to distal joint, m), world inverse
+    inertias ``inv_I`` ``(n, 3, 3)`` and the block Cholesky factor (``C``, ``Lo``) of
+    A = J M⁻¹ Jᵀ, with ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}``,
+    ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``, ``G = [h]× I⁻¹ [h]×`` (``solver``). False if A is
+    not positive definite."""
+    (length, inv_mass, inv_inertia, inv_I_max, is_first, has_child, parent, chain_of,
+     chain_start, chain_end, axisymmetric, lim_idx, swing_limit, twist_limit) = model
+    n = q.shape[0]
+    G = np.empty((n, 3, 3))
+    for i in range(n):
+        half = 0.5 * length[i]
+        e = qaxis_x(q4(q, i))
+        hi = scale(half, e)
+        for a in range(3):
+            h[i, a] = hi[a]
+        if axisymmetric:
+            # I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ;  G = (h hᵀ - |h|² 1) / I_p.
+            e = (hi[0] / half, hi[1] / half, hi[2] / half)
+            k = inv_inertia[i, 0] - inv_inertia[i, 1]
+            hh = dot(hi, hi)
+            for a in range(3):
+                for b in range(3):
+                    inv_I[i, a, b] = k * e[a] * e[b]
+                    G[i, a, b] = hi[a] * hi[b]
+                inv_I[i, a, a] += inv_inertia[i, 1]
+                G[i, a, a] -= hh
+            for a in range(3):
+                for b in range(3):
+                    G[i, a, b] *= inv_inertia[i, 1]
+        else:
+            x, y, z, w = q4(q, i)
+            R = np.empty((3, 3))
+            R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+            R[0, 1] = 2.0 * (x * y - w * z)
+            R[0, 2] = 2.0 * (x * z + w * y)
+            R[1, 0] = 2.0 * (x * y + w * z)
+            R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+            R[1, 2] = 2.0 * (y * z - w * x)
+            R[2, 0] = 2.0 * (x * z - w * y)
+            R[2, 1] = 2.0 * (y * z + w * x)
+            R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for c in range(3):
+                        s += R[a, c] * inv_inertia[i, c] * R[b, c]
+                    inv_I[i, a, b] = s
+            # G = ([h]× I⁻¹) [h]×, with [h]× u = h × u column by column, then
+            # (M [h]×)[a, b] = Σ_c M[a, c] [h]×[c, b].
+            SI = np.empty((3, 3))
+            for b in range(3):
+                col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
+                for a in range(3):
+                    SI[a, b] = col[a]
+            for a in range(3):
+                G[i, a, 0] = SI[a, 1] * hi[2] - SI[a, 2] * hi[1]
+                G[i, a, 1] = SI[a, 2] * hi[0] - SI[a, 0] * hi[2]
+                G[i, a, 2] = SI[a, 0] * hi[1] - SI[a, 1] * hi[0]
+    D = np.empty((n, 3, 3))
+    L = np.zeros((n, 3, 3))
+    for i in range(n):
+        for a in range(3):
+            for b in range(3):
+                k_pp = (inv_mass[i] if a == b else 0.0) - G[i, a, b]
+                D[i, a, b] = k_pp
+                if not is_first[i]:
+                    D[i, a, b] += (inv_mass[i - 1] if a == b else 0.0) - G[i - 1, a, b]
+                    L[i, a, b] = -((inv_mass[i - 1] if a == b else 0.0) + G[i - 1, a, b])
+    return _chain_factor(D, L, is_first, C, Lo)
+
+
+@njit(cache=True)
+def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
+    """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
+    parents) to ``dv``, ``dw`` over segments ``s:e`` of one chain:
+    Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
+    inv_mass, has_child = model[1], model[5]
+    for i in range(s, e):
+        ln = v3(lam, i - s + 1) if has_child[i] else (0.0, 0.0, 0.0)
+        li = v3(lam, i - s)
+        tq = cross(add(li, ln), v3(h, i))
+        for a in range(3):
+            dv[i, a] += (li[a] - ln[a]) * inv_mass[i]
+            dw[i, a] += inv_I[i, a, 0] * tq[0] + inv_I[i, a, 1] * tq[1] + inv_I[i, a, 2] * tq[2]
+
+
+@njit(cache=True)
+def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
+    """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
+    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's)."""
+    is_first, chain_of = model[4], model[7]
+    n = v.shape[0]
+    c_dot = np.empty((n, 3))
+    for i in range(n):
+        child = sub(v3(v, i), cross(v3(w, i), v3(h, i)))
+        if is_first[i]:
+            par = v3(anchor_velocity, chain_of[i])
+        else:
+            par = add(v3(v, i - 1), cross(v3(w, i - 1), v3(h, i - 1)))
+        d = sub(par, child)
+        for a in range(3):
+            c_dot[i, a] = d[a]
+    _chain_solve(C, Lo, is_first, c_dot)
+    dv = np.zeros((n, 3))
+    dw = np.zeros((n, 3))
+    apply_joint_impulses(c_dot, h, inv_I, model, 0, n, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+
+
+@njit(cache=True)
+def project_positions(anchor_position, h, model, x):
+    """Centres that close every joint exactly: x_i = p_anchor + Σ_{j<i} 2 h_j + h_i."""
+    chain_start, chain_end = model[8], model[9]
+    for c in range(chain_start.shape[0]):
+        p = v3(anchor_position, c)
+        for i in range(chain_start[c], chain_end[c]):
+            hi = v3(h, i)
+            xi = add(p, hi)
+            for a in range(3):
+                x[i, a] = xi[a]
+            p = add(p, scale(2.0, hi))
+
+
+@njit(cache=True)
+def project_velocities(anchor_velocity, w, h, model, v):
+    """Centre velocities of the rigid chain: v_i = v_anchor + Σ_{j<i} 2 ω_j × h_j + ω_i × h_i."""
+    chain_start, chain_end = model[8], model[9]
+    for c in range(chain_start.shape[0]):
+        p = v3(anchor_velocity, c)
+        for i in range(chain_start[c], chain_end[c]):
+            wh = cross(v3(w, i), v3(h, i))
+            vi = add(p, wh)
+            for a in range(3):
+                v[i, a] = vi[a]
+            p = add(p, scale(2.0, wh))
+
+
+@njit(cache=True)
+def half_vectors(length, q, h):
+    for i in range(q.shape[0]):
+        hi = scale(0.5 * length[i], qaxis_x(q4(q, i)))
+        for a in range(3):
+            h[i, a] = hi[a]
+
+
+# -- detection ---------------------------------------------------------------------------------
+@njit(cache=True, inline='always')
+def clip01(s):
+    return 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
+
+
+@njit(cache=True, inline='always')
+def rooted(anchor, a0, d2, sum_radius, length):
+    """Is a first segment's anchor inside, or within a quarter segment of, a round collider?"""
+    e2 = max(dot(d2, d2), 1e-300)
+    rel = sub(anchor, a0)
+    ta = clip01(dot(rel, d2) / e2)
+    return sum_radius - norm(sub(rel, scale(ta, d2))) > -0.25 * length
+
+
+@njit(cache=True)
+def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
+    """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
+    closest-point parameters ``s`` (on the segment, proximal 0 to distal 1) and ``t`` (on a
+    capsule's core), and ``own`` (the pair may make a row), all ``(m, K)``.
+
+    Spheres: clamped point–segment closest point; capsules: clamped segment–segment closest
+    points (Ericson 5.1.9); planes: the distal end (``report``: the deeper end). A non-first
+    segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
+    first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
+    """
+    a0, d2, normal = pose[0], pose[1], pose[2]
+    (seg, seg_radius, seg_length, inner, first_of, first_chain, root_fixed, rooted_fixed,
+     sum_radius, det_chains, chain_reach, max_half_length, n_sphere, n_round, col_radius,
+     friction) = det
+    K = a0.shape[0]
+    for m in range(seg.shape[0]):
+        g = seg[m]
+        hg = v3(h, g)
+        p0 = sub(v3(x, g), hg)
+        d1 = scale(2.0, hg)
+        f = first_of[m]
+        for j in range(K):
+            if j >= n_round:
+                nn = v3(normal, j)
+                off = dot(v3(a0, j), nn)
+                s1 = dot(add(p0, d1), nn) - off
+                if report:
+                    s1 = min(s1, dot(p0, nn) - off)
+                depth[m, j] = seg_radius[m] - s1
+                s_out[m, j] = 1.0
+                t_out[m, j] = 0.0
+                own[m, j] = True
+                continue
+            aj, dj = v3(a0, j), v3(d2, j)
+            if j < n_sphere:
+                s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
+                t = 0.0
+            else:
+                r = sub(p0, aj)
+                a = dot(d1, d1)
+                e = dot(dj, dj)
+                b = dot(d1, dj)
+                c = dot(d1, r)
+                ff = dot(dj, r)
+                denom = a * e - b * b
+                s = clip01((b * ff - c * e) / denom) if denom > 1e-12 * a * e else 0.0
+                t = (b * s + ff) / e
+                if t < 0.0:
+                    s = clip01(-c / a)
+                elif t > 1.0:
+                    s = clip01((b - c) / a)
+                t = clip01(t)
+            if f >= 0:
+                if root_fixed[f, j]:
+                    is_rooted = rooted_fixed[f, j]
+                else:
+                    is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
+                                       sum_radius[m, j], seg_length[m])
+                if is_rooted:
+                    e2 = max(dot(dj, dj), 1e-300)
+                    s = max(s, ROOT_LEVER)
+                    t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
+            diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
+            depth[m, j] = sum_radius[m, j] - norm(diff)
+            s_out[m, j] = s
+            t_out[m, j] = t
+            own[m, j] = not (inner[m] and s <= 0.0)
+
+
+@njit(cache=True)
+def near(anchor_position, pose, v, w, det, dt):
+    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
+    its length (plus radius) about its anchor; its surface moves at most at its fastest
+    centre's speed plus its fastest spin times the longest half segment."""
+    a0, d2, normal, speed_col = pose[0], pose[1], pose[2], pose[6]
+    det_chains, chain_reach, max_half_length, n_round, col_radius = (
+        det[9], det[10], det[11], det[13], det[14])
+    v2 = 0.0
+    w2 = 0.0
+    for i in range(v.shape[0]):
+        v2 = max(v2, dot(v3(v, i), v3(v, i)))
+        w2 = max(w2, dot(v3(w, i), v3(w, i)))
+    speed = math.sqrt(v2) + math.sqrt(w2) * max_half_length + np.max(speed_col)
+    for c in range(det_chains.shape[0]):
+        p = v3(anchor_position, det_chains[c])
+        reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
+        for j in range(a0.shape[0]):
+            aj = v3(a0, j)
+            if j < n_round:
+                dj = v3(d2, j)
+                rel = sub(p, aj)
+                e2 = max(dot(dj, dj), 1e-300)
+                t = clip01(dot(rel, dj) / e2)
+                dist = norm(sub(rel, scale(t, dj))) - col_radius[j]
+            else:
+                nn = v3(normal, j)
+                dist = dot(p, nn) - dot(aj, nn)
+            if dist < reach:
+                return True
+    return False
+
+
+# -- rows ----------------------------------------------------------------------------------------
+@njit(cache=True)
+def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
+    """Contact and limit rows within reach of this step's stages: ``(R, I)``.
+
+    A pair is a candidate if it is inside, within the position skin, or could close within
+    ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds. A limit is a candidate
+    if violated, within ``ANGLE_SKIN`` plus 4× the deepest violation, or closing within
+    ``SPECULATIVE_STEPS`` steps. Contacts first (segment-major), then swing, then twist rows.
+    """
+    (length, inv_mass, inv_inertia, inv_I_max, is_first, has_child, parent, chain_of,
+     chain_start, chain_end, axisymmetric, lim_idx, swing_limit, twist_limit) = model
+    a_pos, a_vel, a_q, a_om = anchor
+    n = x.shape[0]
+    nl = lim_idx.shape[0]
+    seg = det[0]
+    m = seg.shape[0] if has_colliders else 0
+    K = pose[0].shape[0] if has_colliders else 0
+    R = np.zeros((m * K + 2 * nl, NCOL))
+    I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
+    k = 0
+    if has_colliders and near(a_pos, pose, v, w, det, dt):
+        seg_length, friction = det[2], det[15]
+        a0, d2, normal, origin, col_vel, col_om, col_speed = pose
+        h = np.empty((n, 3))
+        half_vectors(length, q, h)
+        depth = np.empty((m, K))
+        s = np.empty((m, K))
+        t = np.empty((m, K))
+        own = np.empty((m, K), dtype=np.bool_)
+        detect(x, h, a_pos, pose, det, False, depth, s, t, own)
+        worst = 0.0
+        for i in range(m):
+            for j in range(K):
+                worst = max(worst, depth[i, j])
+        skin = max(POSITION_SKIN + 4.0 * worst, VELOCITY_SKIN)
+        for i in range(m):
+            g = seg[i]
+            speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
+            for j in range(K):
+                reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
+                if not (own[i, j] and depth[i, j] > -reach):
+                    continue
+                # The normal (from the collider to the segment) and the touching point.
+                ps = add(v3(x, g), scale(2.0 * s[i, j] - 1.0, v3(h, g)))
+                if j >= det[13]:
+                    nrm = v3(normal, j)
+                else:
+                    diff = sub(ps, add(v3(a0, j), scale(t[i, j], v3(d2, j))))
+                    dist = norm(diff)
+                    if dist > 1e-12:
+                        nrm = (diff[0] / dist, diff[1] / dist, diff[2] / dist)
+                    else:
+                        # On the core: any direction perpendicular to the segment.
+                        hg = v3(h, g)
+                        ref = (1.0, 0.0, 0.0) if abs(hg[0]) < 0.9 else (0.0, 1.0, 0.0)
+                        p = cross(hg, ref)
+                        npn = norm(p)
+                        nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
+                point = sub(ps, scale(det[1][i], nrm))
+                arm = sub(point, v3(x, g))
+                v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
+                rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
+                ang = cross(arm, nrm)
+                for a in range(3):
+                    R[k, LIN + a] = nrm[a]
+                    R[k, ANG + a] = ang[a]
+                    R[k, ARM + a] = arm[a]
+                    R[k, VOTH + a] = v_col[a]
+                R[k, DEPTH] = depth[i, j]
+                R[k, SEP] = dot(nrm, rel)
+                R[k, MU] = friction[j]
+                I[k, SEG] = g
+                I[k, PAR] = -1
+                I[k, CONTACT] = 1
+                k += 1
+    if nl:
+        axis = np.empty((2 * nl, 3))
+        gap = np.empty(2 * nl)
+        sep = np.empty(2 * nl)
+        limit_terms(q, w, a_q, a_om, q_rest, is_first, chain_of, lim_idx, swing_limit,
+                    twist_limit, axis, gap, sep)
+        # As for contacts: the skin grows with the deepest violation, so that a correction
+        # does not push a neighbouring joint past its limit unseen.
+        lowest = gap[0]
+        for r in range(2 * nl):
+            lowest = min(lowest, gap[r])
+        skin = ANGLE_SKIN + 4.0 * max(-lowest, 0.0)
+        for r in range(2 * nl):
+            limit = swing_limit[lim_idx[r]] if r < nl else twist_limit[lim_idx[r - nl]]
+            if not np.isfinite(limit):
+                continue
+            if not (gap[r] < skin or (sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r])):
+                continue
+            joint = lim_idx[r % nl]
+            for a in range(3):
+                R[k, ANG + a] = -axis[r, a]
+                R[k, APAR + a] = axis[r, a]
+            R[k, DEPTH] = -gap[r]
+            R[k, SEP] = sep[r]
+            I[k, SEG] = joint
+            I[k, PAR] = parent[joint]
+            I[k, CONTACT] = 0
+            k += 1
+    return R[:k].copy(), I[:k].copy()
+
+
+@njit(cache=True)
+def take(R, I, keep):
+    """The rows where ``keep``."""
+    k = 0
+    for r in range(keep.shape[0]):
+        k += keep[r]
+    R2 = np.empty((k, NCOL))
+    I2 = np.empty((k, 3), dtype=np.int64)
+    k = 0
+    for r in range(keep.shape[0]):
+        if keep[r]:
+            R2[k] = R[r]
+            I2[k] = I[r]
+            k += 1
+    return R2, I2
+
+
+@njit(cache=True)
+def moved_rows(R, I, dx, dth):
+    """The rows after a small displacement (centres ``dx``, rotations ``dth``), to first order,
+    in place: depths change by -J_r·(dx, dth); lever arms turn with their segments (a contact's
+    angular Jacobian is then arm × normal again)."""
+    for r in range(R.shape[0]):
+        g, p = I[r, SEG], I[r, PAR]
+        rate = (dot((R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]), v3(dx, g))
+                + dot((R[r, ANG], R[r, ANG + 1], R[r, ANG + 2]), v3(dth, g)))
+        if p >= 0:
+            rate += dot((R[r, APAR], R[r, APAR + 1], R[r, APAR + 2]), v3(dth, p))
+        arm = (R[r, ARM], R[r, ARM + 1], R[r, ARM + 2])
+        arm = add(arm, cross(v3(dth, g), arm))
+        R[r, DEPTH] -= rate
+        for a in range(3):
+            R[r, ARM + a] = arm[a]
+        if I[r, CONTACT]:
+            ang = cross(arm, (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]))
+            for a in range(3):
+                R[r, ANG + a] = ang[a]
+
+
+@njit(cache=True)
+def refresh_sep(R, I, v, w, anchor_omega, chain_of):
+    """The rows' separation rates for new velocities (geometry unchanged), in place."""
+    for r in range(R.shape[0]):
+        g, p = I[r, SEG], I[r, PAR]
+        w_par = v3(w, p) if p >= 0 else v3(anchor_omega, chain_of[g])
+        R[r, SEP] = (dot((R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]),
+                         sub(v3(v, g), (R[r, VOTH], R[r, VOTH + 1], R[r, VOTH + 2])))
+                     + dot((R[r, ANG], R[r, ANG + 1], R[r, ANG + 2]), v3(w, g))
+                     + dot((R[r, APAR], R[r, APAR + 1], R[r, APAR + 2]), w_par))
+
+
+# -- small dense problems ------------------------------------------------------------------------
+@njit(cache=True)
+def lu_solve(A, b):
+    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept."""
+    n = b.shape[0]
+    M = A.copy()
+    x = b.copy()
+    for c in range(n):
+        p = c
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > abs(M[p, c]):
+                p = r
+        if p != c:
+            for j in range(n):
+                M[c, j], M[p, j] = M[p, j], M[c, j]
+            x[c], x[p] = x[p], x[c]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            M[r, c] = f
+            for j in range(c + 1, n):
+                M[r, j] -= f * M[c, j]
+            x[r] -= f * x[c]
+    for c in range(n - 1, -1, -1):
+        s = x[c]
+        for j in range(c + 1, n):
+            s -= M[c, j] * x[j]
+        x[c] = s / M[c, c]
+    return x
+
+
+@njit(cache=True)
+def solve_active(Ws, bs, active, lam):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+    k = bs.shape[0]
+    idx = np.empty(k, dtype=np.int64)
+    na = 0
+    for i in range(k):
+        lam[i] = 0.0
+        if active[i]:
+            idx[na] = i
+            na += 1
+    if na == 0:
+        return
+    A = np.empty((na, na))
+    rhs = np.empty(na)
+    for a in range(na):
+        rhs[a] = -bs[idx[a]]
+        for b in range(na):
+            A[a, b] = Ws[idx[a], idx[b]]
+    sol = lu_solve(A, rhs)
+    for a in range(na):
+        lam[idx[a]] = sol[a]
+
+
+@njit(cache=True)
+def nnls_quadratic(Ws, bs):
+    """min ½ λᵀ W λ + bᵀ λ over λ ≥ 0 (W symmetric positive definite): Lawson–Hanson active
+    set, with the gradient -(Wλ + b) as the dual."""
+    k = bs.shape[0]
+    lam = np.zeros(k)
+    z = np.zeros(k)
+    passive = np.zeros(k, dtype=np.bool_)
+    for _ in range(3 * k + 3):
+        # The most violated dual among the bound variables enters.
+        best, j = 1e-12, -1
+        for i in range(k):
+            if not passive[i]:
+                g = -bs[i]
+                for c in range(k):
+                    g -= Ws[i, c] * lam[c]
+                if g > best:
+                    best, j = g, i
+        if j < 0:
+            break
+        passive[j] = True
+        for _inner in range(3 * k + 3):
+            solve_active(Ws, bs, passive, z)
+            feasible = True
+            for i in range(k):
+                if passive[i] and z[i] <= 0.0:
+                    feasible = False
+            if feasible:
+                for i in range(k):
+                    lam[i] = z[i]
+                break
+            alpha = 1.0
+            for i in range(k):
+                if passive[i] and z[i] <= 0.0:
+                    alpha = min(alpha, lam[i] / (lam[i] - z[i]))
+            for i in range(k):
+                lam[i] += alpha * (z[i] - lam[i])
+                if passive[i] and lam[i] <= 1e-15:
+                    passive[i] = False
+                    lam[i] = 0.0
+    return lam
+
+
+@njit(cache=True)
+def lcp(W, b):
+    """λ ≥ 0 with Wλ + b ≥ 0 and λ·(Wλ + b) = 0, W symmetric positive semi-definite.
+
+    Principal pivoting on the unit-diagonal scaled, ``REG``-regularised W: the rows with
+    b < 0 start active; the active block is solved exactly and every row violating a sign
+    condition moves to the other side (block pivoting; after 4 rounds one row at a time, the
+    lowest index: Murty's rule, which terminates for positive definite W). Falls back to
+    Lawson–Hanson (``nnls_quadratic``) if it ever stalls."""
+    k = b.shape[0]
+    lam = np.zeros(k)
+    any_neg = False
+    for i in range(k):
+        any_neg = any_neg or b[i] < 0.0
+    if not any_neg:
+        return lam
+    if k == 1:
+        lam[0] = max(-b[0] / W[0, 0], 0.0)
+        return lam
+    d = np.empty(k)
+    for i in range(k):
+        d[i] = 1.0 / math.sqrt(W[i, i])
+    Ws = np.empty((k, k))
+    bs = np.empty(k)
+    active = np.empty(k, dtype=np.bool_)
+    for i in range(k):
+        for j in range(k):
+            Ws[i, j] = W[i, j] * d[i] * d[j]
+        Ws[i, i] += REG
+        bs[i] = b[i] * d[i]
+        active[i] = bs[i] < 0.0
+    for it in range(4 * k + 8):
+        solve_active(Ws, bs, active, lam)
+        first_bad = -1
+        bad = np.zeros(k, dtype=np.bool_)
+        for i in range(k):
+            slack = 0.0
+            for j in range(k):
+                slack += Ws[i, j] * lam[j]
+            slack += bs[i]
+            bad[i] = (active[i] and lam[i] < -PIVOT_TOL) or (not active[i] and slack < -PIVOT_TOL)
+            if bad[i] and first_bad < 0:
+                first_bad = i
+        if first_bad < 0:
+            for i in range(k):
+                lam[i] = max(lam[i], 0.0) * d[i]
+            return lam
+        if it < 4:
+            for i in range(k):
+                if bad[i]:
+                    active[i] = not active[i]
+        else:
+            active[first_bad] = not active[first_bad]
+    lam = nnls_quadratic(Ws, bs)
+    for i in range(k):
+        lam[i] *= d[i]
+    return lam
+
+
+@njit(cache=True)
+def friction_step(W, slip, bound):
+    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
+    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
+    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+    k = slip.shape[0]
+    tr = 0.0
+    for i in range(k):
+        tr += W[i, i]
+    A = W.copy()
+    for i in range(k):
+        A[i, i] += REG * tr / k
+    lam = lu_solve(A, slip)
+    work = 0.0
+    for i in range(k):
+        lam[i] = min(max(lam[i], 0.0), bound[i])
+        work += lam[i] * slip[i]
+    quad = 0.0
+    for i in range(k):
+        s = 0.0
+        for j in range(k):
+            s += lam[j] * W[j, i]
+        quad += s * lam[i]
+    if work <= 0.0 or quad <= 0.0:
+        return np.zeros(k)
+    alpha = min(1.0, work / quad)
+    for i in range(k):
+        lam[i] *= alpha
+    return lam
+
+
+# -- the rows' impulses and the chain's response ------------------------------------------------
+@njit(cache=True)
+def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
+    """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
+    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ."""
+    inv_mass, is_first = model[1], model[4]
+    nc = e - s
+    g, p = I[r, SEG], I[r, PAR]
+    for i in range(nc):
+        for a in range(3):
+            dv[i, a] = 0.0
+            dw[i, a] = 0.0
+    lin = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
+    ang = (R[r, ANG], R[r, ANG + 1], R[r, ANG + 2])
+    for a in range(3):
+        dv[g - s, a] = lin[a] * inv_mass[g]
+        dw[g - s, a] = inv_I[g, a, 0] * ang[0] + inv_I[g, a, 1] * ang[1] + inv_I[g, a, 2] * ang[2]
+    if p >= 0:
+        ap = (R[r, APAR], R[r, APAR + 1], R[r, APAR + 2])
+        for a in range(3):
+            dw[p - s, a] = inv_I[p, a, 0] * ap[0] + inv_I[p, a, 1] * ap[1] + inv_I[p, a, 2] * ap[2]
+    # Joint velocity error: parent's distal point minus child's proximal point.
+    c_dot = np.empty((nc, 3))
+    for i in range(nc):
+        hi = v3(h, s + i)
+        d = add(cross(v3(dw, i), hi), scale(-1.0, v3(dv, i)))
+        if i > 0:
+            d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
+        for a in range(3):
+            c_dot[i, a] = d[a]
+    _chain_solve(C[s:e], Lo[s:e], is_first[s:e], c_dot)
+    # Add the joints' impulses (dv, dw are local to the chain: offset by s).
+    has_child = model[5]
+    for i in range(nc):
+        ln = v3(c_dot, i + 1) if has_child[s + i] else (0.0, 0.0, 0.0)
+        li = v3(c_dot, i)
+        tq = cross(add(li, ln), v3(h, s + i))
+        for a in range(3):
+            dv[i, a] += (li[a] - ln[a]) * inv_mass[s + i]
+            dw[i, a] += (inv_I[s + i, a, 0] * tq[0] + inv_I[s + i, a, 1] * tq[1]
+                         + inv_I[s + i, a, 2] * tq[2])
+
+
+@njit(cache=True)
+def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out):
+    """Impulses λ ``(k,)`` of the rows and the velocity change they cause, added to
+    ``dv_out``, ``dw_out``: the exact LCP Wλ + b ≥ 0, λ ≥ 0, λ·(Wλ + b) = 0, or with
+    ``friction`` the energy-safe friction step bounded by ``bound``.
+
+    Rows couple only within a chain: per chain, W = J_r P M⁻¹ J_rᵀ from one response per row;
+    a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
+    mobility (a contact at the anchor) takes no impulse.
+    """
+    inv_mass, inv_I_max, chain_of, chain_start, chain_end = (model[1], model[3], model[7],
+                                                             model[8], model[9])
+    k = R.shape[0]
+    lam = np.zeros(k)
+    done = np.zeros(k, dtype=np.bool_)
+    members = np.empty(k, dtype=np.int64)
+    for r0 in range(k):
+        if done[r0]:
+            continue
+        c = chain_of[I[r0, SEG]]
+        kg = 0
+        for r in range(r0, k):
+            if not done[r] and chain_of[I[r, SEG]] == c:
+                members[kg] = r
+                kg += 1
+                done[r] = True
+        s, e = chain_start[c], chain_end[c]
+        nc = e - s
+        rv = np.empty((kg, nc, 3))
+        rw = np.empty((kg, nc, 3))
+        for a in range(kg):
+            row_response(R, I, members[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a])
+        W = np.empty((kg, kg))
+        mobile = np.empty(kg, dtype=np.bool_)
+        for a in range(kg):
+            r = members[a]
+            g, p = I[r, SEG], I[r, PAR]
+            lin = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
+            ang = (R[r, ANG], R[r, ANG + 1], R[r, ANG + 2])
+            ap = (R[r, APAR], R[r, APAR + 1], R[r, APAR + 2])
+            for bb in range(kg):
+                W[a, bb] = dot(lin, v3(rv[bb], g - s)) + dot(ang, v3(rw[bb], g - s))
+                if p >= 0:
+                    W[a, bb] += dot(ap, v3(rw[bb], p - s))
+            free = dot(lin, lin) * inv_mass[g] + dot(ang, ang) * inv_I_max[g]
+            if p >= 0:
+                free += dot(ap, ap) * inv_I_max[p]
+            mobile[a] = W[a, a] > MOBILITY * free
+        nm = 0
+        for a in range(kg):
+            nm += mobile[a]
+        if nm == 0:
+            continue
+        sel = np.empty(nm, dtype=np.int64)
+        nm = 0
+        for a in range(kg):
+            if mobile[a]:
+                sel[nm] = a
+                nm += 1
+        Wc = np.empty((nm, nm))
+        bc = np.empty(nm)
+        bnd = np.empty(nm)
+        for a in range(nm):
+            bc[a] = b[members[sel[a]]]
+            bnd[a] = bound[members[sel[a]]]
+            for bb in range(nm):
+                Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
+        lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
+        for a in range(nm):
+            ga = sel[a]
+            lam[members[ga]] = lc[a]
+            for i in range(nc):
+                for d in range(3):
+                    dv_out[s + i, d] += lc[a] * rv[ga, i, d]
+                    dw_out[s + i, d] += lc[a] * rw[ga, i, d]
+    return lam
+
+
+@njit(cache=True)
+def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
+    """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
+    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place."""
+    n = v.shape[0]
+    dv = np.zeros((n, 3))
+    dw = np.zeros((n, 3))
+    lam = solve_rows(R, I, b, b, False, h, inv_I, C, Lo, model, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+    k = R.shape[0]
+    # Friction rows: minus the sliding direction at each pushing contact that slides.
+    Rf = np.zeros((k, NCOL))
+    If = np.zeros((k, 3), dtype=np.int64)
+    speed = np.empty(k)
+    bound = np.empty(k)
+    kf = 0
+    for r in range(k):
+        if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
+            continue
+        g = I[r, SEG]
+        arm = (R[r, ARM], R[r, ARM + 1], R[r, ARM + 2])
+        nrm = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
+        v_rel = sub(add(v3(v, g), cross(v3(w, g), arm)), (R[r, VOTH], R[r, VOTH + 1], R[r, VOTH + 2]))
+        slip = sub(v_rel, scale(dot(v_rel, nrm), nrm))
+        sp = norm(slip)
+        if not sp > 1e-9:
+            continue
+        t = (slip[0] / sp, slip[1] / sp, slip[2] / sp)
+        ang = cross(arm, t)
+        for a in range(3):
+            Rf[kf, LIN + a] = -t[a]
+            Rf[kf, ANG + a] = -ang[a]
+        If[kf, SEG] = g
+        If[kf, PAR] = -1
+        If[kf, CONTACT] = 1
+        speed[kf] = sp
+        bound[kf] = R[r, MU] * lam[r]
+        kf += 1
+    if kf == 0:
+        return
+    dv[:] = 0.0
+    dw[:] = 0.0
+    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], True, h, inv_I, C, Lo, model, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+
+
+# -- the pass after a step ------------------------------------------------------------------------
+@njit(cache=True)
+def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt, stats):
+    """Contacts and limits at the end of a step of length ``dt`` (s): positions, then
+    velocities (inelastic impulses, then friction). Returns ``(status, x, q, v, w)`` (new
+    arrays; the inputs are not changed); ``stats`` ``(3,)`` receives the contacts and limits
+    of the velocity stage and the position passes taken.
+
+    ``anchor``: ``(position, velocity, orientation, angular_velocity)`` of every chain's
+    attachment (C rows); ``pose``: ``(a0, d2, normal, origin, velocity, omega, speed)`` of the
+    colliders (``collision.ColliderPose``); ``model`` and ``det``: the constant tuples built by
+    ``collision.Unilateral``; ``q_rest``: the joints' rest rotations (``Model.q_rest``).
+    """
+    length = model[0]
+    n = x.shape[0]
+    x0, q0 = x, q
+    x = x.copy()
+    q = q.copy()
+    v = v.copy()
+    w = w.copy()
+    a_pos, a_vel, a_q, a_om = anchor
+    stats[0] = 0
+    stats[1] = 0
+    stats[2] = 0
+    h = np.empty((n, 3))
+    inv_I = np.empty((n, 3, 3))
+    C = np.empty((n, 3, 3))
+    Lo = np.empty((n, 3, 3))
+    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    moved = False
+    for passes in range(POSITION_ITERATIONS):
+        k = R.shape[0]
+        if k == 0:
+            break
+        worst = 0.0
+        for r in range(k):
+            if I[r, CONTACT] or passes == 0:
+                worst = max(worst, R[r, DEPTH])
+        if worst <= POSITION_TOLERANCE:
+            break
+        active = np.empty(k, dtype=np.bool_)
+        for r in range(k):
+            skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
+            active[r] = R[r, DEPTH] > -skin - 4.0 * worst
+        Rs, Is = take(R, I, active)
+        if not factor_chain(q, model, h, inv_I, C, Lo):
+            return NOT_POSITIVE_DEFINITE, x, q, v, w
+        b = np.empty(Rs.shape[0])
+        for r in range(Rs.shape[0]):
+            b[r] = -Rs[r, DEPTH]
+        dx = np.zeros((n, 3))
+        dth = np.zeros((n, 3))
+        solve_rows(Rs, Is, b, b, False, h, inv_I, C, Lo, model, dx, dth)
+        unclamped = True
+        small = 0.0
+        for i in range(n):
+            th = v3(dth, i)
+            ang2 = dot(th, th)
+            clamp = min(1.0, MAX_ROTATION / math.sqrt(max(ang2, 1e-300)))
+            unclamped = unclamped and clamp == 1.0
+            small = max(small, ang2 * length[i])
+            th = scale(clamp, th)
+            for a in range(3):
+                dth[i, a] = th[a]
+            qi = qnormalize(qmul(qfrom_rotvec(th), q4(q, i)))
+            for a in range(4):
+                q[i, a] = qi[a]
+        stats[2] = passes + 1
+        moved = True
+        x_old = x.copy()
+        half_vectors(length, q, h)
+        project_positions(a_pos, h, model, x)
+        if unclamped and small < 0.1 * POSITION_TOLERANCE:
+            # Small enough for the linearisation to hold to a tenth of the tolerance (error
+            # ~ l θ²): the predicted depths stand, no second detection.
+            moved_rows(R, I, x - x_old, dth)
+            break
+        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    stale = False          # rows computed before the last change of pose
+    lim_idx = model[11]
+    if lim_idx.shape[0]:
+        q_lim = np.empty((n, 4))
+        if project_limits(q, a_q, q_rest, model[4], model[7], model[8], model[9], lim_idx,
+                          model[12], model[13], POSITION_TOLERANCE, q_lim):
+            q = q_lim
+            moved = True
+            stale = True
+            half_vectors(length, q, h)
+            project_positions(a_pos, h, model, x)
+    have_factor = False
+    if moved:
+        if not project:
+            # Without projection the centres move by the rotations about the joints only.
+            h0 = np.empty((n, 3))
+            half_vectors(length, q0, h0)
+            p0 = np.empty((n, 3))
+            project_positions(a_pos, h0, model, p0)
+            p1 = np.empty((n, 3))
+            half_vectors(length, q, h)
+            project_positions(a_pos, h, model, p1)
+            x = x0 + (p1 - p0)
+        # The unchanged velocities no longer fit the moved joints: their M-orthogonal
+        # projection onto the joint constraints does (it never adds kinetic energy).
+        if not factor_chain(q, model, h, inv_I, C, Lo):
+            return NOT_POSITIVE_DEFINITE, x, q, v, w
+        have_factor = True
+        joint_projection(v, w, a_vel, h, inv_I, C, Lo, model)
+        if stale:
+            R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+        else:
+            refresh_sep(R, I, v, w, a_om, model[7])
+    k = R.shape[0]
+    if k:
+        # Velocities: rows touching, or whose gap would close within SPECULATIVE_STEPS steps.
+        keep = np.empty(k, dtype=np.bool_)
+        for r in range(k):
+            gap = -R[r, DEPTH]
+            sep = R[r, SEP]
+            skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
+            keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
+        Rv, Iv = take(R, I, keep)
+        kv = Rv.shape[0]
+        b = np.empty(kv)
+        closing = False
+        for r in range(kv):
+            stats[0 if Iv[r, CONTACT] else 1] += 1
+            b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
+            closing = closing or b[r] < 0.0
+        if closing:
+            if not have_factor:
+                if not factor_chain(q, model, h, inv_I, C, Lo):
+                    return NOT_POSITIVE_DEFINITE, x, q, v, w
+            velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
+            if project:
+                project_velocities(a_vel, w, h, model, v)
+    if moved and project:
+        half_vectors(length, q, h)
+        project_velocities(a_vel, w, h, model, v)
+    return OK, x, q, v, w
