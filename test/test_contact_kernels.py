@@ -230,3 +230,28 @@ def test_small_lcp_is_exact_and_matches_the_oracle(k, seed):
     d = 1.0 / np.sqrt(np.diag(W))
     Ws = W * d[:, None] * d[None, :] + K.REG * np.eye(k)
     assert np.max(np.abs(K.nnls_quadratic(Ws, b * d) * d - lam)) < 1e-9 * (1 + np.abs(lam).max())
+
+
+def test_collider_pose_matches_the_oracle():
+    """Colliders on two moving bodies and in the world: the compiled pose (world geometry,
+    body motion, the speed bound) equals the NumPy one."""
+    from ponytail_ros.core.head import AnchorKinematics
+    scene = Scene(chains=(ChainSpec(n_segments=3),), n_kinematic_bodies=2, colliders=(
+        ColliderSpec.sphere(center=(0.01, 0.02, 0.03), radius=0.1, body=0),
+        ColliderSpec.capsule(center=(0.1, 0, 0), axis=(0, 1, 0.3), half_length=0.2,
+                             radius=0.03, body=1),
+        ColliderSpec.capsule(center=(0, 0, 1.3), axis=(1, 0, 0), half_length=0.1,
+                             radius=0.05, body=None),
+        ColliderSpec.plane(point=(0, 0, 0.2), normal=(0.1, 0, 1), body=1),
+        ColliderSpec.plane(point=(0, 0, 0), normal=(0, 0, 1), body=None)))
+    sim = Simulator(scene, KinematicState.still(np.zeros((2, 3))))
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(2, 4))
+    bodies = AnchorKinematics(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)),
+                              rng.normal(size=(2, 3)), q / np.linalg.norm(q, axis=1)[:, None],
+                              rng.normal(size=(2, 3)))
+    got = collision.Colliders(sim.model).pose(bodies)
+    ref = _oracle_collision.Colliders(sim.model).pose(bodies)
+    for field in ('a0', 'd2', 'normal', 'origin', 'velocity', 'omega', 'speed'):
+        assert np.max(np.abs(getattr(got, field) - getattr(ref, field))) < AGREE, field
+    assert np.all(got.speed[[2, 4]] == 0.0) and np.all(got.speed[[0, 1, 3]] > 0.0)

@@ -66,7 +66,7 @@ from . import contact_kernels as K
 from .contact_kernels import (ANGLE_SKIN, MAX_ROTATION, MOBILITY, POSITION_ITERATIONS,
                               POSITION_SKIN, POSITION_TOLERANCE, ROOT_LEVER, SPECULATIVE_STEPS,
                               VELOCITY_SKIN)
-from .rotations import cross, quat_rotate
+from .rotations import cross
 from .state import half_vectors
 
 __all__ = ['Unilateral', 'segment_depths', 'POSITION_TOLERANCE', 'POSITION_ITERATIONS',
@@ -121,40 +121,26 @@ class Colliders:
         self.local_d2 = 2.0 * hl[:, None] * axis
         self.local_normal = axis
         self.moving = np.flatnonzero(self.body >= 0)
-        self.all_moving = self.moving.size == cols.size
-        self._local = np.stack([self.local_a0, self.local_d2, self.local_normal], axis=1)
         k = cols.size
         zeros = np.zeros((k, 3))
         self._static = ColliderPose(self.local_a0, self.local_d2, self.local_normal, zeros,
                                     zeros, zeros, np.zeros(k))
         # Distance from the body origin that bounds the collider's reach (for its speed).
-        self._reach = (np.linalg.norm(self.local_a0, axis=1) + np.linalg.norm(self.local_d2, axis=1)
-                       + self.radius)
+        reach = (np.linalg.norm(self.local_a0, axis=1) + np.linalg.norm(self.local_d2, axis=1)
+                 + self.radius)
+        self.args = (self.body.astype(np.int64), np.ascontiguousarray(self.local_a0),
+                     np.ascontiguousarray(self.local_d2), np.ascontiguousarray(self.local_normal),
+                     reach)
 
     def pose(self, bodies):
         """``ColliderPose`` given the kinematic bodies' origins (``AnchorKinematics``)."""
         if self.moving.size == 0:
             return self._static
-        if self.all_moving:
-            b = self.body
-            rot = quat_rotate(bodies.orientation[b][:, None, :], self._local)
-            origin, vel, om = bodies.position[b], bodies.velocity[b], bodies.angular_velocity[b]
-            speed = (np.sqrt(np.einsum('ij,ij->i', vel, vel))
-                     + np.sqrt(np.einsum('ij,ij->i', om, om)) * self._reach)
-            return ColliderPose(origin + rot[:, 0], rot[:, 1], rot[:, 2], origin, vel, om, speed)
-        mv, b = self.moving, self.body[self.moving]
-        local = self._local.copy()
-        k = local.shape[0]
-        origin, vel, om = np.zeros((k, 3)), np.zeros((k, 3)), np.zeros((k, 3))
-        origin[mv] = bodies.position[b]
-        local[mv] = quat_rotate(bodies.orientation[b][:, None, :], local[mv])
-        local[mv, 0] += origin[mv]
-        vel[mv] = bodies.velocity[b]
-        om[mv] = bodies.angular_velocity[b]
-        speed = np.zeros(k)
-        speed[mv] = (np.linalg.norm(vel[mv], axis=1)
-                     + np.linalg.norm(om[mv], axis=1) * self._reach[mv])
-        return ColliderPose(local[:, 0], local[:, 1], local[:, 2], origin, vel, om, speed)
+        f = np.ascontiguousarray
+        return ColliderPose(*K.collider_pose(
+            f(bodies.position, dtype=float), f(bodies.orientation, dtype=float),
+            f(bodies.velocity, dtype=float), f(bodies.angular_velocity, dtype=float),
+            self.args))
 
 
 class _Detector:

@@ -26,8 +26,8 @@ from numba import njit
 
 from .chain_solve import factor as _chain_factor
 from .chain_solve import solve as _chain_solve
-from .limit_kernels import (add, cross, dot, norm, project_limits, q4, qaxis_x, qfrom_rotvec,
-                            qmul, qnormalize, scale, sub, v3, limit_terms)
+from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
+                            qfrom_rotvec, qmul, qnormalize, qrotate, scale, sub, v3)
 
 POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
 POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
@@ -201,6 +201,50 @@ def half_vectors(length, q, h):
         hi = scale(0.5 * length[i], qaxis_x(q4(q, i)))
         for a in range(3):
             h[i, a] = hi[a]
+
+
+# -- the colliders in the world ------------------------------------------------------------------
+@njit(cache=True)
+def collider_pose(body_position, body_orientation, body_velocity, body_omega, cols):
+    """The colliders at one instant: ``(a0, d2, normal, origin, velocity, omega, speed)``
+    (``collision.ColliderPose``), each collider's local ``a0``, ``d2`` and ``normal`` turned
+    into the world by its body's pose (``body < 0``: the world, no motion). ``speed`` bounds
+    the speed of its surface: |v_origin| + |ω| × its reach from the body origin (m/s).
+
+    ``cols``: ``(body, local_a0, local_d2, local_normal, reach)``; the body arrays are the
+    kinematic bodies' origins (``AnchorKinematics`` of the origins), world frame.
+    """
+    body, local_a0, local_d2, local_normal, reach = cols
+    K = body.shape[0]
+    a0 = np.empty((K, 3))
+    d2 = np.empty((K, 3))
+    normal = np.empty((K, 3))
+    origin = np.zeros((K, 3))
+    velocity = np.zeros((K, 3))
+    omega = np.zeros((K, 3))
+    speed = np.zeros(K)
+    for j in range(K):
+        b = body[j]
+        la0, ld2, ln = v3(local_a0, j), v3(local_d2, j), v3(local_normal, j)
+        if b < 0:
+            wa0, wd2, wn = la0, ld2, ln
+        else:
+            qb = q4(body_orientation, b)
+            o = v3(body_position, b)
+            wa0 = add(o, qrotate(qb, la0))
+            wd2 = qrotate(qb, ld2)
+            wn = qrotate(qb, ln)
+            vb, ob = v3(body_velocity, b), v3(body_omega, b)
+            for a in range(3):
+                origin[j, a] = o[a]
+                velocity[j, a] = vb[a]
+                omega[j, a] = ob[a]
+            speed[j] = norm(vb) + norm(ob) * reach[j]
+        for a in range(3):
+            a0[j, a] = wa0[a]
+            d2[j, a] = wd2[a]
+            normal[j, a] = wn[a]
+    return a0, d2, normal, origin, velocity, omega, speed
 
 
 # -- detection ---------------------------------------------------------------------------------
