@@ -248,12 +248,12 @@ def collider_pose(body_position, body_orientation, body_velocity, body_omega, co
 
 
 # -- detection ---------------------------------------------------------------------------------
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def clip01(s):
     return 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def rooted(anchor, a0, d2, sum_radius, length):
     """Is a first segment's anchor inside, or within a quarter segment of, a round collider?"""
     e2 = max(dot(d2, d2), 1e-300)

@@ -15,47 +15,47 @@ __all__ = ['joint_angles', 'limit_terms', 'project_limits']
 
 
 # -- small vector and quaternion helpers (tuples) -------------------------------------------
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def v3(a, i):
     return (a[i, 0], a[i, 1], a[i, 2])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def q4(a, i):
     return (a[i, 0], a[i, 1], a[i, 2], a[i, 3])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def sub(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def scale(s, a):
     return (s * a[0], s * a[1], s * a[2])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def norm(a):
     return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qmul(a, b):
     """Hamilton product ``a ⊗ b`` (``b`` first, then ``a``)."""
     ax, ay, az, aw = a
@@ -66,18 +66,18 @@ def qmul(a, b):
             aw * bw - ax * bx - ay * by - az * bz)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qconj(q):
     return (-q[0], -q[1], -q[2], q[3])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qnormalize(q):
     s = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     return (q[0] / s, q[1] / s, q[2] / s, q[3] / s)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qrotate(q, v):
     """``R(q) v`` (body to world)."""
     u = (q[0], q[1], q[2])
@@ -85,14 +85,14 @@ def qrotate(q, v):
     return add(add(v, scale(q[3], t)), cross(u, t))
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qaxis_x(q):
     """World direction of the body +X axis."""
     x, y, z, w = q
     return (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y))
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def qfrom_rotvec(phi):
     """Unit quaternion of the rotation vector ``phi`` (axis × angle, rad)."""
     angle = norm(phi)
@@ -105,7 +105,7 @@ def qfrom_rotvec(phi):
 
 
 # -- swing and twist of one joint ----------------------------------------------------------
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def relative(q, anchor_q, q_rest, is_first, chain_of, i):
     """Rest frame ``q_parent ⊗ q_rest[i]`` of joint ``i`` and the child's rotation relative
     to it (sign chosen so that w ≥ 0)."""
@@ -117,7 +117,7 @@ def relative(q, anchor_q, q_rest, is_first, chain_of, i):
     return q_frame, r
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def swing(q_frame, q_child):
     """Swing angle θ = ∠(d, e) and the unit swing axis a = d × e / |d × e|."""
     d = qaxis_x(q_frame)
@@ -135,7 +135,7 @@ def swing(q_frame, q_child):
     return theta, (a[0] / na, a[1] / na, a[2] / na)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def twist(q_rel, q_child):
     """Twist φ = 2 atan2(x, w) and its rate axis g (φ̇ = g · Δω), world frame."""
     x, y, z, w = q_rel
