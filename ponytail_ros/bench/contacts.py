@@ -5,8 +5,7 @@ dt = 1/240 s, in the configurations of ``terms.term_scenes`` that have colliders
 (``+ 1 sphere`` is the ponytail resting on its skull collider). Each is stepped through
 ``seconds`` of simulated time, frame by frame at the internal step; the time spent inside
 ``Unilateral.resolve`` (contacts and limits: detection, position passes, impulses, friction)
-is measured separately with a wrapper around it. CPU time (``time.process_time``) for the
-whole step, wall-clock ``perf_counter`` inside ``resolve`` (finer grained); least of
+is measured separately with a wrapper around it. CPU time (``time.process_time``), least of
 ``repeats`` interleaved runs.
 
 Run: ``python -m ponytail_ros.bench.contacts [--segments N] [--seconds S] [--repeats R]``.
@@ -32,9 +31,9 @@ def _run(scene, motion, seconds):
     inner = uni.resolve
 
     def timed(*args, **kwargs):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         out = inner(*args, **kwargs)
-        spent[0] += time.perf_counter() - t0
+        spent[0] += time.process_time() - t0
         spent[1] += 1
         return out
 

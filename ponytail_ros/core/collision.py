@@ -159,6 +159,13 @@ class _Detector:
     lever (an ill-conditioned row, huge impulses). Its inner half may then dip below the
     surface by up to the sag of a chord of half its length, (l/2)²/(8ρ) for a collider (plus
     segment) radius ρ: 0.45 mm for a 4 cm segment on a 0.11 m head.
+
+    ``args``, the tuple the kernels take: the colliding segments, their radii and lengths,
+    ``inner`` (not a chain's first), ``first_of`` (index among the first segments, or -1),
+    each first segment's chain, ``root_fixed``/``rooted_fixed`` ``(f, K)`` (rooting decided
+    once, and its answer), segment plus collider radius ``(m, K)``, the colliding chains and
+    their reach (m), the longest half segment (m), the numbers of spheres and of round
+    colliders, the collider radii (m) and friction coefficients, in column order.
     """
 
     def __init__(self, model, colliders):
@@ -243,6 +250,13 @@ class Unilateral:
 
     ``dynamics`` is not used (the chain's response is computed from the model's masses and
     inertias in compiled code); the argument is kept for the simulator's call.
+
+    For a compiled step loop: ``model_args`` and ``detector_args`` are the constant tuples
+    that ``contact_kernels.resolve`` takes (``model_args``: length, 1/m, principal 1/I
+    ``(n, 3)``, the largest 1/I, is_first, has_child, parent, chain_of, chain_start,
+    chain_end, axisymmetric, the limited joints, swing and twist limits; ``detector_args``:
+    see ``_Detector``), ``colliders.args`` the one of ``contact_kernels.collider_pose``;
+    ``resolve`` is callable from other njit code with them.
     """
 
     def __init__(self, model, dynamics, dt):
@@ -256,14 +270,14 @@ class Unilateral:
         lim = np.flatnonzero(np.isfinite(model.swing_limit)
                              | np.isfinite(model.twist_limit)).astype(np.int64)
         i64 = np.int64
-        self._model = (model.length.astype(float), model.inv_mass.astype(float),
+        self.model_args = (model.length.astype(float), model.inv_mass.astype(float),
                        np.ascontiguousarray(model.inv_inertia, dtype=float),
                        model.inv_inertia.max(axis=1), model.is_first.copy(),
                        model.has_child.copy(), model.parent.astype(i64),
                        model.chain_of.astype(i64), model.chain_start.astype(i64),
                        model.chain_end.astype(i64), axisymmetric, lim,
                        model.swing_limit.astype(float), model.twist_limit.astype(float))
-        self._det = (self.detector.args if self.detector is not None else
+        self.detector_args = (self.detector.args if self.detector is not None else
                      _Detector.empty_args())
         self._stats = np.zeros(3, dtype=np.int64)
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
@@ -285,7 +299,7 @@ class Unilateral:
         """
         R, I = K.build_rows(*self._state(x, q, v, w), _anchor_arrays(anchor),
                             np.ascontiguousarray(self.model.q_rest, dtype=float),
-                            self._pose_arrays(pose), self._model, self._det,
+                            self._pose_arrays(pose), self.model_args, self.detector_args,
                             self.detector is not None, float(self.dt))
         if R.shape[0] == 0:
             return None
@@ -298,14 +312,14 @@ class Unilateral:
         n = self.model.n
         h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
         C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
-        if not K.factor_chain(np.ascontiguousarray(q, dtype=float), self._model, h, inv_I, C, Lo):
+        if not K.factor_chain(np.ascontiguousarray(q, dtype=float), self.model_args, h, inv_I, C, Lo):
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         R, I = _rows_arrays(rows)
         b = np.ascontiguousarray(b, dtype=float)
         bound = b if friction_bound is None else np.ascontiguousarray(friction_bound, float)
         dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
         lam = K.solve_rows(R, I, b, bound, friction_bound is not None, h, inv_I, C, Lo,
-                           self._model, dv, dw)
+                           self.model_args, dv, dw)
         return lam, dv, dw
 
     def _state(self, x, q, v, w):
@@ -329,7 +343,7 @@ class Unilateral:
         stats = self._stats
         status, x, q, v, w = K.resolve(
             *self._state(x, q, v, w), _anchor_arrays(anchor), self._pose_arrays(pose),
-            self._model, self._det, np.ascontiguousarray(self.model.q_rest, dtype=float),
+            self.model_args, self.detector_args, np.ascontiguousarray(self.model.q_rest, dtype=float),
             self.detector is not None, bool(project), float(self.dt), stats)
         self.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                      'position_passes': int(stats[2])}
