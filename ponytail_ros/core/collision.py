@@ -63,14 +63,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import contact_kernels as K
-from .contact_kernels import (ANGLE_SKIN, MAX_ROTATION, MOBILITY, POSITION_ITERATIONS,
-                              POSITION_SKIN, POSITION_TOLERANCE, ROOT_LEVER, SPECULATIVE_STEPS,
-                              VELOCITY_SKIN)
+from .contact_kernels import (  # noqa: F401 (the tolerances, re-exported)
+    ANGLE_SKIN, MAX_ROTATION, MOBILITY, POSITION_ITERATIONS, POSITION_SKIN, POSITION_TOLERANCE,
+    ROOT_LEVER, SPECULATIVE_STEPS, VELOCITY_SKIN)
 from .rotations import cross
 from .state import half_vectors
 
 __all__ = ['Unilateral', 'segment_depths', 'POSITION_TOLERANCE', 'POSITION_ITERATIONS',
            'SPECULATIVE_STEPS']
+
+
+def _c(a):
+    """``a`` as a writable C-contiguous float64 array (a copy only if needed): the kernels
+    are compiled for exactly that type, so a read-only or strided view would compile them
+    again."""
+    a = np.ascontiguousarray(a, dtype=float)
+    return a if a.flags.writeable else a.copy()
+
 
 @dataclass
 class ColliderPose:
@@ -92,7 +101,7 @@ class ColliderPose:
 
     def arrays(self):
         """The kernels' tuple ``(a0, d2, normal, origin, velocity, omega, speed)``."""
-        return tuple(np.ascontiguousarray(a, dtype=float) for a in (
+        return tuple(_c(a) for a in (
             self.a0, self.d2, self.normal, self.origin, self.velocity, self.omega, self.speed))
 
     def point_velocity(self, col, p):
@@ -128,19 +137,16 @@ class Colliders:
         # Distance from the body origin that bounds the collider's reach (for its speed).
         reach = (np.linalg.norm(self.local_a0, axis=1) + np.linalg.norm(self.local_d2, axis=1)
                  + self.radius)
-        self.args = (self.body.astype(np.int64), np.ascontiguousarray(self.local_a0),
-                     np.ascontiguousarray(self.local_d2), np.ascontiguousarray(self.local_normal),
-                     reach)
+        self.args = (self.body.astype(np.int64), _c(self.local_a0), _c(self.local_d2),
+                     _c(self.local_normal), reach)
 
     def pose(self, bodies):
         """``ColliderPose`` given the kinematic bodies' origins (``AnchorKinematics``)."""
         if self.moving.size == 0:
             return self._static
-        f = np.ascontiguousarray
-        return ColliderPose(*K.collider_pose(
-            f(bodies.position, dtype=float), f(bodies.orientation, dtype=float),
-            f(bodies.velocity, dtype=float), f(bodies.angular_velocity, dtype=float),
-            self.args))
+        return ColliderPose(*K.collider_pose(_c(bodies.position), _c(bodies.orientation),
+                                             _c(bodies.velocity), _c(bodies.angular_velocity),
+                                             self.args))
 
 
 class _Detector:
@@ -215,8 +221,7 @@ class _Detector:
         shape = (self.seg.size, self.c.cols.size)
         depth, s, t = np.empty(shape), np.empty(shape), np.empty(shape)
         own = np.empty(shape, dtype=bool)
-        K.detect(np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(h, dtype=float),
-                 np.ascontiguousarray(anchor_position, dtype=float), pose.arrays(), self.args,
+        K.detect(_c(x), _c(h), _c(anchor_position), pose.arrays(), self.args,
                  bool(report), depth, s, t, own)
         return depth, s, t, own
 
@@ -236,10 +241,8 @@ def segment_depths(model, x, q, anchor_position, bodies):
 
 
 def _anchor_arrays(anchor):
-    return (np.ascontiguousarray(anchor.position, dtype=float),
-            np.ascontiguousarray(anchor.velocity, dtype=float),
-            np.ascontiguousarray(anchor.orientation, dtype=float),
-            np.ascontiguousarray(anchor.angular_velocity, dtype=float))
+    return (_c(anchor.position), _c(anchor.velocity), _c(anchor.orientation),
+            _c(anchor.angular_velocity))
 
 
 _NO_POSE = ColliderPose(*(np.zeros((0, 3)) for _ in range(6)), np.zeros(0))
@@ -271,7 +274,7 @@ class Unilateral:
                              | np.isfinite(model.twist_limit)).astype(np.int64)
         i64 = np.int64
         self.model_args = (model.length.astype(float), model.inv_mass.astype(float),
-                       np.ascontiguousarray(model.inv_inertia, dtype=float),
+                       _c(model.inv_inertia),
                        model.inv_inertia.max(axis=1), model.is_first.copy(),
                        model.has_child.copy(), model.parent.astype(i64),
                        model.chain_of.astype(i64), model.chain_start.astype(i64),
@@ -298,7 +301,7 @@ class Unilateral:
         ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds.
         """
         R, I = K.build_rows(*self._state(x, q, v, w), _anchor_arrays(anchor),
-                            np.ascontiguousarray(self.model.q_rest, dtype=float),
+                            _c(self.model.q_rest),
                             self._pose_arrays(pose), self.model_args, self.detector_args,
                             self.detector is not None, float(self.dt))
         if R.shape[0] == 0:
@@ -312,18 +315,18 @@ class Unilateral:
         n = self.model.n
         h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
         C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
-        if not K.factor_chain(np.ascontiguousarray(q, dtype=float), self.model_args, h, inv_I, C, Lo):
+        if not K.factor_chain(_c(q), self.model_args, h, inv_I, C, Lo):
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         R, I = _rows_arrays(rows)
-        b = np.ascontiguousarray(b, dtype=float)
-        bound = b if friction_bound is None else np.ascontiguousarray(friction_bound, float)
+        b = _c(b)
+        bound = b if friction_bound is None else _c(friction_bound)
         dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
         lam = K.solve_rows(R, I, b, bound, friction_bound is not None, h, inv_I, C, Lo,
                            self.model_args, dv, dw)
         return lam, dv, dw
 
     def _state(self, x, q, v, w):
-        return tuple(np.ascontiguousarray(a, dtype=float) for a in (x, q, v, w))
+        return tuple(_c(a) for a in (x, q, v, w))
 
     # -- the pass after a step ---------------------------------------------------------------
     def resolve(self, x, q, v, w, anchor, pose, project=True, dt=None):
@@ -343,7 +346,7 @@ class Unilateral:
         stats = self._stats
         status, x, q, v, w = K.resolve(
             *self._state(x, q, v, w), _anchor_arrays(anchor), self._pose_arrays(pose),
-            self.model_args, self.detector_args, np.ascontiguousarray(self.model.q_rest, dtype=float),
+            self.model_args, self.detector_args, _c(self.model.q_rest),
             self.detector is not None, bool(project), float(self.dt), stats)
         self.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                      'position_passes': int(stats[2])}

@@ -48,6 +48,14 @@ PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled 
 LIN, ANG, APAR, ARM, VOTH, DEPTH, SEP, MU, NCOL = 0, 3, 6, 9, 12, 15, 16, 17, 18
 SEG, PAR, CONTACT = 0, 1, 2
 
+# The constant tuples (``collision.Unilateral.model_args``, ``_Detector.args``) and the pose.
+(LENGTH, INV_MASS, INV_INERTIA, INV_I_MAX, IS_FIRST, HAS_CHILD, PARENT, CHAIN_OF, CHAIN_START,
+ CHAIN_END, AXISYMMETRIC, LIMITED, SWING_LIMIT, TWIST_LIMIT) = range(14)
+(D_SEG, D_RADIUS, D_LENGTH, D_INNER, D_FIRST_OF, D_FIRST_CHAIN, D_ROOT_FIXED, D_ROOTED_FIXED,
+ D_SUM_RADIUS, D_CHAINS, D_CHAIN_REACH, D_MAX_HALF, D_N_SPHERE, D_N_ROUND, D_COL_RADIUS,
+ D_FRICTION) = range(16)
+P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
+
 # Status of ``resolve``.
 OK, NOT_POSITIVE_DEFINITE = 0, 1
 
@@ -60,8 +68,8 @@ def factor_chain(q, model, h, inv_I, C, Lo):
     A = J M⁻¹ Jᵀ, with ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}``,
     ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``, ``G = [h]× I⁻¹ [h]×`` (``solver``). False if A is
     not positive definite."""
-    (length, inv_mass, inv_inertia, inv_I_max, is_first, has_child, parent, chain_of,
-     chain_start, chain_end, axisymmetric, lim_idx, swing_limit, twist_limit) = model
+    length, inv_mass, inv_inertia = model[LENGTH], model[INV_MASS], model[INV_INERTIA]
+    is_first, axisymmetric = model[IS_FIRST], model[AXISYMMETRIC]
     n = q.shape[0]
     G = np.empty((n, 3, 3))
     for i in range(n):
@@ -131,7 +139,7 @@ def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
     """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
     parents) to ``dv``, ``dw`` over segments ``s:e`` of one chain:
     Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
-    inv_mass, has_child = model[1], model[5]
+    inv_mass, has_child = model[INV_MASS], model[HAS_CHILD]
     for i in range(s, e):
         ln = v3(lam, i - s + 1) if has_child[i] else (0.0, 0.0, 0.0)
         li = v3(lam, i - s)
@@ -145,7 +153,7 @@ def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
 def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
     """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
     place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's)."""
-    is_first, chain_of = model[4], model[7]
+    is_first, chain_of = model[IS_FIRST], model[CHAIN_OF]
     n = v.shape[0]
     c_dot = np.empty((n, 3))
     for i in range(n):
@@ -170,7 +178,7 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
 @njit(cache=True)
 def project_positions(anchor_position, h, model, x):
     """Centres that close every joint exactly: x_i = p_anchor + Σ_{j<i} 2 h_j + h_i."""
-    chain_start, chain_end = model[8], model[9]
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
     for c in range(chain_start.shape[0]):
         p = v3(anchor_position, c)
         for i in range(chain_start[c], chain_end[c]):
@@ -184,7 +192,7 @@ def project_positions(anchor_position, h, model, x):
 @njit(cache=True)
 def project_velocities(anchor_velocity, w, h, model, v):
     """Centre velocities of the rigid chain: v_i = v_anchor + Σ_{j<i} 2 ω_j × h_j + ω_i × h_i."""
-    chain_start, chain_end = model[8], model[9]
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
     for c in range(chain_start.shape[0]):
         p = v3(anchor_velocity, c)
         for i in range(chain_start[c], chain_end[c]):
@@ -250,7 +258,7 @@ def collider_pose(body_position, body_orientation, body_velocity, body_omega, co
 # -- detection ---------------------------------------------------------------------------------
 @njit(cache=True)
 def clip01(s):
-    return 0.0 if s < 0.0 else (1.0 if s > 1.0 else s)
+    return 0.0 if s < 0.0 else min(s, 1.0)
 
 
 @njit(cache=True)
@@ -273,10 +281,11 @@ def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
     first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
     """
-    a0, d2, normal = pose[0], pose[1], pose[2]
-    (seg, seg_radius, seg_length, inner, first_of, first_chain, root_fixed, rooted_fixed,
-     sum_radius, det_chains, chain_reach, max_half_length, n_sphere, n_round, col_radius,
-     friction) = det
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    seg, seg_radius, seg_length, inner = det[D_SEG], det[D_RADIUS], det[D_LENGTH], det[D_INNER]
+    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
+    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
+    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
     K = a0.shape[0]
     for m in range(seg.shape[0]):
         g = seg[m]
@@ -337,9 +346,9 @@ def near(anchor_position, pose, v, w, det, dt):
     """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
     its length (plus radius) about its anchor; its surface moves at most at its fastest
     centre's speed plus its fastest spin times the longest half segment."""
-    a0, d2, normal, speed_col = pose[0], pose[1], pose[2], pose[6]
+    a0, d2, normal, speed_col = pose[P_A0], pose[P_D2], pose[P_NORMAL], pose[P_SPEED]
     det_chains, chain_reach, max_half_length, n_round, col_radius = (
-        det[9], det[10], det[11], det[13], det[14])
+        det[D_CHAINS], det[D_CHAIN_REACH], det[D_MAX_HALF], det[D_N_ROUND], det[D_COL_RADIUS])
     v2 = 0.0
     w2 = 0.0
     for i in range(v.shape[0]):
@@ -375,19 +384,20 @@ def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
     if violated, within ``ANGLE_SKIN`` plus 4× the deepest violation, or closing within
     ``SPECULATIVE_STEPS`` steps. Contacts first (segment-major), then swing, then twist rows.
     """
-    (length, inv_mass, inv_inertia, inv_I_max, is_first, has_child, parent, chain_of,
-     chain_start, chain_end, axisymmetric, lim_idx, swing_limit, twist_limit) = model
-    a_pos, a_vel, a_q, a_om = anchor
+    length, is_first, parent, chain_of = (model[LENGTH], model[IS_FIRST], model[PARENT],
+                                          model[CHAIN_OF])
+    lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
+    a_pos, a_q, a_om = anchor[0], anchor[2], anchor[3]
     n = x.shape[0]
     nl = lim_idx.shape[0]
-    seg = det[0]
+    seg = det[D_SEG]
     m = seg.shape[0] if has_colliders else 0
-    K = pose[0].shape[0] if has_colliders else 0
+    K = pose[P_A0].shape[0] if has_colliders else 0
     R = np.zeros((m * K + 2 * nl, NCOL))
     I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
     k = 0
     if has_colliders and near(a_pos, pose, v, w, det, dt):
-        seg_length, friction = det[2], det[15]
+        seg_length, friction = det[D_LENGTH], det[D_FRICTION]
         a0, d2, normal, origin, col_vel, col_om, col_speed = pose
         h = np.empty((n, 3))
         half_vectors(length, q, h)
@@ -410,7 +420,7 @@ def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
                     continue
                 # The normal (from the collider to the segment) and the touching point.
                 ps = add(v3(x, g), scale(2.0 * s[i, j] - 1.0, v3(h, g)))
-                if j >= det[13]:
+                if j >= det[D_N_ROUND]:
                     nrm = v3(normal, j)
                 else:
                     diff = sub(ps, add(v3(a0, j), scale(t[i, j], v3(d2, j))))
@@ -424,7 +434,7 @@ def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
                         p = cross(hg, ref)
                         npn = norm(p)
                         nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
-                point = sub(ps, scale(det[1][i], nrm))
+                point = sub(ps, scale(det[D_RADIUS][i], nrm))
                 arm = sub(point, v3(x, g))
                 v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
                 rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
@@ -715,7 +725,7 @@ def friction_step(W, slip, bound):
 def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
     impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ."""
-    inv_mass, is_first = model[1], model[4]
+    inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
     nc = e - s
     g, p = I[r, SEG], I[r, PAR]
     for i in range(nc):
@@ -742,7 +752,7 @@ def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
             c_dot[i, a] = d[a]
     _chain_solve(C[s:e], Lo[s:e], is_first[s:e], c_dot)
     # Add the joints' impulses (dv, dw are local to the chain: offset by s).
-    has_child = model[5]
+    has_child = model[HAS_CHILD]
     for i in range(nc):
         ln = v3(c_dot, i + 1) if has_child[s + i] else (0.0, 0.0, 0.0)
         li = v3(c_dot, i)
@@ -763,8 +773,8 @@ def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out)
     a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
     mobility (a contact at the anchor) takes no impulse.
     """
-    inv_mass, inv_I_max, chain_of, chain_start, chain_end = (model[1], model[3], model[7],
-                                                             model[8], model[9])
+    inv_mass, inv_I_max, chain_of, chain_start, chain_end = (model[INV_MASS], model[INV_I_MAX], model[CHAIN_OF],
+                                                             model[CHAIN_START], model[CHAIN_END])
     k = R.shape[0]
     lam = np.zeros(k)
     done = np.zeros(k, dtype=np.bool_)
@@ -896,7 +906,7 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     colliders (``collision.ColliderPose``); ``model`` and ``det``: the constant tuples built by
     ``collision.Unilateral``; ``q_rest``: the joints' rest rotations (``Model.q_rest``).
     """
-    length = model[0]
+    length = model[LENGTH]
     n = x.shape[0]
     x0, q0 = x, q
     x = x.copy()
@@ -962,11 +972,11 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
             break
         R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
     stale = False          # rows computed before the last change of pose
-    lim_idx = model[11]
+    lim_idx = model[LIMITED]
     if lim_idx.shape[0]:
         q_lim = np.empty((n, 4))
-        if project_limits(q, a_q, q_rest, model[4], model[7], model[8], model[9], lim_idx,
-                          model[12], model[13], POSITION_TOLERANCE, q_lim):
+        if project_limits(q, a_q, q_rest, model[IS_FIRST], model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END], lim_idx,
+                          model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
             q = q_lim
             moved = True
             stale = True
@@ -993,7 +1003,7 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
         if stale:
             R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
         else:
-            refresh_sep(R, I, v, w, a_om, model[7])
+            refresh_sep(R, I, v, w, a_om, model[CHAIN_OF])
     k = R.shape[0]
     if k:
         # Velocities: rows touching, or whose gap would close within SPECULATIVE_STEPS steps.
@@ -1012,9 +1022,8 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
             b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
             closing = closing or b[r] < 0.0
         if closing:
-            if not have_factor:
-                if not factor_chain(q, model, h, inv_I, C, Lo):
-                    return NOT_POSITIVE_DEFINITE, x, q, v, w
+            if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
+                return NOT_POSITIVE_DEFINITE, x, q, v, w
             velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
             if project:
                 project_velocities(a_vel, w, h, model, v)

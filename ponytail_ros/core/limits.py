@@ -40,7 +40,9 @@ __all__ = ['joint_angles', 'limit_rows', 'project_limits']
 
 
 def _f(a):
-    return np.ascontiguousarray(a, dtype=float)
+    """A writable C-contiguous float64 array, the type the kernels are compiled for."""
+    a = np.ascontiguousarray(a, dtype=float)
+    return a if a.flags.writeable else a.copy()
 
 
 def joint_angles(model, q, anchor_q):
