@@ -36,7 +36,7 @@ setup(
     extras_require={
         'pypi': ROS_WHEELS + CORE,
         'plot': ['matplotlib'],
-        'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib'],
+        'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib', 'ruff', 'mypy'],
         'bench': ['mujoco'],
     },
     zip_safe=True,

@@ -148,7 +148,8 @@ def test_single_subcommand_and_cli_parsing(tmp_path):
     # Options before the subcommand count too (the subcommand's defaults used to reset them,
     # so `ponytail_bench --full --out X trade` ran the quick profile into docs/bench).
     args = cli.build_parser().parse_args(['--full', '--out', 'x', '--no-mujoco', 'trade'])
-    assert args.command == 'trade' and args.profile == 'full' and args.out == 'x' and args.no_mujoco
+    assert args.command == 'trade' and args.profile == 'full' and args.out == 'x'
+    assert args.no_mujoco
     args = cli.build_parser().parse_args(['trade'])
     assert args.profile is None and args.out is None and not args.no_mujoco
 

@@ -108,8 +108,10 @@ def random_state(n_chains=3, n=7, seed=0, inertia_general=False):
                                 damping=1e-3))
     scene = Scene(chains=tuple(chains), n_kinematic_bodies=n_chains)
     head = KinematicState(
-        position=rng.normal(size=(n_chains, 3)), orientation=np.tile([0, 0, 0, 1.0], (n_chains, 1)),
-        linear_velocity=rng.normal(size=(n_chains, 3)), angular_velocity=rng.normal(size=(n_chains, 3)),
+        position=rng.normal(size=(n_chains, 3)),
+        orientation=np.tile([0, 0, 0, 1.0], (n_chains, 1)),
+        linear_velocity=rng.normal(size=(n_chains, 3)),
+        angular_velocity=rng.normal(size=(n_chains, 3)),
         linear_acceleration=rng.normal(size=(n_chains, 3)) * 5,
         angular_acceleration=rng.normal(size=(n_chains, 3)))
     sim = Simulator(scene, head)
@@ -147,7 +149,8 @@ def test_axisymmetric_fast_path_matches_general_inertia():
     slow = dyn.mass_terms(st.q, st.w)
     v = np.random.default_rng(2).normal(size=st.w.shape)
     assert np.allclose(fast[0], slow[0]) and np.allclose(fast[1], slow[1], rtol=1e-10, atol=0)
-    assert np.allclose(fast[2](v), slow[2](v), rtol=1e-10) and np.allclose(fast[3], slow[3], rtol=1e-9)
+    assert np.allclose(fast[2](v), slow[2](v), rtol=1e-10)
+    assert np.allclose(fast[3], slow[3], rtol=1e-9)
 
 
 def test_constraint_accelerations_satisfy_the_joint_equation():

@@ -68,7 +68,8 @@ def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
     """The rope is undamped and its anchor static: released 60° from the vertical it swings
     with its energy conserved (RK4 at 1/240 s) and its root on the ceiling point."""
     values, scene = scene_of('rope.yaml')
-    motion = WithStaticBodies(ShakeMotion(), scene.n_kinematic_bodies - 1)   # the head is irrelevant
+    # The head is irrelevant.
+    motion = WithStaticBodies(ShakeMotion(), scene.n_kinematic_bodies - 1)
     sim = Simulator(scene, motion)
     (c,) = scene.chains
     e0 = sum(float(e.sum()) for e in sim.energy())

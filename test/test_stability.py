@@ -111,7 +111,8 @@ class Run:
             warnings.simplefilter('ignore', RuntimeWarning)     # a blow-up is the guard's job
             for k in range(1, int(round(duration * fps)) + 1):
                 t = k / fps
-                r = sim.advance_frame(t, motion.state_at(t)) if frames else sim.advance_to(t, motion)
+                r = (sim.advance_frame(t, motion.state_at(t)) if frames
+                     else sim.advance_to(t, motion))
                 assert sim.state.is_finite(), f'non-finite state after the call at t={t}'
                 assert r.max_gap <= gmax, f'gap {r.max_gap} > guard_max_gap at t={t}'
                 assert np.all(np.isfinite(sim.joint_gaps()))
@@ -170,7 +171,7 @@ def test_steps_too_large_for_the_moving_head_are_caught_by_the_guard(integrator,
 
 @pytest.mark.parametrize('dt', [1e-5, 1e-3, 1 / 240, 1 / 120])
 def test_rk4_energy_does_not_grow_on_a_still_head(dt):
-    """No damping: RK4 + projection loses a little energy, never gains more than rounding/truncation.
+    """No damping: RK4 + projection loses a little energy; gains stay at rounding/truncation.
 
     Bound: the truncation error of RK4 per unit time is O(dt⁴); measured growth at 1/240 s is
     ~2e-6 of the releasable energy over 5 s, so 1e-4 is a 50x margin and far below any
@@ -201,10 +202,13 @@ EXPLICIT_DAMPING = (dict(damping_method='explicit') if 'damping_method' in _FIEL
 
 
 def test_damped_reference_ponytail_runs_clean_at_the_default_step():
-    """The shared reference's damped ponytail (c = 1e-4 N·m·s/rad) on the moving head. Joint damping
-    about a thin segment's own axis is stiff (rate ~ 4c/I_axial = 800/s here): explicit damping
-    needs dt < 2.8 I_axial/(4c) = 1/287 s with RK4 (1/400 s with symplectic Euler) and blew up at
-    1/240 s in 0.11 s; the core now switches to implicit damping there (``damping_method='auto'``)."""
+    """The shared reference's damped ponytail (c = 1e-4 N·m·s/rad) on the moving head.
+
+    Joint damping about a thin segment's own axis is stiff (rate ~ 4c/I_axial = 800/s here):
+    explicit damping needs dt < 2.8 I_axial/(4c) = 1/287 s with RK4 (1/400 s with symplectic
+    Euler) and blew up at 1/240 s in 0.11 s; the core now switches to implicit damping there
+    (``damping_method='auto'``).
+    """
     motion = reference_motion()
     for integrator in (RK4, SE):
         run = Run(make_sim(ponytail(damping=1e-4), motion, integrator), motion, 2.0)
@@ -304,7 +308,8 @@ def spun(n, spin, integrator, dt, wobble=(0.5, 0.0, 0.3)):
     st_ = sim.state.copy()
     st_.w = spin * quat_axis_x(st_.q) + np.asarray(wobble)
     anchor = sim.anchors(STILL.state_at(0.0))
-    st_.v = project_velocities(sim.model, anchor.velocity, st_.w, half_vectors(sim.model.length, st_.q))
+    st_.v = project_velocities(sim.model, anchor.velocity, st_.w,
+                               half_vectors(sim.model.length, st_.q))
     sim.reset(STILL.state_at(0.0), 0.0, state=st_)
     return sim
 
@@ -365,13 +370,14 @@ def test_guard_catches_a_spurious_spin_up_of_a_thin_segment():
     precession check (1.25 rad per step > 1) now resets it at the first call."""
     m, l = 0.02, 0.08
     ip = m * l * l / 12.0
-    chain = ChainSpec(n_segments=1, length=l, mass=m, radius=0.01, attach=(0.0, 0.0, 0.0), damping=0.0,
-                      inertia=((1e-4 * ip, ip, ip),), rest_direction=(0.3, 0.0, -1.0))
+    chain = ChainSpec(n_segments=1, length=l, mass=m, radius=0.01, attach=(0.0, 0.0, 0.0),
+                      damping=0.0, inertia=((1e-4 * ip, ip, ip),), rest_direction=(0.3, 0.0, -1.0))
     sim = make_sim(chain)
     st_ = sim.state.copy()
     st_.w = 300.0 * quat_axis_x(st_.q) + np.array([0.5, 0.0, 0.3])
     anchor = sim.anchors(STILL.state_at(0.0))
-    st_.v = project_velocities(sim.model, anchor.velocity, st_.w, half_vectors(sim.model.length, st_.q))
+    st_.v = project_velocities(sim.model, anchor.velocity, st_.w,
+                               half_vectors(sim.model.length, st_.q))
     sim.reset(STILL.state_at(0.0), 0.0, state=st_)
     e0 = energy(sim)
     scale = releasable(chain)
@@ -490,14 +496,17 @@ def test_teleport_of_the_head_resets_and_reports(integrator, jump):
     """Known limit 5: a head given at frames that jumps far within one frame (symplectic Euler
     follows 0.1-0.2 m, see below, and is reset from 0.5 m)."""
     sim = make_sim(ponytail(), STILL, integrator)
-    here, there = KinematicState.still(HEAD), KinematicState.still((HEAD[0] + jump, HEAD[1], HEAD[2]))
+    here = KinematicState.still(HEAD)
+    there = KinematicState.still((HEAD[0] + jump, HEAD[1], HEAD[2]))
     for k in range(1, 31):
         assert sim.advance_frame(k / 60, here).reset_reason is None
     r = sim.advance_frame(31 / 60, there)
-    reasons = [r.reset_reason] + [sim.advance_frame(k / 60, there).reset_reason for k in range(32, 35)]
+    reasons = [r.reset_reason]
+    reasons += [sim.advance_frame(k / 60, there).reset_reason for k in range(32, 35)]
     assert any(reasons[:2]), 'the teleport must be caught'
     assert all(x is None for x in reasons[2:]), 'and the chain must run clean afterwards'
-    assert np.allclose(sim.joint_positions()[0][0], there.position[0] + np.array([-0.1, 0.0, 0.05]))
+    root = there.position[0] + np.array([-0.1, 0.0, 0.05])
+    assert np.allclose(sim.joint_positions()[0][0], root)
     assert np.max(sim.joint_gaps()) < 1e-9
 
 
@@ -506,7 +515,8 @@ def test_small_head_jump_is_followed_without_reset(integrator, jump):
     """Symplectic Euler's position-level joint correction follows a 0.1 m jump within one 60 Hz
     frame (tip up to 5.7 m/s, measured), where RK4 blows up."""
     sim = make_sim(ponytail(), STILL, integrator)
-    here, there = KinematicState.still(HEAD), KinematicState.still((HEAD[0] + jump, HEAD[1], HEAD[2]))
+    here = KinematicState.still(HEAD)
+    there = KinematicState.still((HEAD[0] + jump, HEAD[1], HEAD[2]))
     for k in range(1, 31):
         sim.advance_frame(k / 60, here)
     assert all(sim.advance_frame(k / 60, there).reset_reason is None for k in range(31, 91))

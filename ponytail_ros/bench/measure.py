@@ -20,6 +20,7 @@ from dataclasses import dataclass, asdict, replace
 import json
 import math
 import time
+from typing import Any, Optional
 import warnings
 
 import numpy as np
@@ -29,8 +30,8 @@ from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.core.state import half_vectors
 from ponytail_ros.core.integrators import SOLVES_PER_STEP
 
-__all__ = ['Setting', 'Trajectory', 'reference', 'simulate', 'time_setting', 'run_setting', 'load_shared',
-           'rest_energy', 'check_against_shared', 'fmt_dt']
+__all__ = ['Setting', 'Trajectory', 'reference', 'simulate', 'time_setting', 'run_setting',
+           'load_shared', 'rest_energy', 'check_against_shared', 'fmt_dt']
 
 
 def fmt_dt(dt):
@@ -55,7 +56,7 @@ class Setting:
     projection: bool = True
     baumgarte_stiffness: float = 0.0
     baumgarte_damping: float = 0.0
-    tick_rate: float = None
+    tick_rate: Optional[float] = None
     extra: tuple = ()       # more SolverSpec fields, as ((name, value), ...)
 
     def solver(self, max_steps=1_000_000, **kw):
@@ -91,10 +92,10 @@ class Trajectory:
 
     t: np.ndarray
     tip: np.ndarray
-    tip_vel: np.ndarray = None
-    energy: np.ndarray = None
-    gap: np.ndarray = None
-    resets: list = None
+    tip_vel: Optional[np.ndarray] = None
+    energy: Optional[np.ndarray] = None
+    gap: Optional[np.ndarray] = None
+    resets: Optional[list] = None
 
     def at(self, t):
         """Tip position at times ``t`` (cubic Hermite; linear if no velocities)."""
@@ -173,7 +174,7 @@ def simulate(bench, setting, sample_dt=0.01, duration=None, every_step=False):
                       np.array(gaps), resets)
 
 
-_REF_CACHE = {}
+_REF_CACHE: dict[tuple, Any] = {}
 
 
 def reference(bench, dt_ref=1.0 / 8000.0, duration=None, check=True, tol=1e-5):
@@ -187,7 +188,8 @@ def reference(bench, dt_ref=1.0 / 8000.0, duration=None, check=True, tol=1e-5):
     Cached per (scene, segments, duration, step).
     """
     duration = bench.duration if duration is None else duration
-    key = (bench.name, bench.n_segments, repr(bench.scene), float(duration), float(dt_ref), check, tol)
+    key = (bench.name, bench.n_segments, repr(bench.scene), float(duration), float(dt_ref), check,
+           tol)
     if key in _REF_CACHE:
         return _REF_CACHE[key]
     ref = simulate(bench, Setting('rk4', dt_ref), duration=duration, every_step=True)
@@ -210,7 +212,8 @@ def time_setting(bench, setting, window, repeats=3, sample_dt=0.01):
     for _ in range(repeats):
         sim = Simulator(bench.scene.replace(solver=setting.solver()), bench.motion, 0.0)
         if setting.tick_rate:
-            times = np.arange(1, int(math.floor(window * setting.tick_rate + 1e-9)) + 1) / setting.tick_rate
+            n_ticks = int(math.floor(window * setting.tick_rate + 1e-9))
+            times = np.arange(1, n_ticks + 1) / setting.tick_rate
             states = [bench.motion.state_at(t) for t in times]
         else:
             times = np.arange(1, int(math.floor(window / sample_dt + 1e-9)) + 1) * sample_dt

@@ -105,14 +105,16 @@ class SpinHead(HeadMotion):
             return 0.0, 0.0, 0.0
         s = t / T
         # ∫ r (3s² - 2s³) dt = r T (s³ - s⁴/2)
-        return r * T * (s ** 3 - 0.5 * s ** 4), r * (3 * s * s - 2 * s ** 3), r * (6 * s - 6 * s * s) / T
+        return (r * T * (s ** 3 - 0.5 * s ** 4), r * (3 * s * s - 2 * s ** 3),
+                r * (6 * s - 6 * s * s) / T)
 
     def state_at(self, t):
         yaw, yd, ydd = self._yaw(float(t))
         z = np.zeros((1, 3))
-        return KinematicState(position=self.p0[None].copy(),
-                              orientation=np.array([[0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)]]),
-                              linear_velocity=z.copy(), angular_velocity=np.array([[0.0, 0.0, yd]]),
+        q = np.array([[0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)]])
+        return KinematicState(position=self.p0[None].copy(), orientation=q,
+                              linear_velocity=z.copy(),
+                              angular_velocity=np.array([[0.0, 0.0, yd]]),
                               linear_acceleration=z.copy(),
                               angular_acceleration=np.array([[0.0, 0.0, ydd]]))
 

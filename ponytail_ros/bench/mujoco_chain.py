@@ -50,7 +50,7 @@ def available():
     return mujoco is not None
 
 
-_WARNINGS = []
+_WARNINGS: list[str] = []
 
 
 def _quiet_warning(msg):
@@ -118,7 +118,8 @@ def build_mjcf(bench, dt):
             ref = -g[ax] / (w * w)               # spring rest shifted to cancel the head's weight
         xml.append(f'<joint name="head{j}" type="{kind}" axis="{axes[ax]}" stiffness="{k:.17g}" '
                    f'springref="{ref:.17g}" damping="0" armature="0" limited="false"/>')
-    xml.append(f'<inertial pos="0 0 0" mass="{HEAD_MASS:g}" diaginertia="{_fmt([HEAD_MASS] * 3)}"/>')
+    xml.append(f'<inertial pos="0 0 0" mass="{HEAD_MASS:g}" '
+               f'diaginertia="{_fmt([HEAD_MASS] * 3)}"/>')
     pos = np.asarray(c.attach, dtype=float)
     for i in range(c.n_segments):
         l = lengths[i]
@@ -204,7 +205,7 @@ class MujocoChain:
         return bool(bad) or not np.all(np.isfinite(d.qpos))
 
     def run(self, duration, sample_dt=0.01):
-        """Trajectory of the tip after every ``sample_dt`` s: (times, tips, head error, unstable)."""
+        """The tip after every ``sample_dt`` s: (times, tips, head error, unstable)."""
         self.reset()
         m, d = self.model, self.data
         n = int(math.floor(duration / sample_dt + 1e-9))

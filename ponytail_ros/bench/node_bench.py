@@ -100,6 +100,19 @@ def helper(args):
     rclpy.try_shutdown()
 
 
+def _node_parameters(n_chains):
+    """(name, value) of the node's parameters: ``n_chains`` copies of ``CHAIN``, side by side."""
+    names = [f'c{i}' for i in range(n_chains)]
+    params = [('chains', names), ('rate', 120.0)]
+    for i, c in enumerate(names):
+        for k, v in CHAIN.items():
+            v = list(v) if isinstance(v, tuple) else v
+            if k == 'attach':
+                v = [v[0], 0.05 * (i - (n_chains - 1) / 2), v[2]]
+            params.append((f'{c}.{k}', v))
+    return params
+
+
 def ros_case(n_chains, duration, input_rate, domain_id):
     import rclpy
     from rclpy.context import Context
@@ -107,14 +120,7 @@ def ros_case(n_chains, duration, input_rate, domain_id):
     from rclpy.parameter import Parameter
     from ponytail_ros.ros.node import PonytailNode
 
-    names = [f'c{i}' for i in range(n_chains)]
-    params = [Parameter('chains', value=names), Parameter('rate', value=120.0)]
-    for i, c in enumerate(names):
-        for k, v in CHAIN.items():
-            v = list(v) if isinstance(v, tuple) else v
-            if k == 'attach':
-                v = [v[0], 0.05 * (i - (n_chains - 1) / 2), v[2]]
-            params.append(Parameter(f'{c}.{k}', value=v))
+    params = [Parameter(name, value=v) for name, v in _node_parameters(n_chains)]
     topic = 'segment_poses' if n_chains == 1 else 'segment_poses/c0'
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     ctx = Context()
@@ -256,8 +262,8 @@ def trade_case(rate, delay, noise, duration, seed=0):
 
 
 def trade_part(duration, rates=(30.0, 60.0, 120.0, 1000.0), periods=(0.0, 0.5, 1.0, 2.0)):
-    print(f'\nTrade part (simulated time, {duration:g} s of the head script from 6 s: shake, turn, '
-          f'run, sharp stop; ticks at 120 Hz ±20 %, inputs ±20 % jitter): latency = '
+    print(f'\nTrade part (simulated time, {duration:g} s of the head script from 6 s: shake, '
+          f'turn, run, sharp stop; ticks at 120 Hz ±20 %, inputs ±20 % jitter): latency = '
           f'interpolation_delay')
     rows = []
     for noise in (False, True):

@@ -51,69 +51,82 @@ def pareto_plot(rows, path, scenes, mujoco_rows=(), recommended=None, title=None
     nrows = int(math.ceil(n / cols))
     fig, axes = plt.subplots(nrows, cols, figsize=(7.5 * cols, 5.6 * nrows), squeeze=False)
     for ax, scene in zip(axes.ravel(), scenes):
-        rs = [r for r in rows if r['scene'] == scene[0] and r['n_segments'] == scene[1]]
-        stable = [r for r in rs if r['stable'] and r['tip_rms_mm'] > 0]
-        top = max([r['tip_rms_mm'] for r in stable] + [1.0]) * 3.0
-        for r in rs:
-            x = r['cpu_s_per_sim_s']
-            if r['stable']:
-                color, marker = _style(r)
-                ax.scatter([x], [max(r['tip_rms_mm'], 1e-6)], c=color, marker=marker, s=36,
-                           zorder=3)
-                y = max(r['tip_rms_mm'], 1e-6)
-            else:
-                ax.scatter([x], [top], c='red', marker='x', s=40, zorder=3)
-                y = top
-            if r['stable']:
-                ax.annotate(r['setting'], (x, y), textcoords='offset points', xytext=(4, 3),
-                            fontsize=6.5)
-            if recommended and r['setting'] == recommended:
-                ax.scatter([x], [y], s=160, facecolors='none', edgecolors='k', linewidths=1.5,
-                           zorder=4)
-        if stable:
-            pts = [(r['cpu_s_per_sim_s'], r['tip_rms_mm']) for r in stable]
-            front = [pts[i] for i in pareto_front(pts)]
-            ax.plot([p[0] for p in front], [p[1] for p in front], 'k--', lw=0.8, zorder=2,
-                    label='Pareto front (ours)')
-        unstable = [r['setting'] for r in rs if not r['stable']]
-        if unstable:
-            ax.text(0.99, 0.99, 'guard reset (red x, drawn at the top):\n' + '\n'.join(unstable),
-                    transform=ax.transAxes, ha='right', va='top', fontsize=6, color='red',
-                    bbox=dict(facecolor='white', alpha=0.8, edgecolor='none'))
-        mj = [r for r in mujoco_rows if r['scene'] == scene[0] and r['n_segments'] == scene[1]
-              and r['engine'] == 'mujoco']
-        for r in mj:
-            x = r['cpu_s_per_sim_s']
-            y = r['tip_rms_mm'] if r['stable'] else top
-            ax.scatter([x], [y], c='tab:purple' if r['stable'] else 'red', marker='P', s=50, zorder=3)
-            ax.annotate(f'MuJoCo {r["dt_label"]}' + ('' if r['stable'] else ' (unstable)'), (x, y),
-                        textcoords='offset points', xytext=(4, -9), fontsize=6.5, color='tab:purple')
-        ax.set_xscale('log')
-        ax.set_yscale('log')
-        ax.set_xlabel('CPU seconds per simulated second')
-        ax.set_ylabel('tip RMS error vs converged reference (mm)')
-        ax.set_title(f'{scene[0]} (N = {scene[1]})')
-        ax.grid(True, which='both', lw=0.3, alpha=0.5)
-        handles = [
-            plt.Line2D([], [], color='tab:blue', marker='o', ls='', label='RK4'),
-            plt.Line2D([], [], color='tab:orange', marker='o', ls='', label='symplectic Euler'),
-            plt.Line2D([], [], color='tab:green', marker='o', ls='', label='RATTLE'),
-            plt.Line2D([], [], color='gray', marker='s', ls='', label='dense solve'),
-            plt.Line2D([], [], color='gray', marker='x', ls='', label='no projection'),
-            plt.Line2D([], [], color='gray', marker='D', ls='', label='Baumgarte, no projection'),
-            plt.Line2D([], [], color='gray', marker='^', ls='', label='head at frames (tick)'),
-            plt.Line2D([], [], color='red', marker='x', ls='', label='unstable (guard reset)'),
-            plt.Line2D([], [], color='k', ls='--', label='Pareto front'),
-        ]
-        if mj:
-            handles.append(plt.Line2D([], [], color='tab:purple', marker='P', ls='', label='MuJoCo RK4'))
-        ax.legend(handles=handles, fontsize=6.5, loc='lower left')
+        _pareto_panel(plt, ax, rows, scene, mujoco_rows, recommended)
     for ax in axes.ravel()[n:]:
         ax.axis('off')
     fig.suptitle(title or 'Speed/accuracy trade: one point per setting')
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
+
+
+def _pareto_panel(plt, ax, rows, scene, mujoco_rows, recommended):
+    """One scene's panel of ``pareto_plot``: our settings, the front, MuJoCo's points, legend."""
+    rs = [r for r in rows if r['scene'] == scene[0] and r['n_segments'] == scene[1]]
+    stable = [r for r in rs if r['stable'] and r['tip_rms_mm'] > 0]
+    top = max([r['tip_rms_mm'] for r in stable] + [1.0]) * 3.0
+    for r in rs:
+        _setting_point(ax, r, top, recommended)
+    if stable:
+        pts = [(r['cpu_s_per_sim_s'], r['tip_rms_mm']) for r in stable]
+        front = [pts[i] for i in pareto_front(pts)]
+        ax.plot([p[0] for p in front], [p[1] for p in front], 'k--', lw=0.8, zorder=2,
+                label='Pareto front (ours)')
+    unstable = [r['setting'] for r in rs if not r['stable']]
+    if unstable:
+        ax.text(0.99, 0.99, 'guard reset (red x, drawn at the top):\n' + '\n'.join(unstable),
+                transform=ax.transAxes, ha='right', va='top', fontsize=6, color='red',
+                bbox=dict(facecolor='white', alpha=0.8, edgecolor='none'))
+    mj = [r for r in mujoco_rows if r['scene'] == scene[0] and r['n_segments'] == scene[1]
+          and r['engine'] == 'mujoco']
+    for r in mj:
+        x = r['cpu_s_per_sim_s']
+        y = r['tip_rms_mm'] if r['stable'] else top
+        ax.scatter([x], [y], c='tab:purple' if r['stable'] else 'red', marker='P', s=50,
+                   zorder=3)
+        ax.annotate(f'MuJoCo {r["dt_label"]}' + ('' if r['stable'] else ' (unstable)'), (x, y),
+                    textcoords='offset points', xytext=(4, -9), fontsize=6.5,
+                    color='tab:purple')
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_xlabel('CPU seconds per simulated second')
+    ax.set_ylabel('tip RMS error vs converged reference (mm)')
+    ax.set_title(f'{scene[0]} (N = {scene[1]})')
+    ax.grid(True, which='both', lw=0.3, alpha=0.5)
+    handles = [
+        plt.Line2D([], [], color='tab:blue', marker='o', ls='', label='RK4'),
+        plt.Line2D([], [], color='tab:orange', marker='o', ls='', label='symplectic Euler'),
+        plt.Line2D([], [], color='tab:green', marker='o', ls='', label='RATTLE'),
+        plt.Line2D([], [], color='gray', marker='s', ls='', label='dense solve'),
+        plt.Line2D([], [], color='gray', marker='x', ls='', label='no projection'),
+        plt.Line2D([], [], color='gray', marker='D', ls='', label='Baumgarte, no projection'),
+        plt.Line2D([], [], color='gray', marker='^', ls='', label='head at frames (tick)'),
+        plt.Line2D([], [], color='red', marker='x', ls='', label='unstable (guard reset)'),
+        plt.Line2D([], [], color='k', ls='--', label='Pareto front'),
+    ]
+    if mj:
+        handles.append(plt.Line2D([], [], color='tab:purple', marker='P', ls='',
+                                  label='MuJoCo RK4'))
+    ax.legend(handles=handles, fontsize=6.5, loc='lower left')
+
+
+def _setting_point(ax, r, top, recommended):
+    """One setting's point: coloured by integrator if stable, a red cross at ``top`` if not."""
+    x = r['cpu_s_per_sim_s']
+    if r['stable']:
+        color, marker = _style(r)
+        ax.scatter([x], [max(r['tip_rms_mm'], 1e-6)], c=color, marker=marker, s=36,
+                   zorder=3)
+        y = max(r['tip_rms_mm'], 1e-6)
+    else:
+        ax.scatter([x], [top], c='red', marker='x', s=40, zorder=3)
+        y = top
+    if r['stable']:
+        ax.annotate(r['setting'], (x, y), textcoords='offset points', xytext=(4, 3),
+                    fontsize=6.5)
+    if recommended and r['setting'] == recommended:
+        ax.scatter([x], [y], s=160, facecolors='none', edgecolors='k', linewidths=1.5,
+                   zorder=4)
 
 
 def scaling_plot(rows, path, title=None):
@@ -166,8 +179,9 @@ def mujoco_plot(rows, path):
                          and r['stable'] and np.isfinite(r['tip_rms_mm'])],
                         key=lambda r: r['cpu_s_per_sim_s'])
             if rs:
+                label = f'{"ours RK4" if eng == "ours" else "MuJoCo RK4"} N={n}'
                 a1.plot([r['cpu_s_per_sim_s'] for r in rs], [r['tip_rms_mm'] for r in rs], ls=ls,
-                        marker=mk, color=col, label=f'{"ours RK4" if eng == "ours" else "MuJoCo RK4"} N={n}')
+                        marker=mk, color=col, label=label)
                 for r in rs:
                     a1.annotate(r['dt_label'], (r['cpu_s_per_sim_s'], r['tip_rms_mm']), fontsize=6,
                                 textcoords='offset points', xytext=(3, 2))

@@ -1,6 +1,7 @@
 """Accuracy against the independent reference trajectories (``../shared/reference/``).
 
-    python -m ponytail_ros.bench.reference_check [--steps 240 1000 8000] [--files N10_moving_hanging ...]
+    python -m ponytail_ros.bench.reference_check [--steps 240 1000 8000]
+        [--files N10_moving_hanging ...]
 
 For every file and internal step (RK4, head driven exactly): the largest distance of any joint
 point to the reference over the file's valid window, the tip's RMS distance, and the CPU time

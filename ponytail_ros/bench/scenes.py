@@ -24,6 +24,7 @@ against).
 """
 from dataclasses import dataclass, replace
 import os
+from typing import Optional
 
 import numpy as np
 
@@ -32,19 +33,20 @@ from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
 
 from .motions import reference_motion, shake_motion
 
-__all__ = ['BenchScene', 'make_scene', 'SCENES', 'EXTRA_SCENES', 'REFERENCE_DIR', 'shared_reference_path',
-           'ponytail_chain']
+__all__ = ['BenchScene', 'make_scene', 'SCENES', 'EXTRA_SCENES', 'REFERENCE_DIR',
+           'shared_reference_path', 'ponytail_chain']
 
 SCENES = ('moving', 'release', 'shake', 'rope')
 EXTRA_SCENES = ('damped',)
 REFERENCE_DIR = os.environ.get(
     'PONYTAIL_REFERENCE_DIR',
-    os.path.normpath(os.path.join(os.path.dirname(__file__), '..', '..', '..', 'shared', 'reference')))
+    os.path.normpath(os.path.join(os.path.dirname(__file__), '..', '..', '..', 'shared',
+                                  'reference')))
 
 
 @dataclass
 class BenchScene:
-    """A scene to benchmark: ``scene`` (its solver is replaced per setting), ``motion``, ``duration``.
+    """A scene to benchmark: ``scene`` (solver replaced per setting), ``motion``, ``duration``.
 
     ``still``: the head never moves (energy is conserved and its drift is measured).
     ``shared``: name of the matching file in ``../shared/reference/`` (or None).
@@ -56,7 +58,7 @@ class BenchScene:
     motion: object
     duration: float
     still: bool
-    shared: str = None
+    shared: Optional[str] = None
     description: str = ''
 
     @property
@@ -111,8 +113,9 @@ def make_scene(name, n_segments=None, solver=None, duration=None):
     elif name == 'rope':
         n = n_segments or 40
         a = np.radians(60.0)
-        chain = ChainSpec(name='rope', n_segments=n, length=2.0, mass=0.2, radius=0.005, damping=0.0,
-                          attach=(0.0, 0.0, 0.0), rest_direction=(np.sin(a), 0.0, -np.cos(a)))
+        chain = ChainSpec(name='rope', n_segments=n, length=2.0, mass=0.2, radius=0.005,
+                          damping=0.0, attach=(0.0, 0.0, 0.0),
+                          rest_direction=(np.sin(a), 0.0, -np.cos(a)))
         sc = Scene(chains=(chain,), solver=solver)
         b = BenchScene(name, sc, StillMotion((0.0, 0.0, 3.0)), 2.0, True, None,
                        f'rope N={n}, 2 m, released at 60° from a ceiling anchor')

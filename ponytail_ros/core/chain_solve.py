@@ -1,4 +1,4 @@
-"""The joint system A = J M⁻¹ Jᵀ of all chains: block-tridiagonal Cholesky, compiled.
+"""The joint system A = J M⁻¹ Jᵀ of all chains: block-tridiagonal LDLᵀ, compiled.
 
 A has one 3×3 block row per joint (joint i holds segment i's proximal point on its parent):
 diagonal blocks ``D[i]`` and coupling blocks ``L[i] = A[i, i-1]`` (zero where ``is_first[i]``:
@@ -6,13 +6,17 @@ chains do not couple, so a crowd of chains is one factorisation). Like MuJoCo's
 ``mj_factorM`` / ``mj_solveM`` pair, the factorisation is done once per configuration and
 solved for as many right-hand sides as the step needs:
 
-    A = 𝓛 𝓛ᵀ,   𝓛 lower block-bidiagonal: diagonal blocks C[i] (lower-triangular Cholesky
-                factors), sub-diagonal blocks Lo[i] = L[i] C[i-1]⁻ᵀ,
-                C[i] C[i]ᵀ = D[i] - Lo[i] Lo[i]ᵀ.
+    A = (1 + 𝓛) P (1 + 𝓛)ᵀ,   P_i = D_i - L_i P_{i-1}⁻¹ L_iᵀ,   𝓛_i = L_i P_{i-1}⁻¹,
 
-O(n) in time and memory, no LAPACK call; ``factor`` returns False (nothing is raised inside
-compiled code) when a pivot is not positive: A is then not positive definite, which a valid
-chain never produces (a blow-up does).
+with block-diagonal pivots P (3×3, symmetric positive definite) and the sub-diagonal 𝓛. The
+factors kept are ``Pinv[i]`` = P_i⁻¹ (inverted once, by cofactors) and ``Lo[i]`` = 𝓛_i, so a
+solve is multiplications only: no square root and no division in either pass. Divisions and
+square roots cost ten multiplications each and lie on the recursion's critical path; a
+block Cholesky would need six per joint. O(n) in time and memory, no LAPACK call.
+
+``factor`` returns False (nothing is raised inside compiled code) when a pivot is not positive
+definite (Sylvester's criterion on P_i): A is then not positive definite, which a valid chain
+never produces (a blow-up does).
 """
 import numba as nb
 import numpy as np
@@ -21,37 +25,29 @@ __all__ = ['factor', 'solve', 'solve_many']
 
 
 @nb.njit(cache=True, inline='always')
-def _chol3(A, C):
-    """Lower Cholesky factor ``C`` of the symmetric 3×3 ``A``; False if not positive definite."""
-    a00 = A[0, 0]
-    if not a00 > 0.0:
+def _invert_spd3(S, out):
+    """``out`` = S⁻¹ for a symmetric 3×3 ``S``; False unless S is positive definite."""
+    s00, s01, s02 = S[0, 0], S[0, 1], S[0, 2]
+    s11, s12, s22 = S[1, 1], S[1, 2], S[2, 2]
+    c00 = s11 * s22 - s12 * s12
+    c01 = s02 * s12 - s01 * s22
+    c02 = s01 * s12 - s02 * s11
+    det = s00 * c00 + s01 * c01 + s02 * c02
+    if not (s00 > 0.0 and s00 * s11 - s01 * s01 > 0.0 and det > 0.0):
         return False
-    c00 = np.sqrt(a00)
-    c10 = A[1, 0] / c00
-    c20 = A[2, 0] / c00
-    a11 = A[1, 1] - c10 * c10
-    if not a11 > 0.0:
-        return False
-    c11 = np.sqrt(a11)
-    c21 = (A[2, 1] - c20 * c10) / c11
-    a22 = A[2, 2] - c20 * c20 - c21 * c21
-    if not a22 > 0.0:
-        return False
-    C[0, 0] = c00
-    C[0, 1] = 0.0
-    C[0, 2] = 0.0
-    C[1, 0] = c10
-    C[1, 1] = c11
-    C[1, 2] = 0.0
-    C[2, 0] = c20
-    C[2, 1] = c21
-    C[2, 2] = np.sqrt(a22)
+    r = 1.0 / det
+    out[0, 0] = c00 * r
+    out[0, 1] = out[1, 0] = c01 * r
+    out[0, 2] = out[2, 0] = c02 * r
+    out[1, 1] = (s00 * s22 - s02 * s02) * r
+    out[1, 2] = out[2, 1] = (s01 * s02 - s00 * s12) * r
+    out[2, 2] = (s00 * s11 - s01 * s01) * r
     return True
 
 
 @nb.njit(cache=True)
-def factor(D, L, is_first, C, Lo):
-    """Factorise A (blocks ``D``, ``L`` ``(n, 3, 3)``) into ``C``, ``Lo`` (written in place).
+def factor(D, L, is_first, Pinv, Lo):
+    """Factorise A (blocks ``D``, ``L`` ``(n, 3, 3)``) into ``Pinv`` and ``Lo`` (in place).
 
     Returns True on success, False if A is not positive definite.
     """
@@ -66,57 +62,47 @@ def factor(D, L, is_first, C, Lo):
                 for b in range(3):
                     Lo[i, a, b] = 0.0
         else:
-            # Lo[i] = L[i] C[i-1]⁻ᵀ: solve Lo[i] C[i-1]ᵀ = L[i] row by row (forward).
             for a in range(3):
                 for b in range(3):
-                    s = L[i, a, b]
-                    for k in range(b):
-                        s -= Lo[i, a, k] * C[i - 1, b, k]
-                    Lo[i, a, b] = s / C[i - 1, b, b]
+                    Lo[i, a, b] = (L[i, a, 0] * Pinv[i - 1, 0, b] + L[i, a, 1] * Pinv[i - 1, 1, b]
+                                   + L[i, a, 2] * Pinv[i - 1, 2, b])
             for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for k in range(3):
-                        s += Lo[i, a, k] * Lo[i, b, k]
+                for b in range(a, 3):
+                    s = Lo[i, a, 0] * L[i, b, 0] + Lo[i, a, 1] * L[i, b, 1] + Lo[i, a, 2] * L[i, b, 2]
                     S[a, b] -= s
-        if not _chol3(S, C[i]):
+                    S[b, a] = S[a, b]
+        if not _invert_spd3(S, Pinv[i]):
             return False
     return True
 
 
 @nb.njit(cache=True)
-def solve(C, Lo, is_first, b):
+def solve(Pinv, Lo, is_first, b):
     """Solve A x = b with the factors of ``factor``; ``b`` ``(n, 3)`` is overwritten by x."""
     n = b.shape[0]
-    # Forward: 𝓛 y = b.
-    for i in range(n):
-        r0, r1, r2 = b[i, 0], b[i, 1], b[i, 2]
+    # Forward: (1 + 𝓛) z = b.
+    for i in range(1, n):
         if not is_first[i]:
-            for k in range(3):
-                r0 -= Lo[i, 0, k] * b[i - 1, k]
-                r1 -= Lo[i, 1, k] * b[i - 1, k]
-                r2 -= Lo[i, 2, k] * b[i - 1, k]
-        y0 = r0 / C[i, 0, 0]
-        y1 = (r1 - C[i, 1, 0] * y0) / C[i, 1, 1]
-        y2 = (r2 - C[i, 2, 0] * y0 - C[i, 2, 1] * y1) / C[i, 2, 2]
-        b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
-    # Backward: 𝓛ᵀ x = y.
+            z0, z1, z2 = b[i - 1, 0], b[i - 1, 1], b[i - 1, 2]
+            b[i, 0] -= Lo[i, 0, 0] * z0 + Lo[i, 0, 1] * z1 + Lo[i, 0, 2] * z2
+            b[i, 1] -= Lo[i, 1, 0] * z0 + Lo[i, 1, 1] * z1 + Lo[i, 1, 2] * z2
+            b[i, 2] -= Lo[i, 2, 0] * z0 + Lo[i, 2, 1] * z1 + Lo[i, 2, 2] * z2
+    # Pivots and backward: (1 + 𝓛)ᵀ x = P⁻¹ z.
     for i in range(n - 1, -1, -1):
-        r0, r1, r2 = b[i, 0], b[i, 1], b[i, 2]
+        z0, z1, z2 = b[i, 0], b[i, 1], b[i, 2]
+        y0 = Pinv[i, 0, 0] * z0 + Pinv[i, 0, 1] * z1 + Pinv[i, 0, 2] * z2
+        y1 = Pinv[i, 1, 0] * z0 + Pinv[i, 1, 1] * z1 + Pinv[i, 1, 2] * z2
+        y2 = Pinv[i, 2, 0] * z0 + Pinv[i, 2, 1] * z1 + Pinv[i, 2, 2] * z2
         if i + 1 < n and not is_first[i + 1]:
-            for k in range(3):
-                xk = b[i + 1, k]
-                r0 -= Lo[i + 1, k, 0] * xk
-                r1 -= Lo[i + 1, k, 1] * xk
-                r2 -= Lo[i + 1, k, 2] * xk
-        x2 = r2 / C[i, 2, 2]
-        x1 = (r1 - C[i, 2, 1] * x2) / C[i, 1, 1]
-        x0 = (r0 - C[i, 1, 0] * x1 - C[i, 2, 0] * x2) / C[i, 0, 0]
-        b[i, 0], b[i, 1], b[i, 2] = x0, x1, x2
+            x0, x1, x2 = b[i + 1, 0], b[i + 1, 1], b[i + 1, 2]
+            y0 -= Lo[i + 1, 0, 0] * x0 + Lo[i + 1, 1, 0] * x1 + Lo[i + 1, 2, 0] * x2
+            y1 -= Lo[i + 1, 0, 1] * x0 + Lo[i + 1, 1, 1] * x1 + Lo[i + 1, 2, 1] * x2
+            y2 -= Lo[i + 1, 0, 2] * x0 + Lo[i + 1, 1, 2] * x1 + Lo[i + 1, 2, 2] * x2
+        b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
 
 
 @nb.njit(cache=True)
-def solve_many(C, Lo, is_first, B):
+def solve_many(Pinv, Lo, is_first, B):
     """Solve A X = B for ``B`` ``(k, n, 3)`` (k right-hand sides), in place."""
     for r in range(B.shape[0]):
-        solve(C, Lo, is_first, B[r])
+        solve(Pinv, Lo, is_first, B[r])

@@ -111,6 +111,12 @@ class AnchorKinematics:
     angular_velocity: np.ndarray
 
 
+def stack_anchors(anchors):
+    """One ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` from a sequence of ``S`` of them."""
+    return AnchorKinematics(*(np.stack([getattr(a, f) for a in anchors]) for f in (
+        'position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')))
+
+
 class HeadMotion:
     """A prescribed motion: ``state_at(t)`` returns the ``KinematicState`` at time ``t`` (s)."""
 
@@ -205,6 +211,31 @@ class AnchorTrack:
         self.a0, self.a1 = a0, a1
         self.c = _quintic_coefficients(self.h, a0.position, a0.velocity, a0.acceleration,
                                        a1.position, a1.velocity, a1.acceleration)
+
+    def table(self, times):
+        """The anchors at all ``times`` ``(S,)`` at once: ``at`` vectorised, as the rows of an
+        ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` (the compiled step's anchor table)."""
+        t = np.asarray(times, dtype=float)
+        s = (t - self.t0) / self.h
+        ss = s[:, None, None]
+        c0, c1, c2, c3, c4, c5 = self.c
+        p = c0 + ss * (c1 + ss * (c2 + ss * (c3 + ss * (c4 + ss * c5))))
+        dp = (c1 + ss * (2.0 * c2 + ss * (3.0 * c3 + ss * (4.0 * c4 + ss * 5.0 * c5)))) / self.h
+        ddp = (2.0 * c2 + ss * (6.0 * c3 + ss * (12.0 * c4 + ss * 20.0 * c5))) / (self.h * self.h)
+        for outside, end, t_end in ((s < 0.0, self.a0, self.t0), (s > 1.0, self.a1,
+                                                                   self.t0 + self.h)):
+            if np.any(outside):
+                tau = (t[outside] - t_end)[:, None, None]
+                p[outside] = end.position + tau * (end.velocity + 0.5 * tau * end.acceleration)
+                dp[outside] = end.velocity + tau * end.acceleration
+                ddp[outside] = end.acceleration
+        sc = np.clip(s, 0.0, 1.0)
+        scc = sc[:, None, None]
+        return AnchorKinematics(
+            position=p, velocity=dp, acceleration=ddp,
+            orientation=quat_slerp(self.a0.orientation, self.a1.orientation, sc[:, None]),
+            angular_velocity=(1.0 - scc) * self.a0.angular_velocity
+            + scc * self.a1.angular_velocity)
 
     def at(self, t):
         s = (t - self.t0) / self.h

@@ -12,11 +12,18 @@ Segment frame: origin at the centre of mass, body +X along the segment from its 
 
 Every field is checked by ``validate()``; an error names the field, the value and the allowed
 range (``SceneError``, a ``ValueError``).
+
+Types: a vector field (``attach``, ``center``, ``gravity``, ...) takes any three numbers (a
+tuple keeps the spec hashable; a list or an array is accepted and checked); a per-segment or
+per-joint field takes N numbers, a joint limit one angle or N of them.
 """
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 import math
+from typing import Any, Optional, Self, Union
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = ['SceneError', 'ChainSpec', 'ColliderSpec', 'SolverSpec', 'Scene', 'cylinder_inertia',
            'INTEGRATORS', 'LINEAR_SOLVERS', 'DAMPING_METHODS', 'COLLIDER_KINDS', 'MAX_SEGMENTS',
@@ -29,18 +36,28 @@ COLLIDER_KINDS = ('sphere', 'capsule', 'plane')
 MAX_SEGMENTS = 4096
 MAX_COLLIDERS = 256
 
+#: Three numbers: a point (m), a direction or a vector (m/s, m/s²), in the frame the field names.
+Vector3 = Sequence[float]
+#: One number per segment (or per joint), root first.
+PerSegment = Sequence[float]
+#: A joint limit, rad: one angle for every joint, or one per joint, root first.
+Limit = Union[float, Sequence[float]]
+#: A float array (``np.ndarray`` of ``float64``).
+FloatArray = npt.NDArray[np.float64]
+
 
 class SceneError(ValueError):
     """A scene field is out of its allowed range."""
 
-    def __init__(self, field_name, value, allowed):
+    def __init__(self, field_name: str, value: object, allowed: str) -> None:
         self.field = field_name
         self.value = value
         self.allowed = allowed
         super().__init__(f'{field_name} = {value!r} is not allowed: must be {allowed}')
 
 
-def cylinder_inertia(mass, length, radius):
+def cylinder_inertia(mass: npt.ArrayLike, length: npt.ArrayLike,
+                     radius: npt.ArrayLike) -> FloatArray:
     """Principal moments ``(n, 3)`` of solid cylinders about their centre, axis along +X."""
     mass, length, radius = np.broadcast_arrays(*(np.asarray(a, dtype=float)
                                                   for a in (mass, length, radius)))
@@ -49,14 +66,16 @@ def cylinder_inertia(mass, length, radius):
     return np.stack([axial, perp, perp], axis=-1)
 
 
-def _check_range(name, value, lo, hi, lo_open=False, hi_open=False):
+def _check_range(name: str, value: float, lo: float, hi: float, lo_open: bool = False,
+                 hi_open: bool = False) -> None:
     ok = (math.isfinite(value) and (value > lo if lo_open else value >= lo)
           and (value < hi if hi_open else value <= hi))
     if not ok:
-        raise SceneError(name, value, f'in {"(" if lo_open else "["}{lo}, {hi}{")" if hi_open else "]"}')
+        raise SceneError(name, value,
+                         f'in {"(" if lo_open else "["}{lo}, {hi}{")" if hi_open else "]"}')
 
 
-def _check_vector(name, value, n=3, max_abs=1e6):
+def _check_vector(name: str, value: Any, n: int = 3, max_abs: float = 1e6) -> FloatArray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (n,) or not np.all(np.isfinite(arr)) or np.any(np.abs(arr) > max_abs):
         raise SceneError(name, value, f'{n} finite numbers, each within ±{max_abs:g}')
@@ -66,7 +85,7 @@ def _check_vector(name, value, n=3, max_abs=1e6):
 MAX_LIMIT = 3.1
 
 
-def _check_limit(name, value, n):
+def _check_limit(name: str, value: Optional[Limit], n: int) -> None:
     """A joint limit: ``None``, one angle or ``n`` angles, each in (0, MAX_LIMIT] rad."""
     if value is None:
         return
@@ -119,25 +138,27 @@ class ChainSpec:
     length: float = 0.4
     mass: float = 0.1
     radius: float = 0.01
-    segment_lengths: tuple = None
-    segment_masses: tuple = None
-    inertia: tuple = None
+    segment_lengths: Optional[PerSegment] = None
+    segment_masses: Optional[PerSegment] = None
+    inertia: Optional[Sequence[Sequence[float]]] = None
     anchor_body: int = 0
-    attach: tuple = (-0.10, 0.0, 0.05)
-    rest_direction: tuple = None
+    attach: Vector3 = (-0.10, 0.0, 0.05)
+    rest_direction: Optional[Vector3] = None
     damping: float = 1e-3
     stiffness: float = 0.0
     drag_linear: float = 0.0
     drag_quadratic: float = 0.0
-    swing_limit: float = None
-    twist_limit: float = None
+    swing_limit: Optional[Limit] = None
+    twist_limit: Optional[Limit] = None
     collide: bool = True
 
-    def validate(self, prefix='chain', n_kinematic_bodies=1):
+    def validate(self, prefix: str = 'chain', n_kinematic_bodies: int = 1) -> Self:  # noqa: C901
+        """This chain, if every field is in range (``prefix`` names it); else ``SceneError``."""
         p = prefix + '.'
-        if not isinstance(self.n_segments, (int, np.integer)) or isinstance(self.n_segments, bool) \
-                or not 1 <= self.n_segments <= MAX_SEGMENTS:
-            raise SceneError(p + 'n_segments', self.n_segments, f'an integer in [1, {MAX_SEGMENTS}]')
+        if not isinstance(self.n_segments, (int, np.integer)) \
+                or isinstance(self.n_segments, bool) or not 1 <= self.n_segments <= MAX_SEGMENTS:
+            raise SceneError(p + 'n_segments', self.n_segments,
+                             f'an integer in [1, {MAX_SEGMENTS}]')
         _check_range(p + 'length', self.length, 1e-4, 1e3)
         _check_range(p + 'mass', self.mass, 1e-7, 1e4)
         _check_range(p + 'radius', self.radius, 1e-6, 10.0)
@@ -147,12 +168,13 @@ class ChainSpec:
             if val is not None:
                 arr = np.asarray(val, dtype=float)
                 if arr.shape != (n,) or not np.all(np.isfinite(arr)) or np.any(arr <= 0.0):
-                    raise SceneError(p + name, val, f'{n} positive finite numbers (one per segment)')
+                    raise SceneError(p + name, val,
+                                     f'{n} positive finite numbers (one per segment)')
         if self.inertia is not None:
             arr = np.asarray(self.inertia, dtype=float)
             if arr.shape != (n, 3) or not np.all(np.isfinite(arr)) or np.any(arr <= 0.0):
-                raise SceneError(p + 'inertia', self.inertia,
-                                 f'an array of shape ({n}, 3) of positive principal moments, kg·m²')
+                raise SceneError(p + 'inertia', self.inertia, f'an array of shape ({n}, 3) of '
+                                 'positive principal moments, kg·m²')
         if not isinstance(self.anchor_body, (int, np.integer)) or not \
                 0 <= self.anchor_body < n_kinematic_bodies:
             raise SceneError(p + 'anchor_body', self.anchor_body,
@@ -172,25 +194,28 @@ class ChainSpec:
             raise SceneError(p + 'collide', self.collide, 'True or False')
         return self
 
-    def joint_limits(self, name):
+    def joint_limits(self, name: str) -> FloatArray:
         """``(N,)`` array of a limit (``'swing_limit'``/``'twist_limit'``), rad; inf where off."""
         val = getattr(self, name)
         if val is None:
             return np.full(self.n_segments, np.inf)
         return np.broadcast_to(np.asarray(val, dtype=float), (self.n_segments,)).copy()
 
-    def lengths(self):
+    def lengths(self) -> FloatArray:
+        """``(N,)`` segment lengths, m, root first."""
         if self.segment_lengths is not None:
             return np.asarray(self.segment_lengths, dtype=float)
         return np.full(self.n_segments, self.length / self.n_segments)
 
-    def masses(self):
+    def masses(self) -> FloatArray:
+        """``(N,)`` segment masses, kg, root first."""
         if self.segment_masses is not None:
             return np.asarray(self.segment_masses, dtype=float)
         lengths = self.lengths()
         return self.mass * lengths / lengths.sum()
 
-    def principal_inertia(self):
+    def principal_inertia(self) -> FloatArray:
+        """``(N, 3)`` principal moments about each centre (axial X, then Y, Z), kg·m²."""
         if self.inertia is not None:
             return np.asarray(self.inertia, dtype=float)
         return cylinder_inertia(self.masses(), self.lengths(), self.radius)
@@ -217,27 +242,34 @@ class ColliderSpec:
     """
 
     kind: str = 'sphere'
-    body: int = 0
-    center: tuple = (0.0, 0.0, 0.0)
-    axis: tuple = (0.0, 0.0, 1.0)
+    body: Optional[int] = 0
+    center: Vector3 = (0.0, 0.0, 0.0)
+    axis: Vector3 = (0.0, 0.0, 1.0)
     radius: float = 0.1
     half_length: float = 0.0
     friction: float = 0.0
 
     @classmethod
-    def sphere(cls, center=(0.0, 0.0, 0.0), radius=0.1, body=0, friction=0.0):
+    def sphere(cls, center: Vector3 = (0.0, 0.0, 0.0), radius: float = 0.1,
+               body: Optional[int] = 0, friction: float = 0.0) -> Self:
+        """A sphere of ``radius`` about ``center``."""
         return cls('sphere', body, tuple(center), (0.0, 0.0, 1.0), radius, 0.0, friction)
 
     @classmethod
-    def capsule(cls, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), half_length=0.1, radius=0.05,
-                body=0, friction=0.0):
+    def capsule(cls, center: Vector3 = (0.0, 0.0, 0.0), axis: Vector3 = (0.0, 0.0, 1.0),
+                half_length: float = 0.1, radius: float = 0.05, body: Optional[int] = 0,
+                friction: float = 0.0) -> Self:
+        """A capsule: the points within ``radius`` of ``center ± half_length · axis``."""
         return cls('capsule', body, tuple(center), tuple(axis), radius, half_length, friction)
 
     @classmethod
-    def plane(cls, point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), body=None, friction=0.0):
+    def plane(cls, point: Vector3 = (0.0, 0.0, 0.0), normal: Vector3 = (0.0, 0.0, 1.0),
+              body: Optional[int] = None, friction: float = 0.0) -> Self:
+        """A plane through ``point``; ``normal`` points to the free side."""
         return cls('plane', body, tuple(point), tuple(normal), 0.1, 0.0, friction)
 
-    def validate(self, prefix='collider', n_kinematic_bodies=1):
+    def validate(self, prefix: str = 'collider', n_kinematic_bodies: int = 1) -> Self:
+        """This collider, if every field is in range (``prefix`` names it); else ``SceneError``."""
         p = prefix + '.'
         if self.kind not in COLLIDER_KINDS:
             raise SceneError(p + 'kind', self.kind, f'one of {COLLIDER_KINDS}')
@@ -316,22 +348,25 @@ class SolverSpec:
     guard_max_gap: float = 1e-3
     guard_max_step_angle: float = 2.5
 
-    def validate(self, prefix='solver'):
+    def validate(self, prefix: str = 'solver') -> Self:
+        """These settings, if every field is in range (``prefix`` names them), else SceneError."""
         p = prefix + '.'
         if self.integrator not in INTEGRATORS:
             raise SceneError(p + 'integrator', self.integrator, f'one of {INTEGRATORS}')
         if self.integrator == 'rattle' and not self.projection:
-            raise SceneError(p + 'projection', self.projection,
-                             "true with integrator 'rattle' (its velocity projection is part of the step)")
+            raise SceneError(p + 'projection', self.projection, "true with integrator 'rattle' "
+                             '(its velocity projection is part of the step)')
         _check_range(p + 'dt', self.dt, 1e-6, 0.1)
         if not isinstance(self.max_steps_per_call, (int, np.integer)) or \
                 not 1 <= self.max_steps_per_call <= 1_000_000:
             raise SceneError(p + 'max_steps_per_call', self.max_steps_per_call,
                              'an integer in [1, 1000000]')
         if self.damping_method not in DAMPING_METHODS:
-            raise SceneError(p + 'damping_method', self.damping_method, f'one of {DAMPING_METHODS}')
+            raise SceneError(p + 'damping_method', self.damping_method,
+                             f'one of {DAMPING_METHODS}')
         if self.linear_solver not in LINEAR_SOLVERS:
-            raise SceneError(p + 'linear_solver', self.linear_solver, f'one of {LINEAR_SOLVERS}')
+            raise SceneError(p + 'linear_solver', self.linear_solver,
+                             f'one of {LINEAR_SOLVERS}')
         _check_range(p + 'baumgarte_stiffness', self.baumgarte_stiffness, 0.0, 1e8)
         _check_range(p + 'baumgarte_damping', self.baumgarte_damping, 0.0, 1e4)
         _check_range(p + 'guard_max_speed', self.guard_max_speed, 1e-3, 1e6, lo_open=True)
@@ -346,27 +381,29 @@ class Scene:
     """Chains, kinematic bodies, world settings and solver settings.
 
     Attributes:
-        chains: the chains, each a ``ChainSpec``.
+        chains: the chains, each a ``ChainSpec`` (a list is stored as a tuple).
         n_kinematic_bodies: how many heads/anchors the motion supplies each instant.
         gravity: m/s², world frame.
         wind: velocity of the air, m/s, world frame (drag acts on velocity relative to it).
         solver: a ``SolverSpec``.
-        colliders: ``ColliderSpec``s (at most 256); empty: no collision code runs at all.
+        colliders: ``ColliderSpec``s (at most 256; a list is stored as a tuple); empty: no
+            collision code runs at all.
     """
 
-    chains: tuple = (ChainSpec(),)
+    chains: tuple[ChainSpec, ...] = (ChainSpec(),)
     n_kinematic_bodies: int = 1
-    gravity: tuple = (0.0, 0.0, -9.81)
-    wind: tuple = (0.0, 0.0, 0.0)
+    gravity: Vector3 = (0.0, 0.0, -9.81)
+    wind: Vector3 = (0.0, 0.0, 0.0)
     solver: SolverSpec = field(default_factory=SolverSpec)
-    colliders: tuple = ()
+    colliders: tuple[ColliderSpec, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, 'chains', tuple(self.chains))
         object.__setattr__(self, 'colliders', tuple(self.colliders))
         self.validate()
 
-    def validate(self):
+    def validate(self) -> Self:
+        """This scene, if every field of it is in range; else ``SceneError`` naming the field."""
         if not isinstance(self.n_kinematic_bodies, (int, np.integer)) or \
                 not 1 <= self.n_kinematic_bodies <= 1_000_000:
             raise SceneError('n_kinematic_bodies', self.n_kinematic_bodies,
@@ -383,18 +420,20 @@ class Scene:
             raise SceneError('solver', self.solver, 'a SolverSpec')
         self.solver.validate()
         if len(self.colliders) > MAX_COLLIDERS:
-            raise SceneError('colliders', len(self.colliders), f'at most {MAX_COLLIDERS} colliders')
-        for i, c in enumerate(self.colliders):
-            if not isinstance(c, ColliderSpec):
-                raise SceneError(f'colliders[{i}]', c, 'a ColliderSpec')
-            c.validate(f'colliders[{i}]', self.n_kinematic_bodies)
+            raise SceneError('colliders', len(self.colliders),
+                             f'at most {MAX_COLLIDERS} colliders')
+        for i, col in enumerate(self.colliders):
+            if not isinstance(col, ColliderSpec):
+                raise SceneError(f'colliders[{i}]', col, 'a ColliderSpec')
+            col.validate(f'colliders[{i}]', self.n_kinematic_bodies)
         return self
 
     @property
-    def n_segments(self):
+    def n_segments(self) -> int:
+        """Segments of all chains."""
         return sum(c.n_segments for c in self.chains)
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> Self:
         """A validated copy with ``changes`` applied (dataclasses.replace)."""
         return replace(self, **changes)
 

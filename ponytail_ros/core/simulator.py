@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import collision
-from .head import AnchorTrack, HeadMotion, KinematicState
+from . import step as compiled
+from .head import AnchorTrack, HeadMotion, KinematicState, stack_anchors
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -51,6 +52,8 @@ MAX_SUBSTEPS = 8
 GYROSCOPIC_REACH_RATIO = 2.5
 
 _X = np.array([1.0, 0.0, 0.0])
+_INTEGRATOR_IDS = {'rk4': compiled.RK4, 'symplectic_euler': compiled.SYMPLECTIC_EULER,
+                   'rattle': compiled.RATTLE}
 
 # name -> (allowed range, per-chain?) of the parameters that can change between steps.
 TUNABLE_PARAMETERS = {
@@ -97,6 +100,11 @@ class Simulator:
         self._explicit_gyroscopic = s.integrator == 'rk4'
         self.dynamics = Dynamics(self.model, s.linear_solver,
                                  (s.baumgarte_stiffness, s.baumgarte_damping))
+        # The compiled step (``step``) runs every banded scene; ``linear_solver: dense`` keeps
+        # the NumPy reference step (``integrators`` + ``solver``) as the cross-check.
+        self._compiled = s.linear_solver == 'banded'
+        self._half = 0.5 * self.model.length
+        self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
@@ -257,7 +265,8 @@ class Simulator:
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         if not self._needs_bodies:
-            report = self._advance(t_frame, _memo_last(track.at), lambda t: head)
+            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+                                   anchor_table=track.table)
         else:
             # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
             b_prev = self._last_bodies[1] if head_prev is None else _body_kinematics(head_prev)
@@ -271,7 +280,53 @@ class Simulator:
         self._last_anchor = (float(t_frame), a_new)
         return report
 
-    def _advance(self, t_target, anchor_at, head_at, bodies_at=None):
+    def _stage_times(self, n_steps):
+        """Times ``(2 n_steps + 1,)`` of the anchor table of the next ``n_steps`` steps: row
+        ``2k`` at step k's start, ``2k + 1`` at its midpoint, ``2k + 2`` at its end."""
+        k = self._n_steps + np.arange(n_steps + 1)
+        t = self._t_base + k * self.dt
+        times = np.empty(2 * n_steps + 1)
+        times[0::2] = t
+        times[1::2] = t[:-1] + 0.5 * self.dt
+        return times
+
+    def _step_model(self):
+        """The compiled step's ``StepModel``: the model's current arrays and switches."""
+        m, s = self.model, self.scene.solver
+        damping = m.active_terms['damping']
+        return compiled.StepModel(
+            length=m.length, half=self._half, mass=m.mass, inv_mass=m.inv_mass,
+            inertia=m.inertia, inv_inertia=m.inv_inertia, chain_of=m.chain_of, is_first=m.is_first,
+            has_child=m.has_child, damping=m.damping, stiffness=m.stiffness,
+            drag_linear=m.drag_linear, drag_quadratic=m.drag_quadratic, q_rest=m.q_rest,
+            gravity=np.asarray(m.gravity, dtype=float), wind=np.asarray(m.wind, dtype=float),
+            axisymmetric=bool(self.dynamics.axisymmetric),
+            integrator=_INTEGRATOR_IDS[s.integrator], projection=bool(s.projection),
+            gravity_on=m.active_terms['gravity'],
+            explicit_damping=bool(damping and not m.implicit_damping),
+            implicit_damping=bool(damping and m.implicit_damping),
+            stiffness_on=m.active_terms['stiffness'], drag_on=m.active_terms['drag'],
+            external_on=self.external is not None,
+            baumgarte_stiffness=float(s.baumgarte_stiffness),
+            baumgarte_damping=float(s.baumgarte_damping))
+
+    def _run_compiled(self, n_steps, h, table, x, q, v, w):
+        """``n_steps`` steps of ``h`` in one compiled call, the state arrays updated in place."""
+        ext_F, ext_T = self.external if self.external is not None else (self._zeros,
+                                                                         self._zeros)
+        A = compiled.AnchorTable(*(np.ascontiguousarray(a, dtype=float) for a in (
+            table.position, table.velocity, table.acceleration, table.orientation,
+            table.angular_velocity)))
+        f_c = np.zeros((self.model.n, 3))
+        status = compiled.advance(self._step_model(), A, n_steps, h, x, q, v, w, ext_F, ext_T,
+                                  f_c)
+        self.dynamics.last_f_c = f_c
+        if status == compiled.JOINT_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
+        if status == compiled.DAMPING_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('implicit damping KKT system is singular')
+
+    def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None):
         report = StepReport()
         n_target = int(np.floor((t_target - self._t_base) / self.dt + 1e-9))
         n_steps = n_target - self._n_steps
@@ -297,6 +352,13 @@ class Simulator:
             if self.unilateral is not None:
                 x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
                                                     x, q, v, w)
+            elif self._compiled:
+                if n_steps > 0:
+                    table = anchor_table(self._stage_times(n_steps)) if anchor_table else \
+                        stack_anchors([anchor_at(t) for t in self._stage_times(n_steps)])
+                    x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+                    self._run_compiled(n_steps, self.dt, table, x, q, v, w)
+                    self._n_steps += n_steps
             else:
                 for _ in range(max(n_steps, 0)):
                     t = self._t_base + self._n_steps * self.dt
@@ -349,14 +411,19 @@ class Simulator:
             h = self.dt / n_sub
             for k in range(n_sub):
                 t = t0 + k * h
-                x, q, v, w = self._step(system, t, h, x, q, v, w)
                 t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
                     self._t_base + (self._n_steps + 1) * self.dt
                 a1 = anchor_at(t1)
-                if implicit_damping:
-                    v, w = dyn.implicit_damping(x, q, v, w, a1, h)
-                if project:
-                    x, v = self._project(a1, x, q, v, w)
+                if self._compiled:
+                    x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+                    self._run_compiled(1, h, stack_anchors([anchor_at(t), anchor_at(t + 0.5 * h),
+                                                            a1]), x, q, v, w)
+                else:
+                    x, q, v, w = self._step(system, t, h, x, q, v, w)
+                    if implicit_damping:
+                        v, w = dyn.implicit_damping(x, q, v, w, a1, h)
+                    if project:
+                        x, v = self._project(a1, x, q, v, w)
                 pose = uni.pose(bodies_at(t1) if bodies_at else None)
                 x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
             self._n_steps += 1

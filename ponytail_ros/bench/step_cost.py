@@ -1,0 +1,111 @@
+"""``python -m ponytail_ros.bench.step_cost``: CPU per internal step, the compiled step against
+MuJoCo's ``mj_step``, measured in the same run on the same chain (RK4, head driven exactly).
+
+Ours is timed two ways: the kernel alone (``step.advance`` over a precomputed anchor table:
+the physics) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a node pays,
+Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of binding
+per call). Crowds: C chains of 16 segments in one scene, per chain-step, against one
+16-segment chain in MuJoCo. Prints a table; ``--json`` writes the rows.
+"""
+import argparse
+import json
+import time
+
+import numpy as np
+
+from ponytail_ros.core import step as compiled
+from ponytail_ros.core.head import stack_anchors
+from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
+from ponytail_ros.core.simulator import Simulator
+
+from . import mujoco_chain
+from .scenes import make_scene
+
+DT = 1e-3
+
+
+def _best(f, repeats):
+    best = np.inf
+    for _ in range(repeats):
+        c0 = time.process_time()
+        f()
+        best = min(best, time.process_time() - c0)
+    return best
+
+
+def kernel_cost(scene, motion, integrator='rk4', n_steps=1000, repeats=5):
+    """CPU seconds per step of ``step.advance`` alone (anchor table precomputed)."""
+    sim = Simulator(scene, motion, 0.0)
+    times = sim._stage_times(n_steps)
+    tab = stack_anchors([sim.anchors(motion.state_at(t)) for t in times])
+    A = compiled.AnchorTable(*(np.ascontiguousarray(a) for a in tab.__dict__.values()))
+    M = sim._step_model()
+    st = sim.state
+    zeros = np.zeros((sim.model.n, 3))
+    f_c = np.zeros((sim.model.n, 3))
+
+    def run():
+        x, q, v, w = (a.copy() for a in (st.x, st.q, st.v, st.w))
+        status = compiled.advance(M, A, n_steps, scene.solver.dt, x, q, v, w, zeros, zeros, f_c)
+        assert status == compiled.OK
+    run()
+    return _best(run, repeats) / n_steps
+
+
+def simulator_cost(scene, motion, duration=1.0, tick=1 / 120, repeats=3):
+    """CPU seconds per internal step through ``Simulator.advance_to`` at ticks of ``tick``."""
+    def run():
+        sim = Simulator(scene, motion, 0.0)
+        for k in range(1, int(round(duration / tick)) + 1):
+            sim.advance_to(k * tick, motion)
+        return sim
+    run()
+    n_steps = int(round(duration / scene.solver.dt))
+    return _best(run, repeats) / n_steps
+
+
+def mujoco_cost(bench, n_steps=2000, repeats=5):
+    if not mujoco_chain.available():
+        return float('nan')
+    return min(mujoco_chain.MujocoChain(bench, DT).time_steps(n_steps, 1) for _ in range(repeats))
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.step_cost',
+                                description=__doc__.split('\n\n')[0])
+    p.add_argument('--segments', default='1,10,20,50,100,200,500,1000',
+                   help='comma-separated chain lengths (default: %(default)s)')
+    p.add_argument('--crowds', default='10,100,1000', help='chains of 16 segments per scene')
+    p.add_argument('--json', help='write the rows to this file')
+    args = p.parse_args(argv)
+    compiled.report_compile()
+    rows = []
+    print(f'{"case":>22} {"ours kernel µs":>15} {"ours sim µs":>12} {"MuJoCo µs":>10} '
+          f'{"kernel/MuJoCo":>14}')
+    for n in (int(s) for s in args.segments.split(',')):
+        bench = make_scene('moving', n_segments=n,
+                           solver=SolverSpec(integrator='rk4', dt=DT))
+        k = kernel_cost(bench.scene, bench.motion)
+        s = simulator_cost(bench.scene, bench.motion)
+        mj = mujoco_cost(bench)
+        rows.append(dict(case=f'{n} segments', n_segments=n, chains=1, kernel_s=k,
+                         simulator_s=s, mujoco_s=mj, ratio=k / mj))
+    bench16 = make_scene('moving', n_segments=16, solver=SolverSpec(integrator='rk4', dt=DT))
+    mj16 = mujoco_cost(bench16)
+    for c in (int(s) for s in args.crowds.split(',')):
+        chain = bench16.scene.chains[0]
+        scene = Scene(chains=tuple(chain for _ in range(c)),
+                      solver=SolverSpec(integrator='rk4', dt=DT))
+        k = kernel_cost(scene, bench16.motion, n_steps=max(20, 20000 // c)) / c
+        rows.append(dict(case=f'crowd {c} x 16', n_segments=16, chains=c, kernel_s=k,
+                         simulator_s=float('nan'), mujoco_s=mj16, ratio=k / mj16))
+    for r in rows:
+        print(f'{r["case"]:>22} {r["kernel_s"] * 1e6:15.2f} {r["simulator_s"] * 1e6:12.2f} '
+              f'{r["mujoco_s"] * 1e6:10.2f} {r["ratio"]:14.4f}')
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,1004 @@
+"""The compiled internal step: every stage of a call's steps in one call into compiled code.
+
+``advance(model, anchors, ...)`` takes all the fixed steps of one ``Simulator`` call and runs,
+per step, the stage list (the way Box2D v3's ``b2SolverTask`` runs its stages in order):
+
+    1. applied forces      gravity, explicit joint damping, bending stiffness, drag with wind,
+                           external forces (``_applied``; a term switched off is skipped);
+    2. integrate           RK4 (four joint solves), symplectic Euler or RATTLE (one
+                           factorisation of A = J M⁻¹ Jᵀ per step, reused by the next step, two
+                           solves); the joint solve is ``chain_solve`` (block Cholesky, O(n));
+    3. implicit damping    when joint damping is too stiff for the explicit step: implicit Euler
+                           on the constrained system, a banded KKT solve (``_implicit_damping``);
+    4. stabilise           positions rebuilt from the orientations and the anchor (joints closed
+                           to rounding), for RK4 the velocities too (``_project``).
+
+The model is constant during a call (``StepModel``, like MuJoCo's ``const mjModel*``); the
+anchors at every stage time of the call come in one table (``AnchorTable``, row ``2k + j``
+for step ``k`` at ``t_k + j h/2``), so no Python runs between stages. The equations are those
+of the NumPy modules they replace, written per segment and per joint (``solver`` for A f_c = b,
+``integrators`` for the three steps, ``forces``, ``stabilization``); their docstrings derive
+them. Compiled with numba: ``nopython``, ``cache=True``, no ``fastmath`` (results are
+reproducible bit for bit on one machine).
+
+Frames and units: world frame (REP 103), SI. State arrays: ``x`` ``(n, 3)`` centres, ``q``
+``(n, 4)`` (x, y, z, w) body to world, ``v`` ``(n, 3)``, ``w`` ``(n, 3)`` ω in the world frame.
+"""
+from collections import namedtuple
+
+import numba as nb
+import numpy as np
+
+from .chain_solve import factor, solve
+
+__all__ = ['StepModel', 'AnchorTable', 'advance', 'RK4', 'SYMPLECTIC_EULER', 'RATTLE',
+           'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED']
+
+RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
+OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED = 0, 1, 2
+
+# The model's arrays and switches for one call (n segments, C chains; SI units).
+StepModel = namedtuple('StepModel', [
+    'length', 'half', 'mass', 'inv_mass', 'inertia', 'inv_inertia',   # (n,) ×4, (n, 3) ×2
+    'chain_of', 'is_first', 'has_child',                    # (n,) int64, bool, bool
+    'damping', 'stiffness', 'drag_linear', 'drag_quadratic', 'q_rest',   # (n,) ..., (n, 4)
+    'gravity', 'wind',                                      # (3,)
+    'axisymmetric', 'integrator', 'projection',             # bool, int, bool
+    'gravity_on', 'explicit_damping', 'implicit_damping', 'stiffness_on', 'drag_on',
+    'external_on', 'baumgarte_stiffness', 'baumgarte_damping',
+])
+# The anchors (attachment points and anchor bodies) at the stage times, (S, C, 3|4) each.
+AnchorTable = namedtuple('AnchorTable', ['position', 'velocity', 'acceleration',
+                                         'orientation', 'angular_velocity'])
+
+_jit = nb.njit(cache=True)
+_inline = nb.njit(cache=True, inline='always')
+
+
+# -- small vector and quaternion algebra -------------------------------------------------------
+@_inline
+def _cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@_inline
+def _qmul(ax, ay, az, aw, bx, by, bz, bw):
+    """Hamilton product a ⊗ b."""
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+@_inline
+def _qrot(qx, qy, qz, qw, v0, v1, v2):
+    """v rotated by q (q need not be exactly unit: the formula of ``rotations.quat_rotate``)."""
+    t0, t1, t2 = _cross(qx, qy, qz, v0, v1, v2)
+    t0, t1, t2 = 2.0 * t0, 2.0 * t1, 2.0 * t2
+    c0, c1, c2 = _cross(qx, qy, qz, t0, t1, t2)
+    return v0 + qw * t0 + c0, v1 + qw * t1 + c1, v2 + qw * t2 + c2
+
+
+@_inline
+def _axis(q, i):
+    """World direction of segment i's body +X axis (R(q)[:, 0])."""
+    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    return 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)
+
+
+@_inline
+def _from_rotvec(p0, p1, p2):
+    """Unit quaternion of the rotation vector p (axis × angle)."""
+    angle = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    half = 0.5 * angle
+    if angle < 1e-8:
+        s = 0.5 - angle * angle / 48.0
+    else:
+        s = np.sin(half) / angle
+    return p0 * s, p1 * s, p2 * s, np.cos(half)
+
+
+@_inline
+def _to_rotvec(x, y, z, w):
+    """Rotation vector (angle in [0, π]) of a unit quaternion."""
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = np.sqrt(x * x + y * y + z * z)
+    if s < 1e-8:
+        scale = 2.0 / max(w, 1e-300)
+    else:
+        scale = 2.0 * np.arctan2(s, w) / s
+    return x * scale, y * scale, z * scale
+
+
+@_inline
+def _normalize(q, i):
+    r = 1.0 / np.sqrt(q[i, 0] ** 2 + q[i, 1] ** 2 + q[i, 2] ** 2 + q[i, 3] ** 2)
+    q[i, 0] *= r
+    q[i, 1] *= r
+    q[i, 2] *= r
+    q[i, 3] *= r
+
+
+@_inline
+def _rot_matrix(q, i, R):
+    """R(q_i) into the 3×3 ``R``."""
+    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+# -- mass properties and the joint system ------------------------------------------------------
+@_jit
+def _inertia_terms(M, q, e, hv, Iinv):
+    """Segment axes ``e``, half-vectors ``hv`` = (l/2) e and world inverse inertias ``Iinv``
+    ``(n, 3, 3)`` at orientations ``q``."""
+    n = q.shape[0]
+    R = np.empty((3, 3))
+    for i in range(n):
+        if M.axisymmetric:
+            e0, e1, e2 = _axis(q, i)
+            e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
+            ip = M.inv_inertia[i, 1]
+            k = M.inv_inertia[i, 0] - ip
+            for a in range(3):
+                for b in range(3):
+                    Iinv[i, a, b] = k * e[i, a] * e[i, b]
+                Iinv[i, a, a] += ip
+        else:
+            _rot_matrix(q, i, R)
+            for a in range(3):
+                e[i, a] = R[a, 0]
+                for b in range(3):
+                    s = 0.0
+                    for k in range(3):
+                        s += R[a, k] * R[b, k] * M.inv_inertia[i, k]
+                    Iinv[i, a, b] = s
+        for a in range(3):
+            hv[i, a] = M.half[i] * e[i, a]
+
+
+@_inline
+def _apply3(Mx, i, v0, v1, v2):
+    """The 3×3 block ``Mx[i]`` times v."""
+    return (Mx[i, 0, 0] * v0 + Mx[i, 0, 1] * v1 + Mx[i, 0, 2] * v2,
+            Mx[i, 1, 0] * v0 + Mx[i, 1, 1] * v1 + Mx[i, 1, 2] * v2,
+            Mx[i, 2, 0] * v0 + Mx[i, 2, 1] * v1 + Mx[i, 2, 2] * v2)
+
+
+@_jit
+def _factor_joints(M, hv, Iinv, D, L, C, Lo):
+    """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised.
+
+    A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},  A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1}),
+    G = [h]× I⁻¹ [h]× (the parent terms only where joint i has a parent segment); for
+    axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
+    """
+    n = hv.shape[0]
+    Gp = np.zeros((3, 3))           # G of the previous segment
+    Gi = np.empty((3, 3))
+    for i in range(n):
+        h0, h1, h2 = hv[i, 0], hv[i, 1], hv[i, 2]
+        if M.axisymmetric:
+            ip = M.inv_inertia[i, 1]
+            hh = h0 * h0 + h1 * h1 + h2 * h2
+            Gi[0, 0] = (h0 * h0 - hh) * ip
+            Gi[1, 1] = (h1 * h1 - hh) * ip
+            Gi[2, 2] = (h2 * h2 - hh) * ip
+            Gi[0, 1] = Gi[1, 0] = h0 * h1 * ip
+            Gi[0, 2] = Gi[2, 0] = h0 * h2 * ip
+            Gi[1, 2] = Gi[2, 1] = h1 * h2 * ip
+        else:
+            S = ((0.0, -h2, h1), (h2, 0.0, -h0), (-h1, h0, 0.0))
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for k in range(3):
+                        for m in range(3):
+                            s += S[a][k] * Iinv[i, k, m] * S[m][b]
+                    Gi[a, b] = s
+        im = M.inv_mass[i]
+        if M.is_first[i]:
+            for a in range(3):
+                for b in range(3):
+                    D[i, a, b] = -Gi[a, b]
+                    L[i, a, b] = 0.0
+                D[i, a, a] += im
+        else:
+            imp = M.inv_mass[i - 1]
+            for a in range(3):
+                for b in range(3):
+                    D[i, a, b] = -Gi[a, b] - Gp[a, b]
+                    L[i, a, b] = -Gp[a, b]
+                D[i, a, a] += im + imp
+                L[i, a, a] -= imp
+        for a in range(3):
+            for b in range(3):
+                Gp[a, b] = Gi[a, b]
+    return factor(D, L, M.is_first, C, Lo)
+
+
+@_jit
+def _apply_joint_impulses(M, lam, hv, Iinv, dv, dw):
+    """Δv, Δω of every segment from joint forces or impulses ``lam`` (+ on the child at its
+    proximal end, - on the parent at its distal end)."""
+    n = lam.shape[0]
+    for i in range(n):
+        f0, f1, f2 = lam[i, 0], lam[i, 1], lam[i, 2]
+        g0, g1, g2 = 0.0, 0.0, 0.0
+        if M.has_child[i]:
+            g0, g1, g2 = lam[i + 1, 0], lam[i + 1, 1], lam[i + 1, 2]
+        dv[i, 0] = (f0 - g0) * M.inv_mass[i]
+        dv[i, 1] = (f1 - g1) * M.inv_mass[i]
+        dv[i, 2] = (f2 - g2) * M.inv_mass[i]
+        # (-h) × f_c + h × (-f_next) = (f_c + f_next) × h
+        t0, t1, t2 = _cross(f0 + g0, f1 + g1, f2 + g2, hv[i, 0], hv[i, 1], hv[i, 2])
+        dw[i, 0], dw[i, 1], dw[i, 2] = _apply3(Iinv, i, t0, t1, t2)
+
+
+# -- applied forces ----------------------------------------------------------------------------
+@_jit
+def _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
+    """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``forces``)."""
+    n = x.shape[0]
+    for i in range(n):
+        for a in range(3):
+            F[i, a] = M.mass[i] * M.gravity[a] if M.gravity_on else 0.0
+            T[i, a] = 0.0
+    if M.explicit_damping or M.stiffness_on:
+        for i in range(n):
+            c = M.chain_of[i]
+            tau0, tau1, tau2 = 0.0, 0.0, 0.0
+            if M.explicit_damping:
+                if M.is_first[i]:
+                    pw0 = A.angular_velocity[row, c, 0]
+                    pw1 = A.angular_velocity[row, c, 1]
+                    pw2 = A.angular_velocity[row, c, 2]
+                else:
+                    pw0, pw1, pw2 = w[i - 1, 0], w[i - 1, 1], w[i - 1, 2]
+                k = M.damping[i]
+                tau0 -= k * (w[i, 0] - pw0)
+                tau1 -= k * (w[i, 1] - pw1)
+                tau2 -= k * (w[i, 2] - pw2)
+            if M.stiffness_on:
+                # q = q_parent ⊗ q_rest ⊗ q_err: q_err is the deviation in the child frame.
+                if M.is_first[i]:
+                    px = A.orientation[row, c, 0]
+                    py = A.orientation[row, c, 1]
+                    pz = A.orientation[row, c, 2]
+                    pw = A.orientation[row, c, 3]
+                else:
+                    px, py, pz, pw = q[i - 1, 0], q[i - 1, 1], q[i - 1, 2], q[i - 1, 3]
+                rx, ry, rz, rw = _qmul(px, py, pz, pw, M.q_rest[i, 0], M.q_rest[i, 1],
+                                       M.q_rest[i, 2], M.q_rest[i, 3])
+                ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, q[i, 0], q[i, 1], q[i, 2], q[i, 3])
+                p0, p1, p2 = _to_rotvec(ex, ey, ez, ew)
+                s0, s1, s2 = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], p0, p1, p2)
+                k = M.stiffness[i]
+                tau0 -= k * s0
+                tau1 -= k * s1
+                tau2 -= k * s2
+            T[i, 0] += tau0
+            T[i, 1] += tau1
+            T[i, 2] += tau2
+            if not M.is_first[i]:
+                T[i - 1, 0] -= tau0
+                T[i - 1, 1] -= tau1
+                T[i - 1, 2] -= tau2
+    if M.drag_on:
+        for i in range(n):
+            u0 = v[i, 0] - M.wind[0]
+            u1 = v[i, 1] - M.wind[1]
+            u2 = v[i, 2] - M.wind[2]
+            speed = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            c1 = M.drag_linear[i]
+            k = (c1 + M.drag_quadratic[i] * speed) * M.length[i]
+            F[i, 0] -= k * u0
+            F[i, 1] -= k * u1
+            F[i, 2] -= k * u2
+            e0, e1, e2 = _axis(q, i)
+            wa = w[i, 0] * e0 + w[i, 1] * e1 + w[i, 2] * e2
+            kt = c1 * (M.length[i] ** 3 / 12.0)
+            T[i, 0] -= kt * (w[i, 0] - wa * e0)
+            T[i, 1] -= kt * (w[i, 1] - wa * e1)
+            T[i, 2] -= kt * (w[i, 2] - wa * e2)
+    if M.external_on:
+        for i in range(n):
+            for a in range(3):
+                F[i, a] += ext_F[i, a]
+                T[i, a] += ext_T[i, a]
+
+
+@_inline
+def _gyroscopic(M, q, i, e, w0, w1, w2):
+    """ω × Iω of segment i (world)."""
+    if M.axisymmetric:
+        s = (M.inertia[i, 0] - M.inertia[i, 1]) * (e[i, 0] * w0 + e[i, 1] * w1 + e[i, 2] * w2)
+        c0, c1, c2 = _cross(w0, w1, w2, e[i, 0], e[i, 1], e[i, 2])
+        return s * c0, s * c1, s * c2
+    qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w0, w1, w2)
+    l0, l1, l2 = _qrot(qx, qy, qz, qw, M.inertia[i, 0] * b0, M.inertia[i, 1] * b1,
+                       M.inertia[i, 2] * b2)
+    return _cross(w0, w1, w2, l0, l1, l2)
+
+
+# -- RK4: accelerations with the joint forces solved (A f_c = b) --------------------------------
+@_jit
+def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
+    """Linear and angular accelerations (m/s², rad/s²) with every joint enforced
+    (``solver.Dynamics.accelerations``); False if A is not positive definite."""
+    F, T, e, hv, Iinv, D, L, C, Lo, tang = ws
+    n = x.shape[0]
+    _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T)
+    _inertia_terms(M, q, e, hv, Iinv)
+    if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
+        return False
+    for i in range(n):
+        g0, g1, g2 = _gyroscopic(M, q, i, e, w[i, 0], w[i, 1], w[i, 2])
+        a0, a1, a2 = _apply3(Iinv, i, T[i, 0] - g0, T[i, 1] - g1, T[i, 2] - g2)
+        alpha[i, 0], alpha[i, 1], alpha[i, 2] = a0, a1, a2          # Eq. 11 without f_c
+        for a in range(3):
+            acc[i, a] = F[i, a] * M.inv_mass[i]
+        # Joint-point accelerations under applied forces (Eq. 3): r_d = h, r_p = -h.
+        c0, c1, c2 = _cross(a0, a1, a2, hv[i, 0], hv[i, 1], hv[i, 2])
+        u0, u1, u2 = _cross(w[i, 0], w[i, 1], w[i, 2], hv[i, 0], hv[i, 1], hv[i, 2])
+        d0, d1, d2 = _cross(w[i, 0], w[i, 1], w[i, 2], u0, u1, u2)
+        tang[i, 0], tang[i, 1], tang[i, 2] = c0 + d0, c1 + d1, c2 + d2
+    baumgarte = M.baumgarte_stiffness != 0.0 or M.baumgarte_damping != 0.0
+    for i in range(n):
+        c = M.chain_of[i]
+        for a in range(3):
+            if M.is_first[i]:
+                parent = A.acceleration[row, c, a]
+            else:
+                parent = acc[i - 1, a] + tang[i - 1, a]
+            f_c[i, a] = parent - (acc[i, a] - tang[i, a])
+        if baumgarte:
+            u0, u1, u2 = _cross(w[i, 0], w[i, 1], w[i, 2], hv[i, 0], hv[i, 1], hv[i, 2])
+            wxh = (u0, u1, u2)
+            for a in range(3):
+                if M.is_first[i]:
+                    pp = A.position[row, c, a]
+                    pv = A.velocity[row, c, a]
+                else:
+                    pp = x[i - 1, a] + hv[i - 1, a]
+                    pu0, pu1, pu2 = _cross(w[i - 1, 0], w[i - 1, 1], w[i - 1, 2],
+                                           hv[i - 1, 0], hv[i - 1, 1], hv[i - 1, 2])
+                    pv = v[i - 1, a] + (pu0, pu1, pu2)[a]
+                gap = pp - (x[i, a] - hv[i, a])
+                rate = pv - (v[i, a] - wxh[a])
+                f_c[i, a] += M.baumgarte_damping * rate + M.baumgarte_stiffness * gap
+    solve(C, Lo, M.is_first, f_c)
+    dv, dw = F, T                       # the forces are consumed: reuse their storage
+    _apply_joint_impulses(M, f_c, hv, Iinv, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            acc[i, a] += dv[i, a]
+            alpha[i, a] += dw[i, a]
+    return True
+
+
+@_jit
+def _workspace(n):
+    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)),
+            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
+
+
+@_jit
+def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c,
+                dq, dwb):
+    """RK4's right-hand side in body-frame ω: (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α)."""
+    n = x.shape[0]
+    for i in range(n):
+        w_tmp[i, 0], w_tmp[i, 1], w_tmp[i, 2] = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                                       wb[i, 0], wb[i, 1], wb[i, 2])
+    if not _accelerations(M, A, row, x, q, v, w_tmp, ext_F, ext_T, ws, acc, alpha, f_c):
+        return False
+    for i in range(n):
+        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        b0, b1, b2 = wb[i, 0], wb[i, 1], wb[i, 2]
+        d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, b0, b1, b2, 0.0)
+        dq[i, 0], dq[i, 1], dq[i, 2], dq[i, 3] = 0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3
+        dwb[i, 0], dwb[i, 1], dwb[i, 2] = _qrot(-qx, -qy, -qz, qw, alpha[i, 0], alpha[i, 1],
+                                                alpha[i, 2])
+    return True
+
+
+@_jit
+def _rk4_workspace(n):
+    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((4, n, 3)), np.empty((4, n, 4)),
+            np.empty((4, n, 3)), np.empty((4, n, 3)), np.empty((n, 3)), np.empty((n, 4)),
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)))
+
+
+@_jit
+def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
+    """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside."""
+    n = x.shape[0]
+    wb, w_tmp, kx, kq, kv, kw, xs, qs, vs, wbs, alpha = rws
+    for i in range(n):
+        wb[i, 0], wb[i, 1], wb[i, 2] = _qrot(-q[i, 0], -q[i, 1], -q[i, 2], q[i, 3],
+                                             w[i, 0], w[i, 1], w[i, 2])
+        for a in range(3):
+            xs[i, a] = x[i, a]
+            vs[i, a] = v[i, a]
+            wbs[i, a] = wb[i, a]
+        for a in range(4):
+            qs[i, a] = q[i, a]
+    hh = 0.5 * h
+    for s in range(4):
+        if s > 0:
+            c = hh if s < 3 else h
+            for i in range(n):
+                for a in range(3):
+                    xs[i, a] = x[i, a] + c * kx[s - 1, i, a]
+                    vs[i, a] = v[i, a] + c * kv[s - 1, i, a]
+                    wbs[i, a] = wb[i, a] + c * kw[s - 1, i, a]
+                for a in range(4):
+                    qs[i, a] = q[i, a] + c * kq[s - 1, i, a]
+        row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
+        for i in range(n):
+            for a in range(3):
+                kx[s, i, a] = vs[i, a]
+        if not _rk4_derivs(M, A, row, xs, qs, vs, wbs, ext_F, ext_T, ws, w_tmp, kv[s], alpha,
+                           f_c, kq[s], kw[s]):
+            return False
+    sixth = h / 6.0
+    for i in range(n):
+        for a in range(3):
+            x[i, a] = x[i, a] + sixth * (kx[0, i, a] + 2.0 * kx[1, i, a] + 2.0 * kx[2, i, a]
+                                         + kx[3, i, a])
+            v[i, a] = v[i, a] + sixth * (kv[0, i, a] + 2.0 * kv[1, i, a] + 2.0 * kv[2, i, a]
+                                         + kv[3, i, a])
+            wb[i, a] = wb[i, a] + sixth * (kw[0, i, a] + 2.0 * kw[1, i, a] + 2.0 * kw[2, i, a]
+                                           + kw[3, i, a])
+        for a in range(4):
+            q[i, a] = q[i, a] + sixth * (kq[0, i, a] + 2.0 * kq[1, i, a] + 2.0 * kq[2, i, a]
+                                         + kq[3, i, a])
+        _normalize(q, i)
+        w[i, 0], w[i, 1], w[i, 2] = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                          wb[i, 0], wb[i, 1], wb[i, 2])
+    return True
+
+
+# -- symplectic Euler and RATTLE: kicks, drifts and joint impulses -----------------------------
+@_jit
+def _rotation_kick(M, q, e, Iinv, w, T, h, out):
+    """ω after ``h`` of I ω̇ + ω × Iω = T, the gyroscopic term implicit
+    (``integrators.rotation_kick``: exact axial transport + implicit midpoint precession for
+    axisymmetric segments, Catto's implicit Euler Newton step otherwise)."""
+    n = w.shape[0]
+    J = np.empty((3, 3))
+    r = np.empty(3)
+    for i in range(n):
+        Ia, Ip = M.inertia[i, 0], M.inertia[i, 1]
+        if M.axisymmetric:
+            e0, e1, e2 = e[i, 0], e[i, 1], e[i, 2]
+            wa = w[i, 0] * e0 + w[i, 1] * e1 + w[i, 2] * e2
+            Ta = T[i, 0] * e0 + T[i, 1] * e1 + T[i, 2] * e2
+            p0, p1, p2 = w[i, 0] - wa * e0, w[i, 1] - wa * e1, w[i, 2] - wa * e2
+            t0, t1, t2 = T[i, 0] - Ta * e0, T[i, 1] - Ta * e1, T[i, 2] - Ta * e2
+            wa1 = wa + h * Ta / Ia
+            s = 0.5 * h * Ia / Ip * wa1
+            c0, c1, c2 = _cross(e0, e1, e2, p0, p1, p2)
+            y0 = p0 + s * c0 + h * t0 / Ip
+            y1 = p1 + s * c1 + h * t1 / Ip
+            y2 = p2 + s * c2 + h * t2 / Ip
+            c0, c1, c2 = _cross(e0, e1, e2, y0, y1, y2)
+            den = 1.0 + s * s
+            out[i, 0] = wa1 * e0 + (y0 + s * c0) / den
+            out[i, 1] = wa1 * e1 + (y1 + s * c1) / den
+            out[i, 2] = wa1 * e2 + (y2 + s * c2) / den
+        else:
+            qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+            b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w[i, 0], w[i, 1], w[i, 2])
+            T0, T1, T2 = _qrot(-qx, -qy, -qz, qw, T[i, 0], T[i, 1], T[i, 2])
+            I0, I1, I2 = M.inertia[i, 0], M.inertia[i, 1], M.inertia[i, 2]
+            L0, L1, L2 = I0 * b0, I1 * b1, I2 * b2
+            # J = I + h([ω]× I - [Iω]×)
+            Sw = ((0.0, -b2, b1), (b2, 0.0, -b0), (-b1, b0, 0.0))
+            SL = ((0.0, -L2, L1), (L2, 0.0, -L0), (-L1, L0, 0.0))
+            Id = (I0, I1, I2)
+            for a in range(3):
+                for b in range(3):
+                    J[a, b] = (Id[a] if a == b else 0.0) + h * (Sw[a][b] * Id[b] - SL[a][b])
+            g0, g1, g2 = _cross(b0, b1, b2, L0, L1, L2)
+            r[0], r[1], r[2] = h * (T0 - g0), h * (T1 - g1), h * (T2 - g2)
+            d0, d1, d2 = _solve3(J, r[0], r[1], r[2])
+            out[i, 0], out[i, 1], out[i, 2] = _qrot(qx, qy, qz, qw, b0 + d0, b1 + d1, b2 + d2)
+
+
+@_inline
+def _solve3(J, r0, r1, r2):
+    """J⁻¹ r for a 3×3 ``J`` (Cramer's rule: no LAPACK call inside the step)."""
+    c00 = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
+    c01 = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
+    c02 = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
+    det = J[0, 0] * c00 + J[0, 1] * c01 + J[0, 2] * c02
+    c10 = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
+    c11 = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+    c12 = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
+    c20 = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
+    c21 = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
+    c22 = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    return ((c00 * r0 + c10 * r1 + c20 * r2) / det, (c01 * r0 + c11 * r1 + c21 * r2) / det,
+            (c02 * r0 + c12 * r1 + c22 * r2) / det)
+
+
+@_jit
+def _torque_kick(M, q, e, Iinv, w, T, h, out):
+    """ω + h I⁻¹ T at fixed orientations, no gyroscopic term (``integrators.torque_kick``)."""
+    n = w.shape[0]
+    for i in range(n):
+        if M.axisymmetric:
+            e0, e1, e2 = e[i, 0], e[i, 1], e[i, 2]
+            Ta = T[i, 0] * e0 + T[i, 1] * e1 + T[i, 2] * e2
+            ka = Ta / M.inertia[i, 0]
+            ip = M.inertia[i, 1]
+            out[i, 0] = w[i, 0] + h * (ka * e0 + (T[i, 0] - Ta * e0) / ip)
+            out[i, 1] = w[i, 1] + h * (ka * e1 + (T[i, 1] - Ta * e1) / ip)
+            out[i, 2] = w[i, 2] + h * (ka * e2 + (T[i, 2] - Ta * e2) / ip)
+        else:
+            qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+            b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, T[i, 0], T[i, 1], T[i, 2])
+            r0, r1, r2 = _qrot(qx, qy, qz, qw, b0 / M.inertia[i, 0], b1 / M.inertia[i, 1],
+                               b2 / M.inertia[i, 2])
+            out[i, 0] = w[i, 0] + h * r0
+            out[i, 1] = w[i, 1] + h * r1
+            out[i, 2] = w[i, 2] + h * r2
+
+
+@_inline
+def _turned(u0, u1, u2, w0, w1, w2, h):
+    """u turned by the rotation vector h w (Rodrigues)."""
+    rate = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    angle = h * rate
+    if angle < 1e-6:
+        s = h * (1.0 - angle * angle / 6.0)
+        c = 0.5 * h * h
+    else:
+        s = np.sin(angle) / rate
+        c = (1.0 - np.cos(angle)) / (rate * rate)
+    a0, a1, a2 = _cross(w0, w1, w2, u0, u1, u2)
+    b0, b1, b2 = _cross(w0, w1, w2, a0, a1, a2)
+    return u0 + s * a0 + c * b0, u1 + s * a1 + c * b1, u2 + s * a2 + c * b2
+
+
+@_inline
+def _axial_part(M, i, e, w0, w1, w2, ratio):
+    """The part of ω that does not turn segment i's axis: ``ratio`` (ω·e) e (axisymmetric)."""
+    if not M.axisymmetric:
+        return 0.0, 0.0, 0.0
+    s = ratio * (w0 * e[i, 0] + w1 * e[i, 1] + w2 * e[i, 2])
+    return s * e[i, 0], s * e[i, 1], s * e[i, 2]
+
+
+@_jit
+def _gap_rhs(M, A, row, x, v, w, hv, e, h, precession, out):
+    """Where the free motion (v, ω) held for ``h`` would open every joint, divided by ``h``
+    (the joint impulses' right-hand side; the segment axes turned by their swing rate,
+    or the precession rate Ω for RATTLE)."""
+    n = x.shape[0]
+    end = np.empty((n, 3))
+    for i in range(n):
+        ratio = 1.0
+        if precession and M.axisymmetric:
+            ratio = 1.0 - M.inertia[i, 0] / M.inertia[i, 1]
+        a0, a1, a2 = _axial_part(M, i, e, w[i, 0], w[i, 1], w[i, 2], ratio)
+        t0, t1, t2 = _turned(hv[i, 0], hv[i, 1], hv[i, 2], w[i, 0] - a0, w[i, 1] - a1,
+                             w[i, 2] - a2, h)
+        end[i, 0], end[i, 1], end[i, 2] = t0, t1, t2
+    for i in range(n):
+        c = M.chain_of[i]
+        for a in range(3):
+            xi = x[i, a] + h * v[i, a]
+            if M.is_first[i]:
+                parent = A.position[row, c, a]
+            else:
+                parent = x[i - 1, a] + h * v[i - 1, a] + end[i - 1, a]
+            out[i, a] = (parent - (xi - end[i, a])) / h
+
+
+@_jit
+def _velocity_errors(M, A, row, v, w, hv, out):
+    """Parent side minus child side of every joint's velocity (m/s)."""
+    n = v.shape[0]
+    for i in range(n):
+        c = M.chain_of[i]
+        u0, u1, u2 = _cross(w[i, 0], w[i, 1], w[i, 2], hv[i, 0], hv[i, 1], hv[i, 2])
+        child = (v[i, 0] - u0, v[i, 1] - u1, v[i, 2] - u2)
+        if M.is_first[i]:
+            for a in range(3):
+                out[i, a] = A.velocity[row, c, a] - child[a]
+        else:
+            p0, p1, p2 = _cross(w[i - 1, 0], w[i - 1, 1], w[i - 1, 2],
+                                hv[i - 1, 0], hv[i - 1, 1], hv[i - 1, 2])
+            par = (v[i - 1, 0] + p0, v[i - 1, 1] + p1, v[i - 1, 2] + p2)
+            for a in range(3):
+                out[i, a] = par[a] - child[a]
+
+
+@_jit
+def _drift(M, x, q, v, w, e, h, precession):
+    """Move for ``h`` at (v, ω), in place: symplectic Euler's ``drift`` (``precession``
+    False: spin about the axis by h ω_a, swing by h ω⊥) or RATTLE's exact torque-free
+    ``free_rotation`` (True: precess about Ω, spin at ν = ω_a (1 - I_a/I_p))."""
+    n = x.shape[0]
+    for i in range(n):
+        for a in range(3):
+            x[i, a] = x[i, a] + h * v[i, a]
+        w0, w1, w2 = w[i, 0], w[i, 1], w[i, 2]
+        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        if not M.axisymmetric:
+            rx, ry, rz, rw = _from_rotvec(w0 * h, w1 * h, w2 * h)
+            q[i, 0], q[i, 1], q[i, 2], q[i, 3] = _qmul(rx, ry, rz, rw, qx, qy, qz, qw)
+            _normalize(q, i)
+            continue
+        e0, e1, e2 = e[i, 0], e[i, 1], e[i, 2]
+        wa = w0 * e0 + w1 * e1 + w2 * e2
+        if precession:
+            r = 1.0 - M.inertia[i, 0] / M.inertia[i, 1]
+            o0, o1, o2 = w0 - r * wa * e0, w1 - r * wa * e1, w2 - r * wa * e2     # Ω
+            spin = (w0 - o0) * e0 + (w1 - o1) * e1 + (w2 - o2) * e2             # ν
+        else:
+            o0, o1, o2 = w0 - wa * e0, w1 - wa * e1, w2 - wa * e2                # ω⊥
+            spin = wa
+        half = 0.5 * h * spin
+        sx, sw = np.sin(half), np.cos(half)
+        bx, by, bz, bw = _qmul(qx, qy, qz, qw, sx, 0.0, 0.0, sw)     # q ⊗ exp(h·spin x̂)
+        rx, ry, rz, rw = _from_rotvec(o0 * h, o1 * h, o2 * h)
+        q[i, 0], q[i, 1], q[i, 2], q[i, 3] = _qmul(rx, ry, rz, rw, bx, by, bz, bw)
+        _normalize(q, i)
+        n0, n1, n2 = _axis(q, i)
+        w[i, 0] = o0 + spin * n0
+        w[i, 1] = o1 + spin * n1
+        w[i, 2] = o2 + spin * n2
+
+
+@_jit
+def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c, fresh):
+    """One symplectic Euler or RATTLE step (``integrators.symplectic_euler`` /
+    ``integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
+    ``ws`` are those of q, left by the previous step's projection). False if a solve fails."""
+    F, T, e, hv, Iinv, D, L, C, Lo, tmp = ws
+    n = x.shape[0]
+    r0, r1 = 2 * k, 2 * k + 2
+    rattle = M.integrator == RATTLE
+    if fresh:
+        _inertia_terms(M, q, e, hv, Iinv)
+        if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
+            return False
+    _applied(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
+    kick = 0.5 * h if rattle else h
+    v1 = np.empty((n, 3))
+    w1 = np.empty((n, 3))
+    for i in range(n):
+        for a in range(3):
+            v1[i, a] = v[i, a] + kick * F[i, a] * M.inv_mass[i]
+    if rattle:
+        _torque_kick(M, q, e, Iinv, w, T, kick, w1)
+    else:
+        _rotation_kick(M, q, e, Iinv, w, T, h, w1)
+    dv = np.empty((n, 3))
+    dw = np.empty((n, 3))
+    lam = np.empty((n, 3))
+    if M.projection:
+        _gap_rhs(M, A, r1, x, v1, w1, hv, e, h, rattle, lam)
+    else:
+        _unprojected_rhs(M, A, r0, r1, x, v, w, v1, w1, hv, e, h, lam)
+    solve(C, Lo, M.is_first, lam)
+    _apply_joint_impulses(M, lam, hv, Iinv, dv, dw)
+    w_change = np.empty((n, 3))
+    for i in range(n):
+        for a in range(3):
+            v1[i, a] += dv[i, a]
+            w1[i, a] += dw[i, a]
+            w_change[i, a] = w1[i, a] - w[i, a]
+            f_c[i, a] = lam[i, a] / h
+    v0 = v.copy()
+    _drift(M, x, q, v1, w1, e, h, rattle)       # x, q in place; w1 gets the carried spin
+    for i in range(n):
+        for a in range(3):
+            v[i, a] = v1[i, a]
+            w[i, a] = w1[i, a]
+    if not M.projection:
+        return True
+    # A at the step's end (kept for the next step: the projection does not turn segments).
+    _inertia_terms(M, q, e, hv, Iinv)
+    if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
+        return False
+    if rattle:
+        # Second half kick with the forces at the end; velocity-dependent terms at u½
+        # extrapolated by its change over the first half.
+        for i in range(n):
+            for a in range(3):
+                dv[i, a] = 2.0 * v1[i, a] - v0[i, a]
+                dw[i, a] = w1[i, a] + w_change[i, a]
+        _applied(M, A, r1, x, q, dv, dw, ext_F, ext_T, F, T)
+        for i in range(n):
+            for a in range(3):
+                v[i, a] = v1[i, a] + kick * F[i, a] * M.inv_mass[i]
+        _torque_kick(M, q, e, Iinv, w1, T, kick, w)
+    mu = np.empty((n, 3))
+    _velocity_errors(M, A, r1, v, w, hv, mu)
+    solve(C, Lo, M.is_first, mu)
+    _apply_joint_impulses(M, mu, hv, Iinv, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+            if rattle:
+                f_c[i, a] += mu[i, a] / h
+    return True
+
+
+@_jit
+def _unprojected_rhs(M, A, r0, r1, x, v, w, v1, w1, hv, e, h, out):
+    """Symplectic Euler without projection: the velocity form of C̈ = 0 (the joint points'
+    curvature predicted at the step's start, velocity errors kept, optional Baumgarte)."""
+    n = x.shape[0]
+    curv = np.empty((n, 3))
+    c_dot0 = np.empty((n, 3))
+    c_dot1 = np.empty((n, 3))
+    for i in range(n):
+        a0, a1, a2 = _axial_part(M, i, e, w[i, 0], w[i, 1], w[i, 2], 1.0)
+        s0, s1, s2 = w[i, 0] - a0, w[i, 1] - a1, w[i, 2] - a2
+        u0, u1, u2 = _cross(s0, s1, s2, hv[i, 0], hv[i, 1], hv[i, 2])
+        curv[i, 0], curv[i, 1], curv[i, 2] = _cross(s0, s1, s2, u0, u1, u2)
+    _velocity_errors(M, A, r0, v, w, hv, c_dot0)
+    _velocity_errors(M, A, r1, v1, w1, hv, c_dot1)
+    baumgarte = M.baumgarte_stiffness != 0.0 or M.baumgarte_damping != 0.0
+    for i in range(n):
+        c = M.chain_of[i]
+        for a in range(3):
+            target = c_dot0[i, a]
+            if baumgarte:
+                if M.is_first[i]:
+                    pp = A.position[r0, c, a]
+                else:
+                    pp = x[i - 1, a] + hv[i - 1, a]
+                gap = pp - (x[i, a] - hv[i, a])
+                target = c_dot0[i, a] - h * (M.baumgarte_damping * c_dot0[i, a]
+                                             + M.baumgarte_stiffness * gap)
+            parent = 0.0 if M.is_first[i] else curv[i - 1, a]
+            out[i, a] = c_dot1[i, a] + h * (parent + curv[i, a]) - target
+
+
+# -- implicit joint damping: the constrained KKT system, banded ---------------------------------
+_KL = 8         # half-bandwidth of the reduced KKT matrix, unknowns (λ_i, ω_i) per segment
+
+
+@_inline
+def _band_add(ab, r, c, val):
+    ab[r, c - r + 2 * _KL] += val
+
+
+@_jit
+def _implicit_damping(M, A, row, q, v, w, h):
+    """Velocities after ``h`` of joint damping, implicit Euler on the constrained system
+    (``solver.Dynamics.implicit_damping``), in place; False if singular:
+
+        (M + h C) u⁺ - Jᵀ λ = M u + h c₀ ω_anchor,     J u⁺ = anchor terms.
+
+    The linear rows give v⁺_i = v_i + (λ_i - λ_{i+1}) / m_i, substituted into the joint rows:
+    what is left has unknowns (λ_i, ω_i) per segment, half-bandwidth 8 (against 17 with v
+    kept), solved by banded Gaussian elimination with partial pivoting in O(n)."""
+    n = v.shape[0]
+    N = 6 * n
+    ab = np.zeros((N, 3 * _KL + 1))          # columns r - KL .. r + 2 KL (fill-in by pivoting)
+    rhs = np.zeros(N)
+    R = np.empty((3, 3))
+    for i in range(n):
+        c = M.chain_of[i]
+        LAM, W = 6 * i, 6 * i + 3
+        e0, e1, e2 = _axis(q, i)
+        g = M.half[i]
+        S = ((0.0, -g * e2, g * e1), (g * e2, 0.0, -g * e0), (-g * e1, g * e0, 0.0))
+        Ia, Ip = M.inertia[i, 0], M.inertia[i, 1]
+        if M.axisymmetric:
+            k = Ia - Ip
+            Iw = ((Ip + k * e0 * e0, k * e0 * e1, k * e0 * e2),
+                  (k * e1 * e0, Ip + k * e1 * e1, k * e1 * e2),
+                  (k * e2 * e0, k * e2 * e1, Ip + k * e2 * e2))
+        else:
+            _rot_matrix(q, i, R)
+            r0 = (R[0, 0] * M.inertia[i, 0], R[0, 1] * M.inertia[i, 1], R[0, 2] * M.inertia[i, 2])
+            r1 = (R[1, 0] * M.inertia[i, 0], R[1, 1] * M.inertia[i, 1], R[1, 2] * M.inertia[i, 2])
+            r2 = (R[2, 0] * M.inertia[i, 0], R[2, 1] * M.inertia[i, 1], R[2, 2] * M.inertia[i, 2])
+            Iw = ((r0[0] * R[0, 0] + r0[1] * R[0, 1] + r0[2] * R[0, 2],
+                   r0[0] * R[1, 0] + r0[1] * R[1, 1] + r0[2] * R[1, 2],
+                   r0[0] * R[2, 0] + r0[1] * R[2, 1] + r0[2] * R[2, 2]),
+                  (r1[0] * R[0, 0] + r1[1] * R[0, 1] + r1[2] * R[0, 2],
+                   r1[0] * R[1, 0] + r1[1] * R[1, 1] + r1[2] * R[1, 2],
+                   r1[0] * R[2, 0] + r1[1] * R[2, 1] + r1[2] * R[2, 2]),
+                  (r2[0] * R[0, 0] + r2[1] * R[0, 1] + r2[2] * R[0, 2],
+                   r2[0] * R[1, 0] + r2[1] * R[1, 1] + r2[2] * R[1, 2],
+                   r2[0] * R[2, 0] + r2[1] * R[2, 1] + r2[2] * R[2, 2]))
+        ci = M.damping[i]
+        cn = M.damping[i + 1] if M.has_child[i] else 0.0
+        im = M.inv_mass[i]
+        first = M.is_first[i]
+        if not first:
+            p0, p1, p2 = _axis(q, i - 1)
+            gp = M.half[i - 1]
+            Sp = ((0.0, -gp * p2, gp * p1), (gp * p2, 0.0, -gp * p0), (-gp * p1, gp * p0, 0.0))
+            imp = M.inv_mass[i - 1]
+        for a in range(3):
+            # Joint i: parent point velocity = child point velocity, with v⁺ substituted:
+            #   -v⁺_i - [h_i]× ω⁺_i + v⁺_{i-1} - [h_{i-1}]× ω⁺_{i-1} = 0 (or the anchor's).
+            _band_add(ab, LAM + a, LAM + a, -im)
+            if M.has_child[i]:
+                _band_add(ab, LAM + a, LAM + 6 + a, im)
+            for b in range(3):
+                _band_add(ab, LAM + a, W + b, -S[a][b])
+            if first:
+                rhs[LAM + a] = v[i, a] - A.velocity[row, c, a]
+            else:
+                _band_add(ab, LAM + a, LAM - 6 + a, imp)
+                _band_add(ab, LAM + a, LAM + a, -imp)
+                for b in range(3):
+                    _band_add(ab, LAM + a, W - 6 + b, -Sp[a][b])
+                rhs[LAM + a] = v[i, a] - v[i - 1, a]
+            # ω rows: (I + h(c_i + c_{i+1})) ω⁺ - h c_i ω⁺_{i-1} - h c_{i+1} ω⁺_{i+1}
+            #         + [h]× λ_i + [h]× λ_{i+1} = I ω + h c_i ω_anchor (first joint)
+            s = 0.0
+            for b in range(3):
+                _band_add(ab, W + a, W + b, Iw[a][b])
+                _band_add(ab, W + a, LAM + b, S[a][b])
+                if M.has_child[i]:
+                    _band_add(ab, W + a, LAM + 6 + b, S[a][b])
+                s += Iw[a][b] * w[i, b]
+            _band_add(ab, W + a, W + a, h * (ci + cn))
+            if first:
+                s += h * ci * A.angular_velocity[row, c, a]
+            else:
+                _band_add(ab, W + a, W - 6 + a, -h * ci)
+                _band_add(ab, W - 6 + a, W + a, -h * ci)
+            rhs[W + a] = s
+    if not _band_solve(ab, rhs, _KL):
+        return False
+    for i in range(n):
+        for a in range(3):
+            lam_next = rhs[6 * i + 6 + a] if M.has_child[i] else 0.0
+            v[i, a] += (rhs[6 * i + a] - lam_next) * M.inv_mass[i]
+            w[i, a] = rhs[6 * i + 3 + a]
+    return True
+
+
+@_jit
+def _band_solve(ab, b, kl):
+    """Solve a banded system (half-bandwidths kl, stored ``ab[r, c - r + 2 kl]``) by Gaussian
+    elimination with partial pivoting, like LAPACK's gbsv; ``b`` overwritten. False if
+    singular."""
+    N = b.shape[0]
+    off = 2 * kl
+    for k in range(N):
+        last = min(k + kl, N - 1)
+        p = k
+        big = abs(ab[k, off])
+        for r in range(k + 1, last + 1):
+            val = abs(ab[r, k - r + off])
+            if val > big:
+                big, p = val, r
+        if big == 0.0:
+            return False
+        top = min(k + 2 * kl, N - 1)
+        if p != k:
+            for c in range(k, top + 1):
+                t = ab[k, c - k + off]
+                ab[k, c - k + off] = ab[p, c - p + off]
+                ab[p, c - p + off] = t
+            t = b[k]
+            b[k] = b[p]
+            b[p] = t
+        piv = ab[k, off]
+        for r in range(k + 1, last + 1):
+            f = ab[r, k - r + off] / piv
+            if f != 0.0:
+                for c in range(k + 1, top + 1):
+                    ab[r, c - r + off] -= f * ab[k, c - k + off]
+                b[r] -= f * b[k]
+            ab[r, k - r + off] = 0.0
+    for k in range(N - 1, -1, -1):
+        s = b[k]
+        for c in range(k + 1, min(k + 2 * kl, N - 1) + 1):
+            s -= ab[k, c - k + off] * b[c]
+        b[k] = s / ab[k, off]
+    return True
+
+
+# -- stabilisation -----------------------------------------------------------------------------
+@_jit
+def _project(M, A, row, x, q, v, w, velocities):
+    """Centres rebuilt so every joint closes exactly from the anchor outward, and for RK4
+    (``velocities``) the centre velocities from the anchor point's velocity and the ω above
+    (``stabilization``)."""
+    n = x.shape[0]
+    p = np.empty(3)
+    u = np.empty(3)
+    for i in range(n):
+        c = M.chain_of[i]
+        if M.is_first[i]:
+            for a in range(3):
+                p[a] = A.position[row, c, a]
+                u[a] = A.velocity[row, c, a]
+        e0, e1, e2 = _axis(q, i)
+        h = (M.half[i] * e0, M.half[i] * e1, M.half[i] * e2)
+        for a in range(3):
+            x[i, a] = p[a] + h[a]
+            p[a] = x[i, a] + h[a]
+        if velocities:
+            wxh = _cross(w[i, 0], w[i, 1], w[i, 2], h[0], h[1], h[2])
+            for a in range(3):
+                v[i, a] = u[a] + wxh[a]
+                u[a] = v[i, a] + wxh[a]
+
+
+# -- the call ----------------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
+    """``n_steps`` fixed steps of ``h`` s with the anchors of table ``A`` (rows ``2k + j`` at
+    ``t_k + j h/2``), the state ``(x, q, v, w)`` updated in place, ``f_c`` ``(n, 3)`` set to
+    the joint forces on the children at the last step (N). Returns ``OK`` or the failing
+    stage's code (``JOINT_SOLVE_FAILED``, ``DAMPING_SOLVE_FAILED``); the state is then
+    unusable."""
+    n = x.shape[0]
+    ws = _workspace(n)
+    rws = _rk4_workspace(n)
+    for k in range(n_steps):
+        if M.integrator == RK4:
+            ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c)
+        else:
+            ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c,
+                                   k == 0 or not M.projection)
+        if not ok:
+            return JOINT_SOLVE_FAILED
+        if M.implicit_damping:
+            if not _implicit_damping(M, A, 2 * k + 2, q, v, w, h):
+                return DAMPING_SOLVE_FAILED
+        if M.projection:
+            _project(M, A, 2 * k + 2, x, q, v, w, M.integrator == RK4)
+    return OK
+
+
+# -- compilation -------------------------------------------------------------------------------
+def compile_kernels():
+    """Compile the step (or load it from numba's on-disk cache) by running two steps of a
+    two-segment chain; returns ``(seconds, compiled)``, ``compiled`` True when numba had to
+    compile (the first start after an install or an upgrade) rather than load its cache.
+
+    The cache sits in ``__pycache__`` beside this file, or, where that is not writable (a
+    system install), in numba's user-wide cache directory; ``NUMBA_CACHE_DIR`` overrides both.
+    """
+    import time
+    from .head import KinematicState
+    from .scene import ChainSpec, Scene, SolverSpec
+    from .simulator import Simulator
+    t0 = time.perf_counter()
+    before = sum(advance.stats.cache_misses.values())
+    sim = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
+                          solver=SolverSpec(integrator='rk4', dt=0.01)))
+    sim.advance_frame(0.02, KinematicState.still())
+    compiled = sum(advance.stats.cache_misses.values()) > before
+    return time.perf_counter() - t0, compiled
+
+
+def report_compile(log=None):
+    """``compile_kernels``, saying so in one line (``log``: a callable, default stderr) when it
+    compiled: the first start after an install pays it once."""
+    import sys
+    seconds, compiled = compile_kernels()
+    if compiled:
+        msg = (f'ponytail_ros: compiled the simulation step in {seconds:.1f} s (once after '
+               'install; later starts load it from the cache)')
+        (log or (lambda m: print(m, file=sys.stderr, flush=True)))(msg)
+    return seconds, compiled
