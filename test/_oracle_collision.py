@@ -183,7 +183,8 @@ class Colliders:
         self._static = ColliderPose(self.local_a0, self.local_d2, self.local_normal, zeros,
                                     zeros, zeros, np.zeros(k))
         # Distance from the body origin that bounds the collider's reach (for its speed).
-        self._reach = (np.linalg.norm(self.local_a0, axis=1) + np.linalg.norm(self.local_d2, axis=1)
+        self._reach = (np.linalg.norm(self.local_a0, axis=1)
+                       + np.linalg.norm(self.local_d2, axis=1)
                        + self.radius)
 
     def pose(self, bodies):
@@ -603,7 +604,7 @@ class Unilateral:
         return lam, np.einsum('kn,knj->nj', wseg, dv), np.einsum('kn,knj->nj', wseg, dw)
 
     # -- the pass after a step ---------------------------------------------------------------
-    def resolve(self, x, q, v, w, anchor, pose, project=True, dt=None):
+    def resolve(self, x, q, v, w, anchor, pose, project=True, dt=None):  # noqa: C901 (as it was)
         """Contacts and limits at the end of a step (of length ``dt``): positions, then
         velocities (inelastic impulses, then friction). ``anchor``: ``AnchorKinematics`` at
         that time; ``pose``: ``ColliderPose`` (``None`` without colliders). Returns

@@ -64,7 +64,8 @@ def bench_contacts(n_segments=20, seconds=2.0, repeats=3, out=print):
     if out is not None:
         out(f'{n_segments}-segment ponytail, reference moving head, RK4 dt = 1/240 s, '
             f'{seconds:g} s simulated, least of {repeats}')
-        out(f'{"configuration":<16} {"µs / step":>10} {"µs resolve / step":>18} {"calls/step":>11}')
+        out(f'{"configuration":<16} {"µs / step":>10} {"µs resolve / step":>18} '
+            f'{"calls/step":>11}')
         for label, step, res, calls in table:
             out(f'{label:<16} {step:>10.1f} {res:>18.1f} {calls:>11.2f}')
     return table

@@ -60,93 +60,124 @@ P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
 OK, NOT_POSITIVE_DEFINITE = 0, 1
 
 
+@njit(cache=True)
+def col3(R, r, c):
+    """Row r's 3-vector at columns c:c+3 (e.g. ``col3(R, r, LIN)``)."""
+    return (R[r, c], R[r, c + 1], R[r, c + 2])
+
+
+@njit(cache=True)
+def mat_vec(M, i, u):
+    """M[i] u for a stack of 3×3 matrices ``M``."""
+    return (M[i, 0, 0] * u[0] + M[i, 0, 1] * u[1] + M[i, 0, 2] * u[2],
+            M[i, 1, 0] * u[0] + M[i, 1, 1] * u[1] + M[i, 1, 2] * u[2],
+            M[i, 2, 0] * u[0] + M[i, 2, 1] * u[1] + M[i, 2, 2] * u[2])
+
+
 # -- the chain's configuration: half-vectors, inverse inertias, the factorised J M⁻¹ Jᵀ ------
+@njit(cache=True)
+def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
+    """Segment i with principal moments (I_a, I_p, I_p): I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ
+    and G = (h hᵀ - |h|² 1) / I_p, e = h / (l/2) its axis (world)."""
+    e = (hi[0] / half, hi[1] / half, hi[2] / half)
+    k = inv_inertia[i, 0] - inv_inertia[i, 1]
+    hh = dot(hi, hi)
+    for a in range(3):
+        for b in range(3):
+            inv_I[i, a, b] = k * e[a] * e[b]
+            G[i, a, b] = hi[a] * hi[b]
+        inv_I[i, a, a] += inv_inertia[i, 1]
+        G[i, a, a] -= hh
+    for a in range(3):
+        for b in range(3):
+            G[i, a, b] *= inv_inertia[i, 1]
+
+
+@njit(cache=True)
+def general_terms(qi, hi, inv_inertia, i, inv_I, G):
+    """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
+    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column."""
+    x, y, z, w = qi
+    R = np.empty((3, 3))
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += R[a, c] * inv_inertia[i, c] * R[b, c]
+            inv_I[i, a, b] = s
+    SI = np.empty((3, 3))
+    for b in range(3):
+        col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
+        for a in range(3):
+            SI[a, b] = col[a]
+    for a in range(3):
+        # (M [h]×)[a, b] = Σ_c M[a, c] [h]×[c, b].
+        G[i, a, 0] = SI[a, 1] * hi[2] - SI[a, 2] * hi[1]
+        G[i, a, 1] = SI[a, 2] * hi[0] - SI[a, 0] * hi[2]
+        G[i, a, 2] = SI[a, 0] * hi[1] - SI[a, 1] * hi[0]
+
+
+@njit(cache=True)
+def joint_blocks(G, inv_mass, is_first, D, L):
+    """Blocks of A = J M⁻¹ Jᵀ: ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}`` (the second
+    terms only below a parent segment), ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``."""
+    for i in range(G.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                eye = 1.0 if a == b else 0.0
+                D[i, a, b] = eye * inv_mass[i] - G[i, a, b]
+                L[i, a, b] = 0.0
+                if not is_first[i]:
+                    D[i, a, b] += eye * inv_mass[i - 1] - G[i - 1, a, b]
+                    L[i, a, b] = -(eye * inv_mass[i - 1] + G[i - 1, a, b])
+
+
 @njit(cache=True)
 def factor_chain(q, model, h, inv_I, C, Lo):
     """At orientations ``q``: half-vectors ``h`` (centre to distal joint, m), world inverse
-    inertias ``inv_I`` ``(n, 3, 3)`` and the block Cholesky factor (``C``, ``Lo``) of
-    A = J M⁻¹ Jᵀ, with ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}``,
-    ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``, ``G = [h]× I⁻¹ [h]×`` (``solver``). False if A is
-    not positive definite."""
-    length, inv_mass, inv_inertia = model[LENGTH], model[INV_MASS], model[INV_INERTIA]
-    is_first, axisymmetric = model[IS_FIRST], model[AXISYMMETRIC]
+    inertias ``inv_I`` ``(n, 3, 3)`` and the factors (``C``, ``Lo``, ``chain_solve``) of
+    A = J M⁻¹ Jᵀ (``joint_blocks``), G = [h]× I⁻¹ [h]× (``solver``). False if A is not
+    positive definite."""
+    length, inv_inertia = model[LENGTH], model[INV_INERTIA]
     n = q.shape[0]
     G = np.empty((n, 3, 3))
     for i in range(n):
         half = 0.5 * length[i]
-        e = qaxis_x(q4(q, i))
-        hi = scale(half, e)
+        hi = scale(half, qaxis_x(q4(q, i)))
         for a in range(3):
             h[i, a] = hi[a]
-        if axisymmetric:
-            # I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ;  G = (h hᵀ - |h|² 1) / I_p.
-            e = (hi[0] / half, hi[1] / half, hi[2] / half)
-            k = inv_inertia[i, 0] - inv_inertia[i, 1]
-            hh = dot(hi, hi)
-            for a in range(3):
-                for b in range(3):
-                    inv_I[i, a, b] = k * e[a] * e[b]
-                    G[i, a, b] = hi[a] * hi[b]
-                inv_I[i, a, a] += inv_inertia[i, 1]
-                G[i, a, a] -= hh
-            for a in range(3):
-                for b in range(3):
-                    G[i, a, b] *= inv_inertia[i, 1]
+        if model[AXISYMMETRIC]:
+            axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G)
         else:
-            x, y, z, w = q4(q, i)
-            R = np.empty((3, 3))
-            R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-            R[0, 1] = 2.0 * (x * y - w * z)
-            R[0, 2] = 2.0 * (x * z + w * y)
-            R[1, 0] = 2.0 * (x * y + w * z)
-            R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-            R[1, 2] = 2.0 * (y * z - w * x)
-            R[2, 0] = 2.0 * (x * z - w * y)
-            R[2, 1] = 2.0 * (y * z + w * x)
-            R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += R[a, c] * inv_inertia[i, c] * R[b, c]
-                    inv_I[i, a, b] = s
-            # G = ([h]× I⁻¹) [h]×, with [h]× u = h × u column by column, then
-            # (M [h]×)[a, b] = Σ_c M[a, c] [h]×[c, b].
-            SI = np.empty((3, 3))
-            for b in range(3):
-                col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
-                for a in range(3):
-                    SI[a, b] = col[a]
-            for a in range(3):
-                G[i, a, 0] = SI[a, 1] * hi[2] - SI[a, 2] * hi[1]
-                G[i, a, 1] = SI[a, 2] * hi[0] - SI[a, 0] * hi[2]
-                G[i, a, 2] = SI[a, 0] * hi[1] - SI[a, 1] * hi[0]
+            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G)
     D = np.empty((n, 3, 3))
-    L = np.zeros((n, 3, 3))
-    for i in range(n):
-        for a in range(3):
-            for b in range(3):
-                k_pp = (inv_mass[i] if a == b else 0.0) - G[i, a, b]
-                D[i, a, b] = k_pp
-                if not is_first[i]:
-                    D[i, a, b] += (inv_mass[i - 1] if a == b else 0.0) - G[i - 1, a, b]
-                    L[i, a, b] = -((inv_mass[i - 1] if a == b else 0.0) + G[i - 1, a, b])
-    return _chain_factor(D, L, is_first, C, Lo)
+    L = np.empty((n, 3, 3))
+    joint_blocks(G, model[INV_MASS], model[IS_FIRST], D, L)
+    return _chain_factor(D, L, model[IS_FIRST], C, Lo)
 
 
 @njit(cache=True)
 def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
     """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
-    parents) to ``dv``, ``dw`` over segments ``s:e`` of one chain:
-    Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
+    parents) over segments ``s:e`` (whole chains) to ``dv``, ``dw`` (``lam``, ``dv``, ``dw``
+    indexed from s): Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
     inv_mass, has_child = model[INV_MASS], model[HAS_CHILD]
     for i in range(s, e):
         ln = v3(lam, i - s + 1) if has_child[i] else (0.0, 0.0, 0.0)
         li = v3(lam, i - s)
-        tq = cross(add(li, ln), v3(h, i))
+        dwi = mat_vec(inv_I, i, cross(add(li, ln), v3(h, i)))
         for a in range(3):
-            dv[i, a] += (li[a] - ln[a]) * inv_mass[i]
-            dw[i, a] += inv_I[i, a, 0] * tq[0] + inv_I[i, a, 1] * tq[1] + inv_I[i, a, 2] * tq[2]
+            dv[i - s, a] += (li[a] - ln[a]) * inv_mass[i]
+            dw[i - s, a] += dwi[a]
 
 
 @njit(cache=True)
@@ -271,6 +302,26 @@ def rooted(anchor, a0, d2, sum_radius, length):
 
 
 @njit(cache=True)
+def closest_segment_segment(p0, d1, a0, d2):
+    """Clamped closest points ``s``, ``t`` ∈ [0, 1] of segments ``p0 + s d1`` and
+    ``a0 + t d2`` (``d2`` non-zero; Ericson, *Real-Time Collision Detection* 5.1.9)."""
+    r = sub(p0, a0)
+    a = dot(d1, d1)
+    e = dot(d2, d2)
+    b = dot(d1, d2)
+    c = dot(d1, r)
+    f = dot(d2, r)
+    denom = a * e - b * b
+    s = clip01((b * f - c * e) / denom) if denom > 1e-12 * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0:
+        s = clip01(-c / a)
+    elif t > 1.0:
+        s = clip01((b - c) / a)
+    return s, clip01(t)
+
+
+@njit(cache=True)
 def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
     closest-point parameters ``s`` (on the segment, proximal 0 to distal 1) and ``t`` (on a
@@ -310,20 +361,7 @@ def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
                 s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
                 t = 0.0
             else:
-                r = sub(p0, aj)
-                a = dot(d1, d1)
-                e = dot(dj, dj)
-                b = dot(d1, dj)
-                c = dot(d1, r)
-                ff = dot(dj, r)
-                denom = a * e - b * b
-                s = clip01((b * ff - c * e) / denom) if denom > 1e-12 * a * e else 0.0
-                t = (b * s + ff) / e
-                if t < 0.0:
-                    s = clip01(-c / a)
-                elif t > 1.0:
-                    s = clip01((b - c) / a)
-                t = clip01(t)
+                s, t = closest_segment_segment(p0, d1, aj, dj)
             if f >= 0:
                 if root_fixed[f, j]:
                     is_rooted = rooted_fixed[f, j]
@@ -376,109 +414,120 @@ def near(anchor_position, pose, v, w, det, dt):
 
 # -- rows ----------------------------------------------------------------------------------------
 @njit(cache=True)
+def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
+    """Normal (from the collider to the segment) and touching point on segment g's surface
+    for the closest points ``s`` (segment) and ``t`` (capsule core) with collider j."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    ps = add(v3(x, g), scale(2.0 * s - 1.0, v3(h, g)))
+    if j >= n_round:
+        nrm = v3(normal, j)
+    else:
+        diff = sub(ps, add(v3(a0, j), scale(t, v3(d2, j))))
+        dist = norm(diff)
+        if dist > 1e-12:
+            nrm = (diff[0] / dist, diff[1] / dist, diff[2] / dist)
+        else:
+            # On the core: any direction perpendicular to the segment.
+            hg = v3(h, g)
+            ref = (1.0, 0.0, 0.0) if abs(hg[0]) < 0.9 else (0.0, 1.0, 0.0)
+            p = cross(hg, ref)
+            npn = norm(p)
+            nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
+    return nrm, sub(ps, scale(radius, nrm))
+
+
+@njit(cache=True)
+def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
+    """The contact rows into ``R``, ``I`` (segment-major); returns their number."""
+    seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
+    origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
+                                          pose[P_SPEED])
+    n, m, K = x.shape[0], seg.shape[0], pose[P_A0].shape[0]
+    h = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    depth, s, t = np.empty((m, K)), np.empty((m, K)), np.empty((m, K))
+    own = np.empty((m, K), dtype=np.bool_)
+    detect(x, h, anchor_position, pose, det, False, depth, s, t, own)
+    skin = max(POSITION_SKIN + 4.0 * max(np.max(depth), 0.0), VELOCITY_SKIN)
+    k = 0
+    for i in range(m):
+        g = seg[i]
+        speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
+        for j in range(K):
+            reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
+            if not (own[i, j] and depth[i, j] > -reach):
+                continue
+            nrm, point = contact_frame(x, h, g, s[i, j], t[i, j], j, det[D_RADIUS][i], pose,
+                                       det[D_N_ROUND])
+            arm = sub(point, v3(x, g))
+            v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
+            rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
+            ang = cross(arm, nrm)
+            for a in range(3):
+                R[k, LIN + a] = nrm[a]
+                R[k, ANG + a] = ang[a]
+                R[k, ARM + a] = arm[a]
+                R[k, VOTH + a] = v_col[a]
+            R[k, DEPTH] = depth[i, j]
+            R[k, SEP] = dot(nrm, rel)
+            R[k, MU] = friction[j]
+            I[k, SEG] = g
+            I[k, PAR] = -1
+            I[k, CONTACT] = 1
+            k += 1
+    return k
+
+
+@njit(cache=True)
+def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
+    """The limit rows (swing rows, then twist rows) into ``R``, ``I`` from row ``k`` on;
+    returns the new number of rows. A limit is kept if violated, within ``ANGLE_SKIN`` plus
+    4× the deepest violation (so that a correction does not push a neighbouring joint past
+    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps."""
+    lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
+    nl = lim_idx.shape[0]
+    axis = np.empty((2 * nl, 3))
+    gap = np.empty(2 * nl)
+    sep = np.empty(2 * nl)
+    limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
+                swing_limit, twist_limit, axis, gap, sep)
+    skin = ANGLE_SKIN + 4.0 * max(-np.min(gap), 0.0)
+    for r in range(2 * nl):
+        joint = lim_idx[r % nl]
+        limit = swing_limit[joint] if r < nl else twist_limit[joint]
+        closing = sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r]
+        if not (np.isfinite(limit) and (gap[r] < skin or closing)):
+            continue
+        for a in range(3):
+            R[k, ANG + a] = -axis[r, a]
+            R[k, APAR + a] = axis[r, a]
+        R[k, DEPTH] = -gap[r]
+        R[k, SEP] = sep[r]
+        I[k, SEG] = joint
+        I[k, PAR] = model[PARENT][joint]
+        I[k, CONTACT] = 0
+        k += 1
+    return k
+
+
+@njit(cache=True)
 def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
     """Contact and limit rows within reach of this step's stages: ``(R, I)``.
 
     A pair is a candidate if it is inside, within the position skin, or could close within
-    ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds. A limit is a candidate
-    if violated, within ``ANGLE_SKIN`` plus 4× the deepest violation, or closing within
-    ``SPECULATIVE_STEPS`` steps. Contacts first (segment-major), then swing, then twist rows.
+    ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds (after the broad
+    phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
     """
-    length, is_first, parent, chain_of = (model[LENGTH], model[IS_FIRST], model[PARENT],
-                                          model[CHAIN_OF])
-    lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
-    a_pos, a_q, a_om = anchor[0], anchor[2], anchor[3]
-    n = x.shape[0]
-    nl = lim_idx.shape[0]
-    seg = det[D_SEG]
-    m = seg.shape[0] if has_colliders else 0
+    nl = model[LIMITED].shape[0]
+    m = det[D_SEG].shape[0] if has_colliders else 0
     K = pose[P_A0].shape[0] if has_colliders else 0
     R = np.zeros((m * K + 2 * nl, NCOL))
     I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
     k = 0
-    if has_colliders and near(a_pos, pose, v, w, det, dt):
-        seg_length, friction = det[D_LENGTH], det[D_FRICTION]
-        a0, d2, normal, origin, col_vel, col_om, col_speed = pose
-        h = np.empty((n, 3))
-        half_vectors(length, q, h)
-        depth = np.empty((m, K))
-        s = np.empty((m, K))
-        t = np.empty((m, K))
-        own = np.empty((m, K), dtype=np.bool_)
-        detect(x, h, a_pos, pose, det, False, depth, s, t, own)
-        worst = 0.0
-        for i in range(m):
-            for j in range(K):
-                worst = max(worst, depth[i, j])
-        skin = max(POSITION_SKIN + 4.0 * worst, VELOCITY_SKIN)
-        for i in range(m):
-            g = seg[i]
-            speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
-            for j in range(K):
-                reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
-                if not (own[i, j] and depth[i, j] > -reach):
-                    continue
-                # The normal (from the collider to the segment) and the touching point.
-                ps = add(v3(x, g), scale(2.0 * s[i, j] - 1.0, v3(h, g)))
-                if j >= det[D_N_ROUND]:
-                    nrm = v3(normal, j)
-                else:
-                    diff = sub(ps, add(v3(a0, j), scale(t[i, j], v3(d2, j))))
-                    dist = norm(diff)
-                    if dist > 1e-12:
-                        nrm = (diff[0] / dist, diff[1] / dist, diff[2] / dist)
-                    else:
-                        # On the core: any direction perpendicular to the segment.
-                        hg = v3(h, g)
-                        ref = (1.0, 0.0, 0.0) if abs(hg[0]) < 0.9 else (0.0, 1.0, 0.0)
-                        p = cross(hg, ref)
-                        npn = norm(p)
-                        nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
-                point = sub(ps, scale(det[D_RADIUS][i], nrm))
-                arm = sub(point, v3(x, g))
-                v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
-                rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
-                ang = cross(arm, nrm)
-                for a in range(3):
-                    R[k, LIN + a] = nrm[a]
-                    R[k, ANG + a] = ang[a]
-                    R[k, ARM + a] = arm[a]
-                    R[k, VOTH + a] = v_col[a]
-                R[k, DEPTH] = depth[i, j]
-                R[k, SEP] = dot(nrm, rel)
-                R[k, MU] = friction[j]
-                I[k, SEG] = g
-                I[k, PAR] = -1
-                I[k, CONTACT] = 1
-                k += 1
+    if has_colliders and near(anchor[0], pose, v, w, det, dt):
+        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I)
     if nl:
-        axis = np.empty((2 * nl, 3))
-        gap = np.empty(2 * nl)
-        sep = np.empty(2 * nl)
-        limit_terms(q, w, a_q, a_om, q_rest, is_first, chain_of, lim_idx, swing_limit,
-                    twist_limit, axis, gap, sep)
-        # As for contacts: the skin grows with the deepest violation, so that a correction
-        # does not push a neighbouring joint past its limit unseen.
-        lowest = gap[0]
-        for r in range(2 * nl):
-            lowest = min(lowest, gap[r])
-        skin = ANGLE_SKIN + 4.0 * max(-lowest, 0.0)
-        for r in range(2 * nl):
-            limit = swing_limit[lim_idx[r]] if r < nl else twist_limit[lim_idx[r - nl]]
-            if not np.isfinite(limit):
-                continue
-            if not (gap[r] < skin or (sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r])):
-                continue
-            joint = lim_idx[r % nl]
-            for a in range(3):
-                R[k, ANG + a] = -axis[r, a]
-                R[k, APAR + a] = axis[r, a]
-            R[k, DEPTH] = -gap[r]
-            R[k, SEP] = sep[r]
-            I[k, SEG] = joint
-            I[k, PAR] = parent[joint]
-            I[k, CONTACT] = 0
-            k += 1
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k)
     return R[:k].copy(), I[:k].copy()
 
 
@@ -506,17 +555,17 @@ def moved_rows(R, I, dx, dth):
     angular Jacobian is then arm × normal again)."""
     for r in range(R.shape[0]):
         g, p = I[r, SEG], I[r, PAR]
-        rate = (dot((R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]), v3(dx, g))
-                + dot((R[r, ANG], R[r, ANG + 1], R[r, ANG + 2]), v3(dth, g)))
+        rate = (dot(col3(R, r, LIN), v3(dx, g))
+                + dot(col3(R, r, ANG), v3(dth, g)))
         if p >= 0:
-            rate += dot((R[r, APAR], R[r, APAR + 1], R[r, APAR + 2]), v3(dth, p))
-        arm = (R[r, ARM], R[r, ARM + 1], R[r, ARM + 2])
+            rate += dot(col3(R, r, APAR), v3(dth, p))
+        arm = col3(R, r, ARM)
         arm = add(arm, cross(v3(dth, g), arm))
         R[r, DEPTH] -= rate
         for a in range(3):
             R[r, ARM + a] = arm[a]
         if I[r, CONTACT]:
-            ang = cross(arm, (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]))
+            ang = cross(arm, col3(R, r, LIN))
             for a in range(3):
                 R[r, ANG + a] = ang[a]
 
@@ -527,10 +576,10 @@ def refresh_sep(R, I, v, w, anchor_omega, chain_of):
     for r in range(R.shape[0]):
         g, p = I[r, SEG], I[r, PAR]
         w_par = v3(w, p) if p >= 0 else v3(anchor_omega, chain_of[g])
-        R[r, SEP] = (dot((R[r, LIN], R[r, LIN + 1], R[r, LIN + 2]),
-                         sub(v3(v, g), (R[r, VOTH], R[r, VOTH + 1], R[r, VOTH + 2])))
-                     + dot((R[r, ANG], R[r, ANG + 1], R[r, ANG + 2]), v3(w, g))
-                     + dot((R[r, APAR], R[r, APAR + 1], R[r, APAR + 2]), w_par))
+        R[r, SEP] = (dot(col3(R, r, LIN),
+                         sub(v3(v, g), col3(R, r, VOTH)))
+                     + dot(col3(R, r, ANG), v3(w, g))
+                     + dot(col3(R, r, APAR), w_par))
 
 
 # -- small dense problems ------------------------------------------------------------------------
@@ -588,6 +637,49 @@ def solve_active(Ws, bs, active, lam):
 
 
 @njit(cache=True)
+def row_dot(A, i, x):
+    """Σ_j A[i, j] x[j] (no BLAS)."""
+    s = 0.0
+    for j in range(x.shape[0]):
+        s += A[i, j] * x[j]
+    return s
+
+
+@njit(cache=True)
+def entering_variable(Ws, bs, lam, passive):
+    """Lawson–Hanson: the bound variable with the largest dual -(Wλ + b)_i > 1e-12, or -1."""
+    best, j = 1e-12, -1
+    for i in range(bs.shape[0]):
+        if not passive[i]:
+            g = -bs[i] - row_dot(Ws, i, lam)
+            if g > best:
+                best, j = g, i
+    return j
+
+
+@njit(cache=True)
+def step_to_feasible(Ws, bs, passive, lam, z):
+    """Lawson–Hanson inner loop: solve on the passive set; while a passive variable would
+    turn non-positive, move λ towards the solution as far as stays feasible and release the
+    variables that reach zero."""
+    k = bs.shape[0]
+    for _ in range(3 * k + 3):
+        solve_active(Ws, bs, passive, z)
+        if not np.any(passive & (z <= 0.0)):
+            lam[:] = z
+            return
+        alpha = 1.0
+        for i in range(k):
+            if passive[i] and z[i] <= 0.0:
+                alpha = min(alpha, lam[i] / (lam[i] - z[i]))
+        for i in range(k):
+            lam[i] += alpha * (z[i] - lam[i])
+            if passive[i] and lam[i] <= 1e-15:
+                passive[i] = False
+                lam[i] = 0.0
+
+
+@njit(cache=True)
 def nnls_quadratic(Ws, bs):
     """min ½ λᵀ W λ + bᵀ λ over λ ≥ 0 (W symmetric positive definite): Lawson–Hanson active
     set, with the gradient -(Wλ + b) as the dual."""
@@ -596,38 +688,26 @@ def nnls_quadratic(Ws, bs):
     z = np.zeros(k)
     passive = np.zeros(k, dtype=np.bool_)
     for _ in range(3 * k + 3):
-        # The most violated dual among the bound variables enters.
-        best, j = 1e-12, -1
-        for i in range(k):
-            if not passive[i]:
-                g = -bs[i]
-                for c in range(k):
-                    g -= Ws[i, c] * lam[c]
-                if g > best:
-                    best, j = g, i
+        j = entering_variable(Ws, bs, lam, passive)
         if j < 0:
             break
         passive[j] = True
-        for _inner in range(3 * k + 3):
-            solve_active(Ws, bs, passive, z)
-            feasible = True
-            for i in range(k):
-                if passive[i] and z[i] <= 0.0:
-                    feasible = False
-            if feasible:
-                for i in range(k):
-                    lam[i] = z[i]
-                break
-            alpha = 1.0
-            for i in range(k):
-                if passive[i] and z[i] <= 0.0:
-                    alpha = min(alpha, lam[i] / (lam[i] - z[i]))
-            for i in range(k):
-                lam[i] += alpha * (z[i] - lam[i])
-                if passive[i] and lam[i] <= 1e-15:
-                    passive[i] = False
-                    lam[i] = 0.0
+        step_to_feasible(Ws, bs, passive, lam, z)
     return lam
+
+
+@njit(cache=True)
+def sign_violations(Ws, bs, active, lam, bad):
+    """Principal pivoting: which rows violate their sign condition (an active row pulling,
+    λ < 0, or an inactive one penetrating, (Wλ + b) < 0, beyond ``PIVOT_TOL``), into ``bad``;
+    returns the lowest such row, or -1."""
+    first = -1
+    for i in range(bs.shape[0]):
+        slack = row_dot(Ws, i, lam) + bs[i]
+        bad[i] = lam[i] < -PIVOT_TOL if active[i] else slack < -PIVOT_TOL
+        if bad[i] and first < 0:
+            first = i
+    return first
 
 
 @njit(cache=True)
@@ -640,53 +720,30 @@ def lcp(W, b):
     lowest index: Murty's rule, which terminates for positive definite W). Falls back to
     Lawson–Hanson (``nnls_quadratic``) if it ever stalls."""
     k = b.shape[0]
-    lam = np.zeros(k)
-    any_neg = False
-    for i in range(k):
-        any_neg = any_neg or b[i] < 0.0
-    if not any_neg:
-        return lam
+    if not np.any(b < 0.0):
+        return np.zeros(k)
     if k == 1:
-        lam[0] = max(-b[0] / W[0, 0], 0.0)
-        return lam
-    d = np.empty(k)
-    for i in range(k):
-        d[i] = 1.0 / math.sqrt(W[i, i])
+        return np.array([max(-b[0] / W[0, 0], 0.0)])
+    d = 1.0 / np.sqrt(np.diag(W))
     Ws = np.empty((k, k))
-    bs = np.empty(k)
-    active = np.empty(k, dtype=np.bool_)
     for i in range(k):
         for j in range(k):
             Ws[i, j] = W[i, j] * d[i] * d[j]
         Ws[i, i] += REG
-        bs[i] = b[i] * d[i]
-        active[i] = bs[i] < 0.0
+    bs = b * d
+    active = bs < 0.0
+    lam = np.zeros(k)
+    bad = np.zeros(k, dtype=np.bool_)
     for it in range(4 * k + 8):
         solve_active(Ws, bs, active, lam)
-        first_bad = -1
-        bad = np.zeros(k, dtype=np.bool_)
-        for i in range(k):
-            slack = 0.0
-            for j in range(k):
-                slack += Ws[i, j] * lam[j]
-            slack += bs[i]
-            bad[i] = (active[i] and lam[i] < -PIVOT_TOL) or (not active[i] and slack < -PIVOT_TOL)
-            if bad[i] and first_bad < 0:
-                first_bad = i
-        if first_bad < 0:
-            for i in range(k):
-                lam[i] = max(lam[i], 0.0) * d[i]
-            return lam
+        first = sign_violations(Ws, bs, active, lam, bad)
+        if first < 0:
+            return np.maximum(lam, 0.0) * d
         if it < 4:
-            for i in range(k):
-                if bad[i]:
-                    active[i] = not active[i]
+            active ^= bad
         else:
-            active[first_bad] = not active[first_bad]
-    lam = nnls_quadratic(Ws, bs)
-    for i in range(k):
-        lam[i] *= d[i]
-    return lam
+            active[first] = not active[first]
+    return nnls_quadratic(Ws, bs) * d
 
 
 @njit(cache=True)
@@ -728,39 +785,83 @@ def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
     inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
     nc = e - s
     g, p = I[r, SEG], I[r, PAR]
-    for i in range(nc):
-        for a in range(3):
-            dv[i, a] = 0.0
-            dw[i, a] = 0.0
-    lin = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
-    ang = (R[r, ANG], R[r, ANG + 1], R[r, ANG + 2])
+    dv[:] = 0.0
+    dw[:] = 0.0
+    lin = col3(R, r, LIN)
+    dwg = mat_vec(inv_I, g, col3(R, r, ANG))
     for a in range(3):
         dv[g - s, a] = lin[a] * inv_mass[g]
-        dw[g - s, a] = inv_I[g, a, 0] * ang[0] + inv_I[g, a, 1] * ang[1] + inv_I[g, a, 2] * ang[2]
+        dw[g - s, a] = dwg[a]
     if p >= 0:
-        ap = (R[r, APAR], R[r, APAR + 1], R[r, APAR + 2])
+        dwp = mat_vec(inv_I, p, col3(R, r, APAR))
         for a in range(3):
-            dw[p - s, a] = inv_I[p, a, 0] * ap[0] + inv_I[p, a, 1] * ap[1] + inv_I[p, a, 2] * ap[2]
+            dw[p - s, a] = dwp[a]
     # Joint velocity error: parent's distal point minus child's proximal point.
     c_dot = np.empty((nc, 3))
     for i in range(nc):
-        hi = v3(h, s + i)
-        d = add(cross(v3(dw, i), hi), scale(-1.0, v3(dv, i)))
+        d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
         if i > 0:
             d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
         for a in range(3):
             c_dot[i, a] = d[a]
     _chain_solve(C[s:e], Lo[s:e], is_first[s:e], c_dot)
-    # Add the joints' impulses (dv, dw are local to the chain: offset by s).
-    has_child = model[HAS_CHILD]
-    for i in range(nc):
-        ln = v3(c_dot, i + 1) if has_child[s + i] else (0.0, 0.0, 0.0)
-        li = v3(c_dot, i)
-        tq = cross(add(li, ln), v3(h, s + i))
-        for a in range(3):
-            dv[i, a] += (li[a] - ln[a]) * inv_mass[s + i]
-            dw[i, a] += (inv_I[s + i, a, 0] * tq[0] + inv_I[s + i, a, 1] * tq[1]
-                         + inv_I[s + i, a, 2] * tq[2])
+    apply_joint_impulses(c_dot, h, inv_I, model, s, e, dv, dw)
+
+
+@njit(cache=True)
+def gather_chain(I, chain_of, r0, done, members):
+    """The rows (from ``r0`` on, not yet ``done``) of the chain of row ``r0`` into ``members``,
+    marked done; returns their number."""
+    c = chain_of[I[r0, SEG]]
+    kg = 0
+    for r in range(r0, I.shape[0]):
+        if not done[r] and chain_of[I[r, SEG]] == c:
+            members[kg] = r
+            kg += 1
+            done[r] = True
+    return kg
+
+
+@njit(cache=True)
+def delassus(R, I, members, s, rv, rw, model, W, mobile):
+    """W[a, b] = J_a · (response to a unit impulse along row b), the Delassus matrix of one
+    chain's rows (segments from s), and which rows the jointed chain can move: W_aa above
+    ``MOBILITY`` times the row's mobility on its free segment(s)."""
+    inv_mass, inv_I_max = model[INV_MASS], model[INV_I_MAX]
+    kg = W.shape[0]
+    for a in range(kg):
+        r = members[a]
+        g, p = I[r, SEG], I[r, PAR]
+        lin, ang, ap = col3(R, r, LIN), col3(R, r, ANG), col3(R, r, APAR)
+        for bb in range(kg):
+            W[a, bb] = dot(lin, v3(rv[bb], g - s)) + dot(ang, v3(rw[bb], g - s))
+            if p >= 0:
+                W[a, bb] += dot(ap, v3(rw[bb], p - s))
+        free = dot(lin, lin) * inv_mass[g] + dot(ang, ang) * inv_I_max[g]
+        if p >= 0:
+            free += dot(ap, ap) * inv_I_max[p]
+        mobile[a] = W[a, a] > MOBILITY * free
+
+
+@njit(cache=True)
+def chain_impulses(W, mobile, b, bound, members, friction):
+    """λ of one chain's rows (index into ``members``): the mobile rows' LCP (or friction
+    step) on the symmetrised W, zero for the others."""
+    sel = np.flatnonzero(mobile)
+    nm = sel.shape[0]
+    Wc = np.empty((nm, nm))
+    bc = np.empty(nm)
+    bnd = np.empty(nm)
+    for a in range(nm):
+        bc[a] = b[members[sel[a]]]
+        bnd[a] = bound[members[sel[a]]]
+        for bb in range(nm):
+            Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
+    lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
+    lam = np.zeros(W.shape[0])
+    for a in range(nm):
+        lam[sel[a]] = lc[a]
+    return lam
 
 
 @njit(cache=True)
@@ -773,8 +874,7 @@ def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out)
     a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
     mobility (a contact at the anchor) takes no impulse.
     """
-    inv_mass, inv_I_max, chain_of, chain_start, chain_end = (model[INV_MASS], model[INV_I_MAX], model[CHAIN_OF],
-                                                             model[CHAIN_START], model[CHAIN_END])
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
     k = R.shape[0]
     lam = np.zeros(k)
     done = np.zeros(k, dtype=np.bool_)
@@ -782,62 +882,22 @@ def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out)
     for r0 in range(k):
         if done[r0]:
             continue
+        kg = gather_chain(I, chain_of, r0, done, members)
         c = chain_of[I[r0, SEG]]
-        kg = 0
-        for r in range(r0, k):
-            if not done[r] and chain_of[I[r, SEG]] == c:
-                members[kg] = r
-                kg += 1
-                done[r] = True
         s, e = chain_start[c], chain_end[c]
-        nc = e - s
-        rv = np.empty((kg, nc, 3))
-        rw = np.empty((kg, nc, 3))
+        rv = np.empty((kg, e - s, 3))
+        rw = np.empty((kg, e - s, 3))
         for a in range(kg):
             row_response(R, I, members[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a])
         W = np.empty((kg, kg))
         mobile = np.empty(kg, dtype=np.bool_)
+        delassus(R, I, members, s, rv, rw, model, W, mobile)
+        lc = chain_impulses(W, mobile, b, bound, members, friction)
         for a in range(kg):
-            r = members[a]
-            g, p = I[r, SEG], I[r, PAR]
-            lin = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
-            ang = (R[r, ANG], R[r, ANG + 1], R[r, ANG + 2])
-            ap = (R[r, APAR], R[r, APAR + 1], R[r, APAR + 2])
-            for bb in range(kg):
-                W[a, bb] = dot(lin, v3(rv[bb], g - s)) + dot(ang, v3(rw[bb], g - s))
-                if p >= 0:
-                    W[a, bb] += dot(ap, v3(rw[bb], p - s))
-            free = dot(lin, lin) * inv_mass[g] + dot(ang, ang) * inv_I_max[g]
-            if p >= 0:
-                free += dot(ap, ap) * inv_I_max[p]
-            mobile[a] = W[a, a] > MOBILITY * free
-        nm = 0
-        for a in range(kg):
-            nm += mobile[a]
-        if nm == 0:
-            continue
-        sel = np.empty(nm, dtype=np.int64)
-        nm = 0
-        for a in range(kg):
-            if mobile[a]:
-                sel[nm] = a
-                nm += 1
-        Wc = np.empty((nm, nm))
-        bc = np.empty(nm)
-        bnd = np.empty(nm)
-        for a in range(nm):
-            bc[a] = b[members[sel[a]]]
-            bnd[a] = bound[members[sel[a]]]
-            for bb in range(nm):
-                Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
-        lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
-        for a in range(nm):
-            ga = sel[a]
-            lam[members[ga]] = lc[a]
-            for i in range(nc):
-                for d in range(3):
-                    dv_out[s + i, d] += lc[a] * rv[ga, i, d]
-                    dw_out[s + i, d] += lc[a] * rw[ga, i, d]
+            lam[members[a]] = lc[a]
+            if lc[a] != 0.0:
+                dv_out[s:e] += lc[a] * rv[a]
+                dw_out[s:e] += lc[a] * rw[a]
     return lam
 
 
@@ -864,9 +924,9 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
         if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
             continue
         g = I[r, SEG]
-        arm = (R[r, ARM], R[r, ARM + 1], R[r, ARM + 2])
-        nrm = (R[r, LIN], R[r, LIN + 1], R[r, LIN + 2])
-        v_rel = sub(add(v3(v, g), cross(v3(w, g), arm)), (R[r, VOTH], R[r, VOTH + 1], R[r, VOTH + 2]))
+        arm = col3(R, r, ARM)
+        nrm = col3(R, r, LIN)
+        v_rel = sub(add(v3(v, g), cross(v3(w, g), arm)), col3(R, r, VOTH))
         slip = sub(v_rel, scale(dot(v_rel, nrm), nrm))
         sp = norm(slip)
         if not sp > 1e-9:
@@ -895,6 +955,143 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
 
 # -- the pass after a step ------------------------------------------------------------------------
 @njit(cache=True)
+def deepest(R, I, with_limits):
+    """The deepest violation (≥ 0) of the contact rows (and of the limit rows if asked)."""
+    worst = 0.0
+    for r in range(R.shape[0]):
+        if I[r, CONTACT] or with_limits:
+            worst = max(worst, R[r, DEPTH])
+    return worst
+
+
+@njit(cache=True)
+def rotate_segments(q, dth, length):
+    """Turn every segment by its rotation vector ``dth`` (clamped in place to
+    ``MAX_ROTATION``): q ← normalise(exp(dth) ⊗ q). Returns whether the pass was small: no
+    clamp and max l θ² below a tenth of ``POSITION_TOLERANCE`` (its linearisation holds)."""
+    unclamped = True
+    small = 0.0
+    for i in range(q.shape[0]):
+        th = v3(dth, i)
+        ang2 = dot(th, th)
+        clamp = min(1.0, MAX_ROTATION / math.sqrt(max(ang2, 1e-300)))
+        unclamped = unclamped and clamp == 1.0
+        small = max(small, ang2 * length[i])
+        th = scale(clamp, th)
+        qi = qnormalize(qmul(qfrom_rotvec(th), q4(q, i)))
+        for a in range(3):
+            dth[i, a] = th[a]
+        for a in range(4):
+            q[i, a] = qi[a]
+    return unclamped and small < 0.1 * POSITION_TOLERANCE
+
+
+@njit(cache=True)
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, fac,
+                   stats):
+    """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
+    rows and those within the skin (plus 4× the deepest violation), each displacement
+    ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
+    contact is deeper than ``POSITION_TOLERANCE`` (limits: the first pass). ``x``, ``q`` in
+    place. Returns ``(status, moved, R, I)``: the rows at the final pose."""
+    length = model[LENGTH]
+    h, inv_I, C, Lo = fac
+    n = x.shape[0]
+    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    moved = False
+    for passes in range(POSITION_ITERATIONS):
+        if R.shape[0] == 0:
+            break
+        worst = deepest(R, I, passes == 0)
+        if worst <= POSITION_TOLERANCE:
+            break
+        active = np.empty(R.shape[0], dtype=np.bool_)
+        for r in range(R.shape[0]):
+            skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
+            active[r] = R[r, DEPTH] > -skin - 4.0 * worst
+        Rs, Is = take(R, I, active)
+        if not factor_chain(q, model, h, inv_I, C, Lo):
+            return NOT_POSITIVE_DEFINITE, moved, R, I
+        b = -Rs[:, DEPTH]
+        dx = np.zeros((n, 3))
+        dth = np.zeros((n, 3))
+        solve_rows(Rs, Is, b, b, False, h, inv_I, C, Lo, model, dx, dth)
+        small = rotate_segments(q, dth, length)
+        stats[2] = passes + 1
+        moved = True
+        x_old = x.copy()
+        half_vectors(length, q, h)
+        project_positions(anchor[0], h, model, x)
+        if small:
+            # The predicted depths stand (error ~ l θ²), no second detection.
+            moved_rows(R, I, x - x_old, dth)
+            break
+        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    return OK, moved, R, I
+
+
+@njit(cache=True)
+def limit_stage(x, q, anchor, q_rest, model):
+    """The limits' exact projection (``project_limits``) for what the linearisation of their
+    cones left; ``x``, ``q`` in place. Returns whether anything moved."""
+    n = q.shape[0]
+    q_lim = np.empty((n, 4))
+    if not project_limits(q, anchor[2], q_rest, model[IS_FIRST], model[CHAIN_OF],
+                          model[CHAIN_START], model[CHAIN_END], model[LIMITED],
+                          model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
+        return False
+    q[:] = q_lim
+    h = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    project_positions(anchor[0], h, model, x)
+    return True
+
+
+@njit(cache=True)
+def unprojected_positions(x0, q0, q, anchor, model, x):
+    """Without projection the centres move by the rotations about the joints only:
+    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0)."""
+    n = x.shape[0]
+    h = np.empty((n, 3))
+    p0 = np.empty((n, 3))
+    half_vectors(model[LENGTH], q0, h)
+    project_positions(anchor[0], h, model, p0)
+    p1 = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    project_positions(anchor[0], h, model, p1)
+    x[:] = x0 + (p1 - p0)
+
+
+@njit(cache=True)
+def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, fac, stats):
+    """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
+    steps at its current rate, gets the inelastic impulse of the LCP
+    ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
+    status (the chain is factorised here if it was not yet)."""
+    h, inv_I, C, Lo = fac
+    k = R.shape[0]
+    keep = np.empty(k, dtype=np.bool_)
+    for r in range(k):
+        gap = -R[r, DEPTH]
+        sep = R[r, SEP]
+        skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
+        keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
+    Rv, Iv = take(R, I, keep)
+    b = np.empty(Rv.shape[0])
+    for r in range(Rv.shape[0]):
+        stats[0 if Iv[r, CONTACT] else 1] += 1
+        b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
+    if not np.any(b < 0.0):
+        return OK
+    if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
+        return NOT_POSITIVE_DEFINITE
+    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
+    if project:
+        project_velocities(anchor[1], w, h, model, v)
+    return OK
+
+
+@njit(cache=True)
 def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt, stats):
     """Contacts and limits at the end of a step of length ``dt`` (s): positions, then
     velocities (inelastic impulses, then friction). Returns ``(status, x, q, v, w)`` (new
@@ -905,129 +1102,38 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     attachment (C rows); ``pose``: ``(a0, d2, normal, origin, velocity, omega, speed)`` of the
     colliders (``collision.ColliderPose``); ``model`` and ``det``: the constant tuples built by
     ``collision.Unilateral``; ``q_rest``: the joints' rest rotations (``Model.q_rest``).
+
+    Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
+    unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
+    energy), ``velocity_stage``, and the centre velocities rebuilt from ω.
     """
-    length = model[LENGTH]
     n = x.shape[0]
     x0, q0 = x, q
-    x = x.copy()
-    q = q.copy()
-    v = v.copy()
-    w = w.copy()
-    a_pos, a_vel, a_q, a_om = anchor
-    stats[0] = 0
-    stats[1] = 0
-    stats[2] = 0
-    h = np.empty((n, 3))
-    inv_I = np.empty((n, 3, 3))
-    C = np.empty((n, 3, 3))
-    Lo = np.empty((n, 3, 3))
-    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
-    moved = False
-    for passes in range(POSITION_ITERATIONS):
-        k = R.shape[0]
-        if k == 0:
-            break
-        worst = 0.0
-        for r in range(k):
-            if I[r, CONTACT] or passes == 0:
-                worst = max(worst, R[r, DEPTH])
-        if worst <= POSITION_TOLERANCE:
-            break
-        active = np.empty(k, dtype=np.bool_)
-        for r in range(k):
-            skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
-            active[r] = R[r, DEPTH] > -skin - 4.0 * worst
-        Rs, Is = take(R, I, active)
-        if not factor_chain(q, model, h, inv_I, C, Lo):
-            return NOT_POSITIVE_DEFINITE, x, q, v, w
-        b = np.empty(Rs.shape[0])
-        for r in range(Rs.shape[0]):
-            b[r] = -Rs[r, DEPTH]
-        dx = np.zeros((n, 3))
-        dth = np.zeros((n, 3))
-        solve_rows(Rs, Is, b, b, False, h, inv_I, C, Lo, model, dx, dth)
-        unclamped = True
-        small = 0.0
-        for i in range(n):
-            th = v3(dth, i)
-            ang2 = dot(th, th)
-            clamp = min(1.0, MAX_ROTATION / math.sqrt(max(ang2, 1e-300)))
-            unclamped = unclamped and clamp == 1.0
-            small = max(small, ang2 * length[i])
-            th = scale(clamp, th)
-            for a in range(3):
-                dth[i, a] = th[a]
-            qi = qnormalize(qmul(qfrom_rotvec(th), q4(q, i)))
-            for a in range(4):
-                q[i, a] = qi[a]
-        stats[2] = passes + 1
-        moved = True
-        x_old = x.copy()
-        half_vectors(length, q, h)
-        project_positions(a_pos, h, model, x)
-        if unclamped and small < 0.1 * POSITION_TOLERANCE:
-            # Small enough for the linearisation to hold to a tenth of the tolerance (error
-            # ~ l θ²): the predicted depths stand, no second detection.
-            moved_rows(R, I, x - x_old, dth)
-            break
-        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
-    stale = False          # rows computed before the last change of pose
-    lim_idx = model[LIMITED]
-    if lim_idx.shape[0]:
-        q_lim = np.empty((n, 4))
-        if project_limits(q, a_q, q_rest, model[IS_FIRST], model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END], lim_idx,
-                          model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
-            q = q_lim
-            moved = True
-            stale = True
-            half_vectors(length, q, h)
-            project_positions(a_pos, h, model, x)
-    have_factor = False
+    x, q, v, w = x.copy(), q.copy(), v.copy(), w.copy()
+    stats[:] = 0
+    fac = (np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
+    h, inv_I, C, Lo = fac
+    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
+                                         has_colliders, dt, fac, stats)
+    if status != OK:
+        return status, x, q, v, w
+    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model)
+    moved = moved or stale
     if moved:
         if not project:
-            # Without projection the centres move by the rotations about the joints only.
-            h0 = np.empty((n, 3))
-            half_vectors(length, q0, h0)
-            p0 = np.empty((n, 3))
-            project_positions(a_pos, h0, model, p0)
-            p1 = np.empty((n, 3))
-            half_vectors(length, q, h)
-            project_positions(a_pos, h, model, p1)
-            x = x0 + (p1 - p0)
-        # The unchanged velocities no longer fit the moved joints: their M-orthogonal
-        # projection onto the joint constraints does (it never adds kinetic energy).
+            unprojected_positions(x0, q0, q, anchor, model, x)
         if not factor_chain(q, model, h, inv_I, C, Lo):
             return NOT_POSITIVE_DEFINITE, x, q, v, w
-        have_factor = True
-        joint_projection(v, w, a_vel, h, inv_I, C, Lo, model)
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model)
         if stale:
             R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
         else:
-            refresh_sep(R, I, v, w, a_om, model[CHAIN_OF])
-    k = R.shape[0]
-    if k:
-        # Velocities: rows touching, or whose gap would close within SPECULATIVE_STEPS steps.
-        keep = np.empty(k, dtype=np.bool_)
-        for r in range(k):
-            gap = -R[r, DEPTH]
-            sep = R[r, SEP]
-            skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
-            keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
-        Rv, Iv = take(R, I, keep)
-        kv = Rv.shape[0]
-        b = np.empty(kv)
-        closing = False
-        for r in range(kv):
-            stats[0 if Iv[r, CONTACT] else 1] += 1
-            b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
-            closing = closing or b[r] < 0.0
-        if closing:
-            if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
-                return NOT_POSITIVE_DEFINITE, x, q, v, w
-            velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
-            if project:
-                project_velocities(a_vel, w, h, model, v)
+            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
+    if R.shape[0]:
+        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, fac, stats)
+        if status != OK:
+            return status, x, q, v, w
     if moved and project:
-        half_vectors(length, q, h)
-        project_velocities(a_vel, w, h, model, v)
+        half_vectors(model[LENGTH], q, h)
+        project_velocities(anchor[1], w, h, model, v)
     return OK, x, q, v, w

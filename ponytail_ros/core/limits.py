@@ -26,7 +26,8 @@ child back onto its limits (about the swing axis a by θ_max - θ, which leaves 
 unchanged, then about its own axis by σφ_max - φ) and carries the whole distal part of the
 chain along rigidly, so that the other joints' relative rotations are unchanged. With C_i the
 world-frame correction of joint i computed in the current pose, segment j becomes
-``C_first ⊗ … ⊗ C_j ⊗ q_j`` (a running product along its chain): every joint ends exactly on its limits in one pass.
+``C_first ⊗ … ⊗ C_j ⊗ q_j`` (a running product along its chain): every joint ends exactly
+on its limits in one pass.
 
 The equations run compiled, joint by joint (``limit_kernels``); this module is their Python
 layer for the tests and the simulator's ``joint_angles``. ``collision``'s compiled resolve
