@@ -319,10 +319,9 @@ class Unilateral:
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         R, I = _rows_arrays(rows)
         b = _c(b)
-        bound = b if friction_bound is None else _c(friction_bound)
+        bound = np.zeros(0) if friction_bound is None else _c(friction_bound)
         dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
-        lam = K.solve_rows(R, I, b, bound, friction_bound is not None, h, inv_I, C, Lo,
-                           self.model_args, dv, dw)
+        lam = K.solve_rows(R, I, b, bound, h, inv_I, C, Lo, self.model_args, dv, dw)
         return lam, dv, dw
 
     def _state(self, x, q, v, w):

@@ -844,17 +844,18 @@ def delassus(R, I, members, s, rv, rw, model, W, mobile):
 
 
 @njit(cache=True)
-def chain_impulses(W, mobile, b, bound, members, friction):
-    """λ of one chain's rows (index into ``members``): the mobile rows' LCP (or friction
-    step) on the symmetrised W, zero for the others."""
+def chain_impulses(W, mobile, b, bound, members):
+    """λ of one chain's rows (index into ``members``): the mobile rows' LCP on the
+    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others."""
     sel = np.flatnonzero(mobile)
     nm = sel.shape[0]
+    friction = bound.shape[0] > 0
     Wc = np.empty((nm, nm))
     bc = np.empty(nm)
     bnd = np.empty(nm)
     for a in range(nm):
         bc[a] = b[members[sel[a]]]
-        bnd[a] = bound[members[sel[a]]]
+        bnd[a] = bound[members[sel[a]]] if friction else 0.0
         for bb in range(nm):
             Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
     lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
@@ -865,10 +866,11 @@ def chain_impulses(W, mobile, b, bound, members, friction):
 
 
 @njit(cache=True)
-def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out):
+def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     """Impulses λ ``(k,)`` of the rows and the velocity change they cause, added to
-    ``dv_out``, ``dw_out``: the exact LCP Wλ + b ≥ 0, λ ≥ 0, λ·(Wλ + b) = 0, or with
-    ``friction`` the energy-safe friction step bounded by ``bound``.
+    ``dv_out``, ``dw_out``: the exact LCP Wλ + b ≥ 0, λ ≥ 0, λ·(Wλ + b) = 0 (``bound``
+    empty), or the energy-safe friction step bounded by ``bound`` ``(k,)`` (a run-time
+    switch, not a compile-time one: one specialisation for both).
 
     Rows couple only within a chain: per chain, W = J_r P M⁻¹ J_rᵀ from one response per row;
     a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
@@ -892,7 +894,7 @@ def solve_rows(R, I, b, bound, friction, h, inv_I, C, Lo, model, dv_out, dw_out)
         W = np.empty((kg, kg))
         mobile = np.empty(kg, dtype=np.bool_)
         delassus(R, I, members, s, rv, rw, model, W, mobile)
-        lc = chain_impulses(W, mobile, b, bound, members, friction)
+        lc = chain_impulses(W, mobile, b, bound, members)
         for a in range(kg):
             lam[members[a]] = lc[a]
             if lc[a] != 0.0:
@@ -908,7 +910,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
     n = v.shape[0]
     dv = np.zeros((n, 3))
     dw = np.zeros((n, 3))
-    lam = solve_rows(R, I, b, b, False, h, inv_I, C, Lo, model, dv, dw)
+    lam = solve_rows(R, I, b, np.zeros(0), h, inv_I, C, Lo, model, dv, dw)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -946,7 +948,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
         return
     dv[:] = 0.0
     dw[:] = 0.0
-    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], True, h, inv_I, C, Lo, model, dv, dw)
+    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -1015,7 +1017,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         b = -Rs[:, DEPTH]
         dx = np.zeros((n, 3))
         dth = np.zeros((n, 3))
-        solve_rows(Rs, Is, b, b, False, h, inv_I, C, Lo, model, dx, dth)
+        solve_rows(Rs, Is, b, np.zeros(0), h, inv_I, C, Lo, model, dx, dth)
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
