@@ -15,7 +15,7 @@ import numpy as np
 
 from ponytail_ros.core import step as compiled
 from ponytail_ros.core.head import stack_anchors
-from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
+from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
 from . import mujoco_chain

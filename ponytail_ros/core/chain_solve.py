@@ -25,10 +25,9 @@ __all__ = ['factor', 'solve', 'solve_many']
 
 
 @nb.njit(cache=True, inline='always')
-def _invert_spd3(S, out):
-    """``out`` = S⁻¹ for a symmetric 3×3 ``S``; False unless S is positive definite."""
-    s00, s01, s02 = S[0, 0], S[0, 1], S[0, 2]
-    s11, s12, s22 = S[1, 1], S[1, 2], S[2, 2]
+def _invert_spd3(s00, s01, s02, s11, s12, s22, out):
+    """``out`` = S⁻¹ for the symmetric 3×3 S of these entries; False unless S is positive
+    definite."""
     c00 = s11 * s22 - s12 * s12
     c01 = s02 * s12 - s01 * s22
     c02 = s01 * s12 - s02 * s11
@@ -45,6 +44,11 @@ def _invert_spd3(S, out):
     return True
 
 
+@nb.njit(cache=True, inline='always')
+def _minus_lo_lt(Lo, L, i, a, b):
+    return -(Lo[i, a, 0] * L[i, b, 0] + Lo[i, a, 1] * L[i, b, 1] + Lo[i, a, 2] * L[i, b, 2])
+
+
 @nb.njit(cache=True)
 def factor(D, L, is_first, Pinv, Lo):
     """Factorise A (blocks ``D``, ``L`` ``(n, 3, 3)``) into ``Pinv`` and ``Lo`` (in place).
@@ -52,11 +56,9 @@ def factor(D, L, is_first, Pinv, Lo):
     Returns True on success, False if A is not positive definite.
     """
     n = D.shape[0]
-    S = np.empty((3, 3))
     for i in range(n):
-        for a in range(3):
-            for b in range(3):
-                S[a, b] = D[i, a, b]
+        s00, s01, s02 = D[i, 0, 0], D[i, 0, 1], D[i, 0, 2]
+        s11, s12, s22 = D[i, 1, 1], D[i, 1, 2], D[i, 2, 2]
         if is_first[i]:
             for a in range(3):
                 for b in range(3):
@@ -66,12 +68,14 @@ def factor(D, L, is_first, Pinv, Lo):
                 for b in range(3):
                     Lo[i, a, b] = (L[i, a, 0] * Pinv[i - 1, 0, b] + L[i, a, 1] * Pinv[i - 1, 1, b]
                                    + L[i, a, 2] * Pinv[i - 1, 2, b])
-            for a in range(3):
-                for b in range(a, 3):
-                    s = Lo[i, a, 0] * L[i, b, 0] + Lo[i, a, 1] * L[i, b, 1] + Lo[i, a, 2] * L[i, b, 2]
-                    S[a, b] -= s
-                    S[b, a] = S[a, b]
-        if not _invert_spd3(S, Pinv[i]):
+            # P_i = D_i - 𝓛_i L_iᵀ (symmetric: the upper triangle)
+            s00 += _minus_lo_lt(Lo, L, i, 0, 0)
+            s01 += _minus_lo_lt(Lo, L, i, 0, 1)
+            s02 += _minus_lo_lt(Lo, L, i, 0, 2)
+            s11 += _minus_lo_lt(Lo, L, i, 1, 1)
+            s12 += _minus_lo_lt(Lo, L, i, 1, 2)
+            s22 += _minus_lo_lt(Lo, L, i, 2, 2)
+        if not _invert_spd3(s00, s01, s02, s11, s12, s22, Pinv[i]):
             return False
     return True
 

@@ -141,7 +141,7 @@ def _inertia_terms(M, q, e, hv, Iinv):
     """Segment axes ``e``, half-vectors ``hv`` = (l/2) e and world inverse inertias ``Iinv``
     ``(n, 3, 3)`` at orientations ``q``."""
     n = q.shape[0]
-    R = np.empty((3, 3))
+    R = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
     for i in range(n):
         if M.axisymmetric:
             e0, e1, e2 = _axis(q, i)
@@ -178,50 +178,57 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
     """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised.
 
     A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},  A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1}),
-    G = [h]× I⁻¹ [h]× (the parent terms only where joint i has a parent segment); for
-    axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
+    G = [h]× I⁻¹ [h]× (symmetric; the parent terms only where joint i has a parent segment);
+    for axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
     """
     n = hv.shape[0]
-    Gp = np.zeros((3, 3))           # G of the previous segment
-    Gi = np.empty((3, 3))
+    p00 = p01 = p02 = p11 = p12 = p22 = 0.0          # G of the previous segment
     for i in range(n):
         h0, h1, h2 = hv[i, 0], hv[i, 1], hv[i, 2]
         if M.axisymmetric:
             ip = M.inv_inertia[i, 1]
             hh = h0 * h0 + h1 * h1 + h2 * h2
-            Gi[0, 0] = (h0 * h0 - hh) * ip
-            Gi[1, 1] = (h1 * h1 - hh) * ip
-            Gi[2, 2] = (h2 * h2 - hh) * ip
-            Gi[0, 1] = Gi[1, 0] = h0 * h1 * ip
-            Gi[0, 2] = Gi[2, 0] = h0 * h2 * ip
-            Gi[1, 2] = Gi[2, 1] = h1 * h2 * ip
+            g00, g11, g22 = (h0 * h0 - hh) * ip, (h1 * h1 - hh) * ip, (h2 * h2 - hh) * ip
+            g01, g02, g12 = h0 * h1 * ip, h0 * h2 * ip, h1 * h2 * ip
         else:
-            S = ((0.0, -h2, h1), (h2, 0.0, -h0), (-h1, h0, 0.0))
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for k in range(3):
-                        for m in range(3):
-                            s += S[a][k] * Iinv[i, k, m] * S[m][b]
-                    Gi[a, b] = s
+            # [h]× I⁻¹ [h]× with [h]× = ((0, -h2, h1), (h2, 0, -h0), (-h1, h0, 0))
+            X = Iinv
+            a00 = -h2 * X[i, 1, 0] + h1 * X[i, 2, 0]
+            a01 = -h2 * X[i, 1, 1] + h1 * X[i, 2, 1]
+            a02 = -h2 * X[i, 1, 2] + h1 * X[i, 2, 2]
+            a10 = h2 * X[i, 0, 0] - h0 * X[i, 2, 0]
+            a11 = h2 * X[i, 0, 1] - h0 * X[i, 2, 1]
+            a12 = h2 * X[i, 0, 2] - h0 * X[i, 2, 2]
+            a20 = -h1 * X[i, 0, 0] + h0 * X[i, 1, 0]
+            a21 = -h1 * X[i, 0, 1] + h0 * X[i, 1, 1]
+            a22 = -h1 * X[i, 0, 2] + h0 * X[i, 1, 2]
+            g00 = a01 * h2 - a02 * h1
+            g01 = -a00 * h2 + a02 * h0
+            g02 = a00 * h1 - a01 * h0
+            g11 = -a10 * h2 + a12 * h0
+            g12 = a10 * h1 - a11 * h0
+            g22 = a20 * h1 - a21 * h0
         im = M.inv_mass[i]
         if M.is_first[i]:
+            D[i, 0, 0], D[i, 1, 1], D[i, 2, 2] = im - g00, im - g11, im - g22
+            D[i, 0, 1] = D[i, 1, 0] = -g01
+            D[i, 0, 2] = D[i, 2, 0] = -g02
+            D[i, 1, 2] = D[i, 2, 1] = -g12
             for a in range(3):
                 for b in range(3):
-                    D[i, a, b] = -Gi[a, b]
                     L[i, a, b] = 0.0
-                D[i, a, a] += im
         else:
             imp = M.inv_mass[i - 1]
-            for a in range(3):
-                for b in range(3):
-                    D[i, a, b] = -Gi[a, b] - Gp[a, b]
-                    L[i, a, b] = -Gp[a, b]
-                D[i, a, a] += im + imp
-                L[i, a, a] -= imp
-        for a in range(3):
-            for b in range(3):
-                Gp[a, b] = Gi[a, b]
+            s = im + imp
+            D[i, 0, 0], D[i, 1, 1], D[i, 2, 2] = s - g00 - p00, s - g11 - p11, s - g22 - p22
+            D[i, 0, 1] = D[i, 1, 0] = -g01 - p01
+            D[i, 0, 2] = D[i, 2, 0] = -g02 - p02
+            D[i, 1, 2] = D[i, 2, 1] = -g12 - p12
+            L[i, 0, 0], L[i, 1, 1], L[i, 2, 2] = -imp - p00, -imp - p11, -imp - p22
+            L[i, 0, 1] = L[i, 1, 0] = -p01
+            L[i, 0, 2] = L[i, 2, 0] = -p02
+            L[i, 1, 2] = L[i, 2, 1] = -p12
+        p00, p01, p02, p11, p12, p22 = g00, g01, g02, g11, g12, g22
     return factor(D, L, M.is_first, C, Lo)
 
 
@@ -415,16 +422,19 @@ def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c
 
 @_jit
 def _rk4_workspace(n):
-    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((4, n, 3)), np.empty((4, n, 4)),
-            np.empty((4, n, 3)), np.empty((4, n, 3)), np.empty((n, 3)), np.empty((n, 4)),
-            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)))
+    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
+            np.empty((n, 3)), np.empty((n, 3)))
 
 
 @_jit
 def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
-    """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside."""
+    """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside.
+    The stage derivatives d_s are summed as they come (d1 + 2 d2 + 2 d3 + d4, in that
+    order), so no stage is stored."""
     n = x.shape[0]
-    wb, w_tmp, kx, kq, kv, kw, xs, qs, vs, wbs, alpha = rws
+    wb, w_tmp, xs, qs, vs, wbs, dv, dq, dwb, sx, sv, sq, swb, alpha = rws
     for i in range(n):
         wb[i, 0], wb[i, 1], wb[i, 2] = _qrot(-q[i, 0], -q[i, 1], -q[i, 2], q[i, 3],
                                              w[i, 0], w[i, 1], w[i, 2])
@@ -436,34 +446,42 @@ def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
             qs[i, a] = q[i, a]
     hh = 0.5 * h
     for s in range(4):
-        if s > 0:
-            c = hh if s < 3 else h
-            for i in range(n):
-                for a in range(3):
-                    xs[i, a] = x[i, a] + c * kx[s - 1, i, a]
-                    vs[i, a] = v[i, a] + c * kv[s - 1, i, a]
-                    wbs[i, a] = wb[i, a] + c * kw[s - 1, i, a]
-                for a in range(4):
-                    qs[i, a] = q[i, a] + c * kq[s - 1, i, a]
         row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
+        if not _rk4_derivs(M, A, row, xs, qs, vs, wbs, ext_F, ext_T, ws, w_tmp, dv, alpha,
+                           f_c, dq, dwb):
+            return False
+        weight = 1.0 if (s == 0 or s == 3) else 2.0
+        c = hh if s < 2 else h            # the next stage's offset
         for i in range(n):
             for a in range(3):
-                kx[s, i, a] = vs[i, a]
-        if not _rk4_derivs(M, A, row, xs, qs, vs, wbs, ext_F, ext_T, ws, w_tmp, kv[s], alpha,
-                           f_c, kq[s], kw[s]):
-            return False
+                dx = vs[i, a]               # ẋ = v at this stage
+                if s == 0:
+                    sx[i, a] = dx
+                    sv[i, a] = dv[i, a]
+                    swb[i, a] = dwb[i, a]
+                else:
+                    sx[i, a] += weight * dx
+                    sv[i, a] += weight * dv[i, a]
+                    swb[i, a] += weight * dwb[i, a]
+                if s < 3:
+                    xs[i, a] = x[i, a] + c * dx
+                    vs[i, a] = v[i, a] + c * dv[i, a]
+                    wbs[i, a] = wb[i, a] + c * dwb[i, a]
+            for a in range(4):
+                if s == 0:
+                    sq[i, a] = dq[i, a]
+                else:
+                    sq[i, a] += weight * dq[i, a]
+                if s < 3:
+                    qs[i, a] = q[i, a] + c * dq[i, a]
     sixth = h / 6.0
     for i in range(n):
         for a in range(3):
-            x[i, a] = x[i, a] + sixth * (kx[0, i, a] + 2.0 * kx[1, i, a] + 2.0 * kx[2, i, a]
-                                         + kx[3, i, a])
-            v[i, a] = v[i, a] + sixth * (kv[0, i, a] + 2.0 * kv[1, i, a] + 2.0 * kv[2, i, a]
-                                         + kv[3, i, a])
-            wb[i, a] = wb[i, a] + sixth * (kw[0, i, a] + 2.0 * kw[1, i, a] + 2.0 * kw[2, i, a]
-                                           + kw[3, i, a])
+            x[i, a] = x[i, a] + sixth * sx[i, a]
+            v[i, a] = v[i, a] + sixth * sv[i, a]
+            wb[i, a] = wb[i, a] + sixth * swb[i, a]
         for a in range(4):
-            q[i, a] = q[i, a] + sixth * (kq[0, i, a] + 2.0 * kq[1, i, a] + 2.0 * kq[2, i, a]
-                                         + kq[3, i, a])
+            q[i, a] = q[i, a] + sixth * sq[i, a]
         _normalize(q, i)
         w[i, 0], w[i, 1], w[i, 2] = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3],
                                           wb[i, 0], wb[i, 1], wb[i, 2])
@@ -477,8 +495,8 @@ def _rotation_kick(M, q, e, Iinv, w, T, h, out):
     (``integrators.rotation_kick``: exact axial transport + implicit midpoint precession for
     axisymmetric segments, Catto's implicit Euler Newton step otherwise)."""
     n = w.shape[0]
-    J = np.empty((3, 3))
-    r = np.empty(3)
+    J = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
+    r = np.empty(3) if not M.axisymmetric else np.empty(0)
     for i in range(n):
         Ia, Ip = M.inertia[i, 0], M.inertia[i, 1]
         if M.axisymmetric:
@@ -583,12 +601,11 @@ def _axial_part(M, i, e, w0, w1, w2, ratio):
 
 
 @_jit
-def _gap_rhs(M, A, row, x, v, w, hv, e, h, precession, out):
+def _gap_rhs(M, A, row, x, v, w, hv, e, h, precession, end, out):
     """Where the free motion (v, ω) held for ``h`` would open every joint, divided by ``h``
     (the joint impulses' right-hand side; the segment axes turned by their swing rate,
     or the precession rate Ω for RATTLE)."""
     n = x.shape[0]
-    end = np.empty((n, 3))
     for i in range(n):
         ratio = 1.0
         if precession and M.axisymmetric:
@@ -665,7 +682,7 @@ def _drift(M, x, q, v, w, e, h, precession):
 
 
 @_jit
-def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c, fresh):
+def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh):
     """One symplectic Euler or RATTLE step (``integrators.symplectic_euler`` /
     ``integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
     ``ws`` are those of q, left by the previous step's projection). False if a solve fails."""
@@ -679,8 +696,8 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c, fresh):
             return False
     _applied(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
     kick = 0.5 * h if rattle else h
-    v1 = np.empty((n, 3))
-    w1 = np.empty((n, 3))
+    v1, w1, dv, dw, lam, w_change, v0, mu, end = (rws[0], rws[1], rws[2], rws[4], rws[5],
+                                                  rws[6], rws[8], rws[9], rws[10])
     for i in range(n):
         for a in range(3):
             v1[i, a] = v[i, a] + kick * F[i, a] * M.inv_mass[i]
@@ -688,23 +705,21 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c, fresh):
         _torque_kick(M, q, e, Iinv, w, T, kick, w1)
     else:
         _rotation_kick(M, q, e, Iinv, w, T, h, w1)
-    dv = np.empty((n, 3))
-    dw = np.empty((n, 3))
-    lam = np.empty((n, 3))
     if M.projection:
-        _gap_rhs(M, A, r1, x, v1, w1, hv, e, h, rattle, lam)
+        _gap_rhs(M, A, r1, x, v1, w1, hv, e, h, rattle, end, lam)
     else:
         _unprojected_rhs(M, A, r0, r1, x, v, w, v1, w1, hv, e, h, lam)
     solve(C, Lo, M.is_first, lam)
     _apply_joint_impulses(M, lam, hv, Iinv, dv, dw)
-    w_change = np.empty((n, 3))
     for i in range(n):
         for a in range(3):
             v1[i, a] += dv[i, a]
             w1[i, a] += dw[i, a]
             w_change[i, a] = w1[i, a] - w[i, a]
             f_c[i, a] = lam[i, a] / h
-    v0 = v.copy()
+    for i in range(n):
+        for a in range(3):
+            v0[i, a] = v[i, a]
     _drift(M, x, q, v1, w1, e, h, rattle)       # x, q in place; w1 gets the carried spin
     for i in range(n):
         for a in range(3):
@@ -728,7 +743,6 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c, fresh):
             for a in range(3):
                 v[i, a] = v1[i, a] + kick * F[i, a] * M.inv_mass[i]
         _torque_kick(M, q, e, Iinv, w1, T, kick, w)
-    mu = np.empty((n, 3))
     _velocity_errors(M, A, r1, v, w, hv, mu)
     solve(C, Lo, M.is_first, mu)
     _apply_joint_impulses(M, mu, hv, Iinv, dv, dw)
@@ -796,7 +810,7 @@ def _implicit_damping(M, A, row, q, v, w, h):
     N = 6 * n
     ab = np.zeros((N, 3 * _KL + 1))          # columns r - KL .. r + 2 KL (fill-in by pivoting)
     rhs = np.zeros(N)
-    R = np.empty((3, 3))
+    R = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
     for i in range(n):
         c = M.chain_of[i]
         LAM, W = 6 * i, 6 * i + 3
@@ -923,42 +937,43 @@ def _project(M, A, row, x, q, v, w, velocities):
     (``velocities``) the centre velocities from the anchor point's velocity and the ω above
     (``stabilization``)."""
     n = x.shape[0]
-    p = np.empty(3)
-    u = np.empty(3)
+    p0 = p1 = p2 = u0 = u1 = u2 = 0.0
     for i in range(n):
         c = M.chain_of[i]
         if M.is_first[i]:
-            for a in range(3):
-                p[a] = A.position[row, c, a]
-                u[a] = A.velocity[row, c, a]
+            p0, p1, p2 = A.position[row, c, 0], A.position[row, c, 1], A.position[row, c, 2]
+            u0, u1, u2 = A.velocity[row, c, 0], A.velocity[row, c, 1], A.velocity[row, c, 2]
         e0, e1, e2 = _axis(q, i)
-        h = (M.half[i] * e0, M.half[i] * e1, M.half[i] * e2)
-        for a in range(3):
-            x[i, a] = p[a] + h[a]
-            p[a] = x[i, a] + h[a]
+        h0, h1, h2 = M.half[i] * e0, M.half[i] * e1, M.half[i] * e2
+        x[i, 0], x[i, 1], x[i, 2] = p0 + h0, p1 + h1, p2 + h2
+        p0, p1, p2 = x[i, 0] + h0, x[i, 1] + h1, x[i, 2] + h2
         if velocities:
-            wxh = _cross(w[i, 0], w[i, 1], w[i, 2], h[0], h[1], h[2])
-            for a in range(3):
-                v[i, a] = u[a] + wxh[a]
-                u[a] = v[i, a] + wxh[a]
+            c0, c1, c2 = _cross(w[i, 0], w[i, 1], w[i, 2], h0, h1, h2)
+            v[i, 0], v[i, 1], v[i, 2] = u0 + c0, u1 + c1, u2 + c2
+            u0, u1, u2 = v[i, 0] + c0, v[i, 1] + c1, v[i, 2] + c2
 
 
 # -- the call ----------------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
-def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
-    """``n_steps`` fixed steps of ``h`` s with the anchors of table ``A`` (rows ``2k + j`` at
-    ``t_k + j h/2``), the state ``(x, q, v, w)`` updated in place, ``f_c`` ``(n, 3)`` set to
-    the joint forces on the children at the last step (N). Returns ``OK`` or the failing
-    stage's code (``JOINT_SOLVE_FAILED``, ``DAMPING_SOLVE_FAILED``); the state is then
-    unusable."""
-    n = x.shape[0]
-    ws = _workspace(n)
-    rws = _rk4_workspace(n)
+@_jit
+def _chain_model(M, s, e):
+    """The ``StepModel`` of segments ``s:e`` (one chain): views, no copies."""
+    return StepModel(
+        M.length[s:e], M.half[s:e], M.mass[s:e], M.inv_mass[s:e], M.inertia[s:e],
+        M.inv_inertia[s:e], M.chain_of[s:e], M.is_first[s:e], M.has_child[s:e],
+        M.damping[s:e], M.stiffness[s:e], M.drag_linear[s:e], M.drag_quadratic[s:e],
+        M.q_rest[s:e], M.gravity, M.wind, M.axisymmetric, M.integrator, M.projection,
+        M.gravity_on, M.explicit_damping, M.implicit_damping, M.stiffness_on, M.drag_on,
+        M.external_on, M.baumgarte_stiffness, M.baumgarte_damping)
+
+
+@_jit
+def _chain_steps(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws):
+    """All ``n_steps`` steps of one chain (or of any set of whole chains)."""
     for k in range(n_steps):
         if M.integrator == RK4:
             ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c)
         else:
-            ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, f_c,
+            ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c,
                                    k == 0 or not M.projection)
         if not ok:
             return JOINT_SOLVE_FAILED
@@ -967,6 +982,40 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
                 return DAMPING_SOLVE_FAILED
         if M.projection:
             _project(M, A, 2 * k + 2, x, q, v, w, M.integrator == RK4)
+    return OK
+
+
+@nb.njit(cache=True, nogil=True)
+def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
+    """``n_steps`` fixed steps of ``h`` s with the anchors of table ``A`` (rows ``2k + j`` at
+    ``t_k + j h/2``), the state ``(x, q, v, w)`` updated in place, ``f_c`` ``(n, 3)`` set to
+    the joint forces on the children at the last step (N). Returns ``OK`` or the failing
+    stage's code (``JOINT_SOLVE_FAILED``, ``DAMPING_SOLVE_FAILED``); the state is then
+    unusable.
+
+    Chains do not interact within a step, so the call runs chain by chain, each through all
+    its steps: a chain's working set stays in the cache however many chains the scene has.
+    """
+    n = x.shape[0]
+    starts = np.nonzero(M.is_first)[0]
+    longest = 0
+    for c in range(starts.shape[0]):
+        end = starts[c + 1] if c + 1 < starts.shape[0] else n
+        longest = max(longest, end - starts[c])
+    W = _workspace(longest)
+    R = _rk4_workspace(longest)
+    for c in range(starts.shape[0]):
+        s = starts[c]
+        e = starts[c + 1] if c + 1 < starts.shape[0] else n
+        m = e - s
+        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
+              W[7][:m], W[8][:m], W[9][:m])
+        rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
+               R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
+        status = _chain_steps(_chain_model(M, s, e), A, n_steps, h, x[s:e], q[s:e], v[s:e],
+                              w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+        if status != OK:
+            return status
     return OK
 
 
