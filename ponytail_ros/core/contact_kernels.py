@@ -4,9 +4,10 @@ One call of ``resolve`` does what ``collision.Unilateral.resolve`` documents (th
 in the ``collision`` module docstring): broad phase, detection, the position passes, the
 limits' exact projection, the joints' velocity projection, the inelastic impulses and
 Coulomb friction. Nothing in it calls NumPy's linear algebra, SciPy or LAPACK: the joint
-system J M⁻¹ Jᵀ is factorised by ``chain_solve`` (block-tridiagonal Cholesky, O(n)) and each
-touching chain's small complementarity problem is solved here (principal pivoting with an
-exact dense solve, Lawson–Hanson active set as the fall-back).
+system J M⁻¹ Jᵀ is factorised by ``chain_solve`` (block-tridiagonal, O(n)) and each touching
+chain's small complementarity problem is solved here (principal pivoting with an exact dense
+solve, Lawson–Hanson active set as the fall-back). ``resolve`` runs its stages in order:
+``position_stage``, ``limit_stage``, the joints' velocity projection, ``velocity_stage``.
 
 Data. A row r (a contact normal or a limit) is one line of ``R`` ``(k, NCOL)`` (floats) and of
 ``I`` ``(k, 3)`` (integers), columns named below; its Jacobian acts on segment ``seg``
@@ -16,8 +17,10 @@ Data. A row r (a contact normal or a limit) is one line of ``R`` ``(k, NCOL)`` (
 point minus the segment's centre, m) and ``v_other`` (the collider material's velocity at the
 point, m/s). All vectors are in the world frame, SI units.
 
-The model's constants come in as tuples (``model_tuple``/``detector_tuple`` in
-``collision``): see ``resolve``.
+The model's constants come in as tuples (``collision.Unilateral.model_args`` and
+``detector_args``, named indices below); every kernel is callable from other njit code.
+numba's cache does not see edits of a callee in another file (``chain_solve``,
+``limit_kernels``): after editing those, clear this module's cache.
 """
 import math
 
