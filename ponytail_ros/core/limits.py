@@ -26,50 +26,32 @@ child back onto its limits (about the swing axis a by θ_max - θ, which leaves 
 unchanged, then about its own axis by σφ_max - φ) and carries the whole distal part of the
 chain along rigidly, so that the other joints' relative rotations are unchanged. With C_i the
 world-frame correction of joint i computed in the current pose, segment j becomes
-``C_first ⊗ … ⊗ C_j ⊗ q_j`` (a prefix product along its chain, ``log₂ N`` vectorised
-passes): every joint ends exactly on its limits in one pass.
+``C_first ⊗ … ⊗ C_j ⊗ q_j`` (a running product along its chain): every joint ends exactly
+on its limits in one pass.
+
+The equations run compiled, joint by joint (``limit_kernels``); this module is their Python
+layer for the tests and the simulator's ``joint_angles``. ``collision``'s compiled resolve
+calls the same kernels.
 """
 import numpy as np
 
-from .rotations import (cross, quat_axis_x, quat_conjugate, quat_from_rotvec, quat_multiply,
-                        quat_normalize, quat_rotate)
+from . import limit_kernels as LK
 
 __all__ = ['joint_angles', 'limit_rows', 'project_limits']
 
 
-def _relative(model, q, anchor_q, idx):
-    """Rest frames and relative rotations of joints ``idx``."""
-    q_parent = model.parent_side(anchor_q, q)[idx]
-    q_frame = quat_multiply(q_parent, model.q_rest[idx])
-    q_rel = quat_multiply(quat_conjugate(q_frame), q[idx])
-    return q_frame, np.where(q_rel[:, 3:4] < 0.0, -q_rel, q_rel)
-
-
-def _swing(q_frame, q_child):
-    d = quat_axis_x(q_frame)
-    e = quat_axis_x(q_child)
-    c = cross(d, e)
-    s = np.sqrt(np.sum(c * c, axis=1))
-    theta = np.arctan2(s, np.sum(d * e, axis=1))
-    # The axis is undefined at θ = 0 (no row then) or π: any axis perpendicular to e will do.
-    fallback = cross(e, np.where(np.abs(e[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
-    a = np.where((s > 1e-9)[:, None], c / np.maximum(s, 1e-300)[:, None], fallback)
-    return theta, a / np.linalg.norm(a, axis=1, keepdims=True)
-
-
-def _twist(q_rel, q_child):
-    x, y, z, w = q_rel[:, 0], q_rel[:, 1], q_rel[:, 2], q_rel[:, 3]
-    phi = 2.0 * np.arctan2(x, w)
-    den = np.maximum(x * x + w * w, 1e-12)
-    g_body = np.stack([np.ones_like(x), (x * y - w * z) / den, (w * y + x * z) / den], axis=1)
-    return phi, quat_rotate(q_child, g_body)
+def _f(a):
+    """A writable C-contiguous float64 array, the type the kernels are compiled for."""
+    a = np.ascontiguousarray(a, dtype=float)
+    return a if a.flags.writeable else a.copy()
 
 
 def joint_angles(model, q, anchor_q):
     """Swing θ and twist φ of every joint, ``(n,)`` each, rad (see the module docstring)."""
-    idx = np.arange(model.n)
-    q_frame, q_rel = _relative(model, q, anchor_q, idx)
-    return _swing(q_frame, q[idx])[0], _twist(q_rel, q[idx])[0]
+    swing, twist = np.empty(model.n), np.empty(model.n)
+    LK.joint_angles(_f(q), _f(anchor_q), _f(model.q_rest), model.is_first,
+                    model.chain_of.astype(np.int64), swing, twist)
+    return swing, twist
 
 
 def limit_rows(model, q, w, anchor, margin):
@@ -77,21 +59,17 @@ def limit_rows(model, q, w, anchor, margin):
 
     ``margin(gap, sep)`` ``-> bool mask``: which rows to keep given the angular gap to the
     limit (rad, negative when violated) and the separation rate (rad/s, negative when
-    closing). Returns a dict of row arrays (``collision`` rows) or ``None``.
+    closing). Returns a dict of row arrays (``collision`` rows: the swing rows of every
+    limited joint, then its twist rows) or ``None``.
     """
     idx = _limited(model)
-    q_frame, q_rel = _relative(model, q, anchor.orientation, idx)
-    qc = q[idx]
-    swing, a = _swing(q_frame, qc)
-    phi, g = _twist(q_rel, qc)
-    sign = np.where(phi < 0.0, -1.0, 1.0)
-    angle = np.concatenate([swing, sign * phi])
-    axis = np.concatenate([a, sign[:, None] * g])
+    k = idx.size
+    axis, gap, sep = np.empty((2 * k, 3)), np.empty(2 * k), np.empty(2 * k)
+    LK.limit_terms(_f(q), _f(w), _f(anchor.orientation), _f(anchor.angular_velocity),
+                   _f(model.q_rest), model.is_first, model.chain_of.astype(np.int64), idx,
+                   _f(model.swing_limit), _f(model.twist_limit), axis, gap, sep)
     limit = np.concatenate([model.swing_limit[idx], model.twist_limit[idx]])
     joint = np.concatenate([idx, idx])
-    d_omega = w[idx] - model.parent_side(anchor.angular_velocity, w)[idx]
-    sep = -np.einsum('ij,ij->i', axis, np.concatenate([d_omega, d_omega]))
-    gap = limit - angle                       # inf - angle where a limit is off
     keep = margin(gap, sep) & np.isfinite(limit)
     if not np.any(keep):
         return None
@@ -101,41 +79,20 @@ def limit_rows(model, q, w, anchor, margin):
 
 
 def _limited(model):
-    """Indices of the joints with a swing or a twist limit (cached on the model)."""
-    idx = getattr(model, '_limited_joints', None)
-    if idx is None:
-        idx = np.flatnonzero(np.isfinite(model.swing_limit) | np.isfinite(model.twist_limit))
-        model._limited_joints = idx
-    return idx
+    """Indices of the joints with a swing or a twist limit."""
+    return np.flatnonzero(np.isfinite(model.swing_limit)
+                          | np.isfinite(model.twist_limit)).astype(np.int64)
 
 
 def project_limits(model, q, anchor_q, tolerance=0.0):
     """Orientations ``(n, 4)`` with every joint within its limits (see the module docstring),
     or ``None`` when no joint exceeds a limit by more than ``tolerance`` (rad)."""
-    idx = _limited(model)
-    q_frame, q_rel = _relative(model, q, anchor_q, idx)
-    qc = q[idx]
-    theta, a = _swing(q_frame, qc)
-    over_s = theta - model.swing_limit[idx]
-    x, w = q_rel[:, 0], q_rel[:, 3]
-    phi = 2.0 * np.arctan2(x, w)
-    over_t = np.abs(phi) - model.twist_limit[idx]
-    fix_s, fix_t = over_s > tolerance, over_t > tolerance
-    if not (np.any(fix_s) or np.any(fix_t)):
+    out = np.empty((model.n, 4))
+    i64 = np.int64
+    if not LK.project_limits(_f(q), _f(anchor_q), _f(model.q_rest), model.is_first,
+                             model.chain_of.astype(i64), model.chain_start.astype(i64),
+                             model.chain_end.astype(i64), _limited(model),
+                             _f(model.swing_limit), _f(model.twist_limit), float(tolerance),
+                             out):
         return None
-    # Twist first, in the child's body frame (about its own +X), then the swing in the world.
-    twist = np.where(fix_t, -np.sign(phi) * over_t, 0.0)
-    q_new = quat_multiply(qc, quat_from_rotvec(twist[:, None] * np.array([[1.0, 0.0, 0.0]])))
-    swing = np.where(fix_s, -over_s, 0.0)
-    q_new = quat_multiply(quat_from_rotvec(swing[:, None] * a), q_new)
-    corr = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (model.n, 1))
-    corr[idx] = quat_multiply(q_new, quat_conjugate(qc))
-    # Prefix product along each chain (Hillis–Steele scan): P_j = C_first ⊗ … ⊗ C_j.
-    start = model.chain_start[model.chain_of]
-    pos = np.arange(model.n)
-    shift = 1
-    while shift < int(np.max(model.chain_end - model.chain_start)):
-        has = pos - shift >= start
-        corr[has] = quat_multiply(corr[pos[has] - shift], corr[has])
-        shift *= 2
-    return quat_normalize(quat_multiply(corr, q))
+    return out

@@ -1,0 +1,1144 @@
+"""Compiled contacts and joint limits (numba, nopython, ``cache=True``, no fastmath).
+
+One call of ``resolve`` does what ``collision.Unilateral.resolve`` documents (the method is
+in the ``collision`` module docstring): broad phase, detection, the position passes, the
+limits' exact projection, the joints' velocity projection, the inelastic impulses and
+Coulomb friction. Nothing in it calls NumPy's linear algebra, SciPy or LAPACK: the joint
+system J M⁻¹ Jᵀ is factorised by ``chain_solve`` (block-tridiagonal, O(n)) and each touching
+chain's small complementarity problem is solved here (principal pivoting with an exact dense
+solve, Lawson–Hanson active set as the fall-back). ``resolve`` runs its stages in order:
+``position_stage``, ``limit_stage``, the joints' velocity projection, ``velocity_stage``.
+
+Data. A row r (a contact normal or a limit) is one line of ``R`` ``(k, NCOL)`` (floats) and of
+``I`` ``(k, 3)`` (integers), columns named below; its Jacobian acts on segment ``seg``
+(linear ``lin``, angular ``ang``) and, for a limit, on the parent segment (``ang_par``;
+``par = -1``: the anchor body, which never moves). ``depth`` (m or rad, > 0 violated),
+``sep = J_r u`` (m/s or rad/s, < 0 closing), ``mu`` (Coulomb friction), ``arm`` (contact
+point minus the segment's centre, m) and ``v_other`` (the collider material's velocity at the
+point, m/s). All vectors are in the world frame, SI units.
+
+The model's constants come in as tuples (``collision.Unilateral.model_args`` and
+``detector_args``, named indices below); every kernel is callable from other njit code.
+numba's cache does not see edits of a callee in another file (``chain_solve``,
+``limit_kernels``): after editing those, clear this module's cache.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from .chain_solve import factor as _chain_factor
+from .chain_solve import solve as _chain_solve
+from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
+                            qfrom_rotvec, qmul, qnormalize, qrotate, scale, sub, v3)
+
+POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
+POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
+POSITION_SKIN = 1e-3         # m: contacts this close (plus 4× the deepest violation) join the
+                             # position LCP as inequalities (a correction must not push a
+                             # neighbouring segment in)
+ANGLE_SKIN = 1e-3            # rad: the same for limits
+VELOCITY_SKIN = 1e-4         # m: a contact this close is touching for the velocity stage
+SPECULATIVE_STEPS = 2.0      # a gap closing within this many steps joins the velocity stage
+ROOT_LEVER = 0.5             # a rooted first segment is tested on s in [ROOT_LEVER, 1]
+MAX_ROTATION = 0.25          # rad: largest rotation of one segment per position pass
+MOBILITY = 1e-8              # a row the jointed chain moves less than this fraction of its
+                             # free segment's mobility (a contact at the anchor) is left out
+REG = 1e-9                   # relative regularisation of the (unit-diagonal) Delassus matrix
+PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
+
+# Columns of a row.
+LIN, ANG, APAR, ARM, VOTH, DEPTH, SEP, MU, NCOL = 0, 3, 6, 9, 12, 15, 16, 17, 18
+SEG, PAR, CONTACT = 0, 1, 2
+
+# The constant tuples (``collision.Unilateral.model_args``, ``_Detector.args``) and the pose.
+(LENGTH, INV_MASS, INV_INERTIA, INV_I_MAX, IS_FIRST, HAS_CHILD, PARENT, CHAIN_OF, CHAIN_START,
+ CHAIN_END, AXISYMMETRIC, LIMITED, SWING_LIMIT, TWIST_LIMIT) = range(14)
+(D_SEG, D_RADIUS, D_LENGTH, D_INNER, D_FIRST_OF, D_FIRST_CHAIN, D_ROOT_FIXED, D_ROOTED_FIXED,
+ D_SUM_RADIUS, D_CHAINS, D_CHAIN_REACH, D_MAX_HALF, D_N_SPHERE, D_N_ROUND, D_COL_RADIUS,
+ D_FRICTION) = range(16)
+P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
+
+# Status of ``resolve``.
+OK, NOT_POSITIVE_DEFINITE = 0, 1
+
+
+@njit(cache=True)
+def col3(R, r, c):
+    """Row r's 3-vector at columns c:c+3 (e.g. ``col3(R, r, LIN)``)."""
+    return (R[r, c], R[r, c + 1], R[r, c + 2])
+
+
+@njit(cache=True)
+def mat_vec(M, i, u):
+    """M[i] u for a stack of 3×3 matrices ``M``."""
+    return (M[i, 0, 0] * u[0] + M[i, 0, 1] * u[1] + M[i, 0, 2] * u[2],
+            M[i, 1, 0] * u[0] + M[i, 1, 1] * u[1] + M[i, 1, 2] * u[2],
+            M[i, 2, 0] * u[0] + M[i, 2, 1] * u[1] + M[i, 2, 2] * u[2])
+
+
+# -- the chain's configuration: half-vectors, inverse inertias, the factorised J M⁻¹ Jᵀ ------
+@njit(cache=True)
+def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
+    """Segment i with principal moments (I_a, I_p, I_p): I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ
+    and G = (h hᵀ - |h|² 1) / I_p, e = h / (l/2) its axis (world)."""
+    e = (hi[0] / half, hi[1] / half, hi[2] / half)
+    k = inv_inertia[i, 0] - inv_inertia[i, 1]
+    hh = dot(hi, hi)
+    for a in range(3):
+        for b in range(3):
+            inv_I[i, a, b] = k * e[a] * e[b]
+            G[i, a, b] = hi[a] * hi[b]
+        inv_I[i, a, a] += inv_inertia[i, 1]
+        G[i, a, a] -= hh
+    for a in range(3):
+        for b in range(3):
+            G[i, a, b] *= inv_inertia[i, 1]
+
+
+@njit(cache=True)
+def general_terms(qi, hi, inv_inertia, i, inv_I, G):
+    """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
+    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column."""
+    x, y, z, w = qi
+    R = np.empty((3, 3))
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += R[a, c] * inv_inertia[i, c] * R[b, c]
+            inv_I[i, a, b] = s
+    SI = np.empty((3, 3))
+    for b in range(3):
+        col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
+        for a in range(3):
+            SI[a, b] = col[a]
+    for a in range(3):
+        # (M [h]×)[a, b] = Σ_c M[a, c] [h]×[c, b].
+        G[i, a, 0] = SI[a, 1] * hi[2] - SI[a, 2] * hi[1]
+        G[i, a, 1] = SI[a, 2] * hi[0] - SI[a, 0] * hi[2]
+        G[i, a, 2] = SI[a, 0] * hi[1] - SI[a, 1] * hi[0]
+
+
+@njit(cache=True)
+def joint_blocks(G, inv_mass, is_first, D, L):
+    """Blocks of A = J M⁻¹ Jᵀ: ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}`` (the second
+    terms only below a parent segment), ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``."""
+    for i in range(G.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                eye = 1.0 if a == b else 0.0
+                D[i, a, b] = eye * inv_mass[i] - G[i, a, b]
+                L[i, a, b] = 0.0
+                if not is_first[i]:
+                    D[i, a, b] += eye * inv_mass[i - 1] - G[i - 1, a, b]
+                    L[i, a, b] = -(eye * inv_mass[i - 1] + G[i - 1, a, b])
+
+
+@njit(cache=True)
+def factor_chain(q, model, h, inv_I, C, Lo):
+    """At orientations ``q``: half-vectors ``h`` (centre to distal joint, m), world inverse
+    inertias ``inv_I`` ``(n, 3, 3)`` and the factors (``C``, ``Lo``, ``chain_solve``) of
+    A = J M⁻¹ Jᵀ (``joint_blocks``), G = [h]× I⁻¹ [h]× (``solver``). False if A is not
+    positive definite."""
+    length, inv_inertia = model[LENGTH], model[INV_INERTIA]
+    n = q.shape[0]
+    G = np.empty((n, 3, 3))
+    for i in range(n):
+        half = 0.5 * length[i]
+        hi = scale(half, qaxis_x(q4(q, i)))
+        for a in range(3):
+            h[i, a] = hi[a]
+        if model[AXISYMMETRIC]:
+            axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G)
+        else:
+            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G)
+    D = np.empty((n, 3, 3))
+    L = np.empty((n, 3, 3))
+    joint_blocks(G, model[INV_MASS], model[IS_FIRST], D, L)
+    return _chain_factor(D, L, model[IS_FIRST], C, Lo)
+
+
+@njit(cache=True)
+def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
+    """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
+    parents) over segments ``s:e`` (whole chains) to ``dv``, ``dw`` (``lam``, ``dv``, ``dw``
+    indexed from s): Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
+    inv_mass, has_child = model[INV_MASS], model[HAS_CHILD]
+    for i in range(s, e):
+        ln = v3(lam, i - s + 1) if has_child[i] else (0.0, 0.0, 0.0)
+        li = v3(lam, i - s)
+        dwi = mat_vec(inv_I, i, cross(add(li, ln), v3(h, i)))
+        for a in range(3):
+            dv[i - s, a] += (li[a] - ln[a]) * inv_mass[i]
+            dw[i - s, a] += dwi[a]
+
+
+@njit(cache=True)
+def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
+    """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
+    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's)."""
+    is_first, chain_of = model[IS_FIRST], model[CHAIN_OF]
+    n = v.shape[0]
+    c_dot = np.empty((n, 3))
+    for i in range(n):
+        child = sub(v3(v, i), cross(v3(w, i), v3(h, i)))
+        if is_first[i]:
+            par = v3(anchor_velocity, chain_of[i])
+        else:
+            par = add(v3(v, i - 1), cross(v3(w, i - 1), v3(h, i - 1)))
+        d = sub(par, child)
+        for a in range(3):
+            c_dot[i, a] = d[a]
+    _chain_solve(C, Lo, is_first, c_dot)
+    dv = np.zeros((n, 3))
+    dw = np.zeros((n, 3))
+    apply_joint_impulses(c_dot, h, inv_I, model, 0, n, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+
+
+@njit(cache=True)
+def project_positions(anchor_position, h, model, x):
+    """Centres that close every joint exactly: x_i = p_anchor + Σ_{j<i} 2 h_j + h_i."""
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
+    for c in range(chain_start.shape[0]):
+        p = v3(anchor_position, c)
+        for i in range(chain_start[c], chain_end[c]):
+            hi = v3(h, i)
+            xi = add(p, hi)
+            for a in range(3):
+                x[i, a] = xi[a]
+            p = add(p, scale(2.0, hi))
+
+
+@njit(cache=True)
+def project_velocities(anchor_velocity, w, h, model, v):
+    """Centre velocities of the rigid chain: v_i = v_anchor + Σ_{j<i} 2 ω_j × h_j + ω_i × h_i."""
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
+    for c in range(chain_start.shape[0]):
+        p = v3(anchor_velocity, c)
+        for i in range(chain_start[c], chain_end[c]):
+            wh = cross(v3(w, i), v3(h, i))
+            vi = add(p, wh)
+            for a in range(3):
+                v[i, a] = vi[a]
+            p = add(p, scale(2.0, wh))
+
+
+@njit(cache=True)
+def half_vectors(length, q, h):
+    for i in range(q.shape[0]):
+        hi = scale(0.5 * length[i], qaxis_x(q4(q, i)))
+        for a in range(3):
+            h[i, a] = hi[a]
+
+
+# -- the colliders in the world ------------------------------------------------------------------
+@njit(cache=True)
+def collider_pose(body_position, body_orientation, body_velocity, body_omega, cols):
+    """The colliders at one instant: ``(a0, d2, normal, origin, velocity, omega, speed)``
+    (``collision.ColliderPose``), each collider's local ``a0``, ``d2`` and ``normal`` turned
+    into the world by its body's pose (``body < 0``: the world, no motion). ``speed`` bounds
+    the speed of its surface: |v_origin| + |ω| × its reach from the body origin (m/s).
+
+    ``cols``: ``(body, local_a0, local_d2, local_normal, reach)``; the body arrays are the
+    kinematic bodies' origins (``AnchorKinematics`` of the origins), world frame.
+    """
+    body, local_a0, local_d2, local_normal, reach = cols
+    K = body.shape[0]
+    a0 = np.empty((K, 3))
+    d2 = np.empty((K, 3))
+    normal = np.empty((K, 3))
+    origin = np.zeros((K, 3))
+    velocity = np.zeros((K, 3))
+    omega = np.zeros((K, 3))
+    speed = np.zeros(K)
+    for j in range(K):
+        b = body[j]
+        la0, ld2, ln = v3(local_a0, j), v3(local_d2, j), v3(local_normal, j)
+        if b < 0:
+            wa0, wd2, wn = la0, ld2, ln
+        else:
+            qb = q4(body_orientation, b)
+            o = v3(body_position, b)
+            wa0 = add(o, qrotate(qb, la0))
+            wd2 = qrotate(qb, ld2)
+            wn = qrotate(qb, ln)
+            vb, ob = v3(body_velocity, b), v3(body_omega, b)
+            for a in range(3):
+                origin[j, a] = o[a]
+                velocity[j, a] = vb[a]
+                omega[j, a] = ob[a]
+            speed[j] = norm(vb) + norm(ob) * reach[j]
+        for a in range(3):
+            a0[j, a] = wa0[a]
+            d2[j, a] = wd2[a]
+            normal[j, a] = wn[a]
+    return a0, d2, normal, origin, velocity, omega, speed
+
+
+# -- detection ---------------------------------------------------------------------------------
+@njit(cache=True)
+def clip01(s):
+    return 0.0 if s < 0.0 else min(s, 1.0)
+
+
+@njit(cache=True)
+def rooted(anchor, a0, d2, sum_radius, length):
+    """Is a first segment's anchor inside, or within a quarter segment of, a round collider?"""
+    e2 = max(dot(d2, d2), 1e-300)
+    rel = sub(anchor, a0)
+    ta = clip01(dot(rel, d2) / e2)
+    return sum_radius - norm(sub(rel, scale(ta, d2))) > -0.25 * length
+
+
+@njit(cache=True)
+def closest_segment_segment(p0, d1, a0, d2):
+    """Clamped closest points ``s``, ``t`` ∈ [0, 1] of segments ``p0 + s d1`` and
+    ``a0 + t d2`` (``d2`` non-zero; Ericson, *Real-Time Collision Detection* 5.1.9)."""
+    r = sub(p0, a0)
+    a = dot(d1, d1)
+    e = dot(d2, d2)
+    b = dot(d1, d2)
+    c = dot(d1, r)
+    f = dot(d2, r)
+    denom = a * e - b * b
+    s = clip01((b * f - c * e) / denom) if denom > 1e-12 * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0:
+        s = clip01(-c / a)
+    elif t > 1.0:
+        s = clip01((b - c) / a)
+    return s, clip01(t)
+
+
+@njit(cache=True)
+def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
+    """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
+    closest-point parameters ``s`` (on the segment, proximal 0 to distal 1) and ``t`` (on a
+    capsule's core), and ``own`` (the pair may make a row), all ``(m, K)``.
+
+    Spheres: clamped point–segment closest point; capsules: clamped segment–segment closest
+    points (Ericson 5.1.9); planes: the distal end (``report``: the deeper end). A non-first
+    segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
+    first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
+    """
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    seg, seg_radius, seg_length, inner = det[D_SEG], det[D_RADIUS], det[D_LENGTH], det[D_INNER]
+    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
+    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
+    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
+    K = a0.shape[0]
+    for m in range(seg.shape[0]):
+        g = seg[m]
+        hg = v3(h, g)
+        p0 = sub(v3(x, g), hg)
+        d1 = scale(2.0, hg)
+        f = first_of[m]
+        for j in range(K):
+            if j >= n_round:
+                nn = v3(normal, j)
+                off = dot(v3(a0, j), nn)
+                s1 = dot(add(p0, d1), nn) - off
+                if report:
+                    s1 = min(s1, dot(p0, nn) - off)
+                depth[m, j] = seg_radius[m] - s1
+                s_out[m, j] = 1.0
+                t_out[m, j] = 0.0
+                own[m, j] = True
+                continue
+            aj, dj = v3(a0, j), v3(d2, j)
+            if j < n_sphere:
+                s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
+                t = 0.0
+            else:
+                s, t = closest_segment_segment(p0, d1, aj, dj)
+            if f >= 0:
+                if root_fixed[f, j]:
+                    is_rooted = rooted_fixed[f, j]
+                else:
+                    is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
+                                       sum_radius[m, j], seg_length[m])
+                if is_rooted:
+                    e2 = max(dot(dj, dj), 1e-300)
+                    s = max(s, ROOT_LEVER)
+                    t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
+            diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
+            depth[m, j] = sum_radius[m, j] - norm(diff)
+            s_out[m, j] = s
+            t_out[m, j] = t
+            own[m, j] = not (inner[m] and s <= 0.0)
+
+
+@njit(cache=True)
+def near(anchor_position, pose, v, w, det, dt):
+    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
+    its length (plus radius) about its anchor; its surface moves at most at its fastest
+    centre's speed plus its fastest spin times the longest half segment."""
+    a0, d2, normal, speed_col = pose[P_A0], pose[P_D2], pose[P_NORMAL], pose[P_SPEED]
+    det_chains, chain_reach, max_half_length, n_round, col_radius = (
+        det[D_CHAINS], det[D_CHAIN_REACH], det[D_MAX_HALF], det[D_N_ROUND], det[D_COL_RADIUS])
+    v2 = 0.0
+    w2 = 0.0
+    for i in range(v.shape[0]):
+        v2 = max(v2, dot(v3(v, i), v3(v, i)))
+        w2 = max(w2, dot(v3(w, i), v3(w, i)))
+    speed = math.sqrt(v2) + math.sqrt(w2) * max_half_length + np.max(speed_col)
+    for c in range(det_chains.shape[0]):
+        p = v3(anchor_position, det_chains[c])
+        reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
+        for j in range(a0.shape[0]):
+            aj = v3(a0, j)
+            if j < n_round:
+                dj = v3(d2, j)
+                rel = sub(p, aj)
+                e2 = max(dot(dj, dj), 1e-300)
+                t = clip01(dot(rel, dj) / e2)
+                dist = norm(sub(rel, scale(t, dj))) - col_radius[j]
+            else:
+                nn = v3(normal, j)
+                dist = dot(p, nn) - dot(aj, nn)
+            if dist < reach:
+                return True
+    return False
+
+
+# -- rows ----------------------------------------------------------------------------------------
+@njit(cache=True)
+def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
+    """Normal (from the collider to the segment) and touching point on segment g's surface
+    for the closest points ``s`` (segment) and ``t`` (capsule core) with collider j."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    ps = add(v3(x, g), scale(2.0 * s - 1.0, v3(h, g)))
+    if j >= n_round:
+        nrm = v3(normal, j)
+    else:
+        diff = sub(ps, add(v3(a0, j), scale(t, v3(d2, j))))
+        dist = norm(diff)
+        if dist > 1e-12:
+            nrm = (diff[0] / dist, diff[1] / dist, diff[2] / dist)
+        else:
+            # On the core: any direction perpendicular to the segment.
+            hg = v3(h, g)
+            ref = (1.0, 0.0, 0.0) if abs(hg[0]) < 0.9 else (0.0, 1.0, 0.0)
+            p = cross(hg, ref)
+            npn = norm(p)
+            nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
+    return nrm, sub(ps, scale(radius, nrm))
+
+
+@njit(cache=True)
+def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
+    """The contact rows into ``R``, ``I`` (segment-major); returns their number."""
+    seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
+    origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
+                                          pose[P_SPEED])
+    n, m, K = x.shape[0], seg.shape[0], pose[P_A0].shape[0]
+    h = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    depth, s, t = np.empty((m, K)), np.empty((m, K)), np.empty((m, K))
+    own = np.empty((m, K), dtype=np.bool_)
+    detect(x, h, anchor_position, pose, det, False, depth, s, t, own)
+    skin = max(POSITION_SKIN + 4.0 * max(np.max(depth), 0.0), VELOCITY_SKIN)
+    k = 0
+    for i in range(m):
+        g = seg[i]
+        speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
+        for j in range(K):
+            reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
+            if not (own[i, j] and depth[i, j] > -reach):
+                continue
+            nrm, point = contact_frame(x, h, g, s[i, j], t[i, j], j, det[D_RADIUS][i], pose,
+                                       det[D_N_ROUND])
+            arm = sub(point, v3(x, g))
+            v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
+            rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
+            ang = cross(arm, nrm)
+            for a in range(3):
+                R[k, LIN + a] = nrm[a]
+                R[k, ANG + a] = ang[a]
+                R[k, ARM + a] = arm[a]
+                R[k, VOTH + a] = v_col[a]
+            R[k, DEPTH] = depth[i, j]
+            R[k, SEP] = dot(nrm, rel)
+            R[k, MU] = friction[j]
+            I[k, SEG] = g
+            I[k, PAR] = -1
+            I[k, CONTACT] = 1
+            k += 1
+    return k
+
+
+@njit(cache=True)
+def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
+    """The limit rows (swing rows, then twist rows) into ``R``, ``I`` from row ``k`` on;
+    returns the new number of rows. A limit is kept if violated, within ``ANGLE_SKIN`` plus
+    4× the deepest violation (so that a correction does not push a neighbouring joint past
+    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps."""
+    lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
+    nl = lim_idx.shape[0]
+    axis = np.empty((2 * nl, 3))
+    gap = np.empty(2 * nl)
+    sep = np.empty(2 * nl)
+    limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
+                swing_limit, twist_limit, axis, gap, sep)
+    skin = ANGLE_SKIN + 4.0 * max(-np.min(gap), 0.0)
+    for r in range(2 * nl):
+        joint = lim_idx[r % nl]
+        limit = swing_limit[joint] if r < nl else twist_limit[joint]
+        closing = sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r]
+        if not (np.isfinite(limit) and (gap[r] < skin or closing)):
+            continue
+        for a in range(3):
+            R[k, ANG + a] = -axis[r, a]
+            R[k, APAR + a] = axis[r, a]
+        R[k, DEPTH] = -gap[r]
+        R[k, SEP] = sep[r]
+        I[k, SEG] = joint
+        I[k, PAR] = model[PARENT][joint]
+        I[k, CONTACT] = 0
+        k += 1
+    return k
+
+
+@njit(cache=True)
+def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
+    """Contact and limit rows within reach of this step's stages: ``(R, I)``.
+
+    A pair is a candidate if it is inside, within the position skin, or could close within
+    ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds (after the broad
+    phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
+    """
+    nl = model[LIMITED].shape[0]
+    m = det[D_SEG].shape[0] if has_colliders else 0
+    K = pose[P_A0].shape[0] if has_colliders else 0
+    R = np.zeros((m * K + 2 * nl, NCOL))
+    I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
+    k = 0
+    if has_colliders and near(anchor[0], pose, v, w, det, dt):
+        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I)
+    if nl:
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k)
+    return R[:k].copy(), I[:k].copy()
+
+
+@njit(cache=True)
+def take(R, I, keep):
+    """The rows where ``keep``."""
+    k = 0
+    for r in range(keep.shape[0]):
+        k += keep[r]
+    R2 = np.empty((k, NCOL))
+    I2 = np.empty((k, 3), dtype=np.int64)
+    k = 0
+    for r in range(keep.shape[0]):
+        if keep[r]:
+            R2[k] = R[r]
+            I2[k] = I[r]
+            k += 1
+    return R2, I2
+
+
+@njit(cache=True)
+def moved_rows(R, I, dx, dth):
+    """The rows after a small displacement (centres ``dx``, rotations ``dth``), to first order,
+    in place: depths change by -J_r·(dx, dth); lever arms turn with their segments (a contact's
+    angular Jacobian is then arm × normal again)."""
+    for r in range(R.shape[0]):
+        g, p = I[r, SEG], I[r, PAR]
+        rate = (dot(col3(R, r, LIN), v3(dx, g))
+                + dot(col3(R, r, ANG), v3(dth, g)))
+        if p >= 0:
+            rate += dot(col3(R, r, APAR), v3(dth, p))
+        arm = col3(R, r, ARM)
+        arm = add(arm, cross(v3(dth, g), arm))
+        R[r, DEPTH] -= rate
+        for a in range(3):
+            R[r, ARM + a] = arm[a]
+        if I[r, CONTACT]:
+            ang = cross(arm, col3(R, r, LIN))
+            for a in range(3):
+                R[r, ANG + a] = ang[a]
+
+
+@njit(cache=True)
+def refresh_sep(R, I, v, w, anchor_omega, chain_of):
+    """The rows' separation rates for new velocities (geometry unchanged), in place."""
+    for r in range(R.shape[0]):
+        g, p = I[r, SEG], I[r, PAR]
+        w_par = v3(w, p) if p >= 0 else v3(anchor_omega, chain_of[g])
+        R[r, SEP] = (dot(col3(R, r, LIN),
+                         sub(v3(v, g), col3(R, r, VOTH)))
+                     + dot(col3(R, r, ANG), v3(w, g))
+                     + dot(col3(R, r, APAR), w_par))
+
+
+# -- small dense problems ------------------------------------------------------------------------
+@njit(cache=True)
+def lu_solve(A, b):
+    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept."""
+    n = b.shape[0]
+    M = A.copy()
+    x = b.copy()
+    for c in range(n):
+        p = c
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > abs(M[p, c]):
+                p = r
+        if p != c:
+            for j in range(n):
+                M[c, j], M[p, j] = M[p, j], M[c, j]
+            x[c], x[p] = x[p], x[c]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            M[r, c] = f
+            for j in range(c + 1, n):
+                M[r, j] -= f * M[c, j]
+            x[r] -= f * x[c]
+    for c in range(n - 1, -1, -1):
+        s = x[c]
+        for j in range(c + 1, n):
+            s -= M[c, j] * x[j]
+        x[c] = s / M[c, c]
+    return x
+
+
+@njit(cache=True)
+def solve_active(Ws, bs, active, lam):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+    k = bs.shape[0]
+    idx = np.empty(k, dtype=np.int64)
+    na = 0
+    for i in range(k):
+        lam[i] = 0.0
+        if active[i]:
+            idx[na] = i
+            na += 1
+    if na == 0:
+        return
+    A = np.empty((na, na))
+    rhs = np.empty(na)
+    for a in range(na):
+        rhs[a] = -bs[idx[a]]
+        for b in range(na):
+            A[a, b] = Ws[idx[a], idx[b]]
+    sol = lu_solve(A, rhs)
+    for a in range(na):
+        lam[idx[a]] = sol[a]
+
+
+@njit(cache=True)
+def row_dot(A, i, x):
+    """Σ_j A[i, j] x[j] (no BLAS)."""
+    s = 0.0
+    for j in range(x.shape[0]):
+        s += A[i, j] * x[j]
+    return s
+
+
+@njit(cache=True)
+def entering_variable(Ws, bs, lam, passive):
+    """Lawson–Hanson: the bound variable with the largest dual -(Wλ + b)_i > 1e-12, or -1."""
+    best, j = 1e-12, -1
+    for i in range(bs.shape[0]):
+        if not passive[i]:
+            g = -bs[i] - row_dot(Ws, i, lam)
+            if g > best:
+                best, j = g, i
+    return j
+
+
+@njit(cache=True)
+def step_to_feasible(Ws, bs, passive, lam, z):
+    """Lawson–Hanson inner loop: solve on the passive set; while a passive variable would
+    turn non-positive, move λ towards the solution as far as stays feasible and release the
+    variables that reach zero."""
+    k = bs.shape[0]
+    for _ in range(3 * k + 3):
+        solve_active(Ws, bs, passive, z)
+        if not np.any(passive & (z <= 0.0)):
+            lam[:] = z
+            return
+        alpha = 1.0
+        for i in range(k):
+            if passive[i] and z[i] <= 0.0:
+                alpha = min(alpha, lam[i] / (lam[i] - z[i]))
+        for i in range(k):
+            lam[i] += alpha * (z[i] - lam[i])
+            if passive[i] and lam[i] <= 1e-15:
+                passive[i] = False
+                lam[i] = 0.0
+
+
+@njit(cache=True)
+def nnls_quadratic(Ws, bs):
+    """min ½ λᵀ W λ + bᵀ λ over λ ≥ 0 (W symmetric positive definite): Lawson–Hanson active
+    set, with the gradient -(Wλ + b) as the dual."""
+    k = bs.shape[0]
+    lam = np.zeros(k)
+    z = np.zeros(k)
+    passive = np.zeros(k, dtype=np.bool_)
+    for _ in range(3 * k + 3):
+        j = entering_variable(Ws, bs, lam, passive)
+        if j < 0:
+            break
+        passive[j] = True
+        step_to_feasible(Ws, bs, passive, lam, z)
+    return lam
+
+
+@njit(cache=True)
+def sign_violations(Ws, bs, active, lam, bad):
+    """Principal pivoting: which rows violate their sign condition (an active row pulling,
+    λ < 0, or an inactive one penetrating, (Wλ + b) < 0, beyond ``PIVOT_TOL``), into ``bad``;
+    returns the lowest such row, or -1."""
+    first = -1
+    for i in range(bs.shape[0]):
+        slack = row_dot(Ws, i, lam) + bs[i]
+        bad[i] = lam[i] < -PIVOT_TOL if active[i] else slack < -PIVOT_TOL
+        if bad[i] and first < 0:
+            first = i
+    return first
+
+
+@njit(cache=True)
+def lcp(W, b):
+    """λ ≥ 0 with Wλ + b ≥ 0 and λ·(Wλ + b) = 0, W symmetric positive semi-definite.
+
+    Principal pivoting on the unit-diagonal scaled, ``REG``-regularised W: the rows with
+    b < 0 start active; the active block is solved exactly and every row violating a sign
+    condition moves to the other side (block pivoting; after 4 rounds one row at a time, the
+    lowest index: Murty's rule, which terminates for positive definite W). Falls back to
+    Lawson–Hanson (``nnls_quadratic``) if it ever stalls."""
+    k = b.shape[0]
+    if not np.any(b < 0.0):
+        return np.zeros(k)
+    if k == 1:
+        return np.array([max(-b[0] / W[0, 0], 0.0)])
+    d = 1.0 / np.sqrt(np.diag(W))
+    Ws = np.empty((k, k))
+    for i in range(k):
+        for j in range(k):
+            Ws[i, j] = W[i, j] * d[i] * d[j]
+        Ws[i, i] += REG
+    bs = b * d
+    active = bs < 0.0
+    lam = np.zeros(k)
+    bad = np.zeros(k, dtype=np.bool_)
+    for it in range(4 * k + 8):
+        solve_active(Ws, bs, active, lam)
+        first = sign_violations(Ws, bs, active, lam, bad)
+        if first < 0:
+            return np.maximum(lam, 0.0) * d
+        if it < 4:
+            active ^= bad
+        else:
+            active[first] = not active[first]
+    return nnls_quadratic(Ws, bs) * d
+
+
+@njit(cache=True)
+def friction_step(W, slip, bound):
+    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
+    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
+    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+    k = slip.shape[0]
+    tr = 0.0
+    for i in range(k):
+        tr += W[i, i]
+    A = W.copy()
+    for i in range(k):
+        A[i, i] += REG * tr / k
+    lam = lu_solve(A, slip)
+    work = 0.0
+    for i in range(k):
+        lam[i] = min(max(lam[i], 0.0), bound[i])
+        work += lam[i] * slip[i]
+    quad = 0.0
+    for i in range(k):
+        s = 0.0
+        for j in range(k):
+            s += lam[j] * W[j, i]
+        quad += s * lam[i]
+    if work <= 0.0 or quad <= 0.0:
+        return np.zeros(k)
+    alpha = min(1.0, work / quad)
+    for i in range(k):
+        lam[i] *= alpha
+    return lam
+
+
+# -- the rows' impulses and the chain's response ------------------------------------------------
+@njit(cache=True)
+def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
+    """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
+    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ."""
+    inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
+    nc = e - s
+    g, p = I[r, SEG], I[r, PAR]
+    dv[:] = 0.0
+    dw[:] = 0.0
+    lin = col3(R, r, LIN)
+    dwg = mat_vec(inv_I, g, col3(R, r, ANG))
+    for a in range(3):
+        dv[g - s, a] = lin[a] * inv_mass[g]
+        dw[g - s, a] = dwg[a]
+    if p >= 0:
+        dwp = mat_vec(inv_I, p, col3(R, r, APAR))
+        for a in range(3):
+            dw[p - s, a] = dwp[a]
+    # Joint velocity error: parent's distal point minus child's proximal point.
+    c_dot = np.empty((nc, 3))
+    for i in range(nc):
+        d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
+        if i > 0:
+            d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
+        for a in range(3):
+            c_dot[i, a] = d[a]
+    _chain_solve(C[s:e], Lo[s:e], is_first[s:e], c_dot)
+    apply_joint_impulses(c_dot, h, inv_I, model, s, e, dv, dw)
+
+
+@njit(cache=True)
+def gather_chain(I, chain_of, r0, done, members):
+    """The rows (from ``r0`` on, not yet ``done``) of the chain of row ``r0`` into ``members``,
+    marked done; returns their number."""
+    c = chain_of[I[r0, SEG]]
+    kg = 0
+    for r in range(r0, I.shape[0]):
+        if not done[r] and chain_of[I[r, SEG]] == c:
+            members[kg] = r
+            kg += 1
+            done[r] = True
+    return kg
+
+
+@njit(cache=True)
+def delassus(R, I, members, s, rv, rw, model, W, mobile):
+    """W[a, b] = J_a · (response to a unit impulse along row b), the Delassus matrix of one
+    chain's rows (segments from s), and which rows the jointed chain can move: W_aa above
+    ``MOBILITY`` times the row's mobility on its free segment(s)."""
+    inv_mass, inv_I_max = model[INV_MASS], model[INV_I_MAX]
+    kg = W.shape[0]
+    for a in range(kg):
+        r = members[a]
+        g, p = I[r, SEG], I[r, PAR]
+        lin, ang, ap = col3(R, r, LIN), col3(R, r, ANG), col3(R, r, APAR)
+        for bb in range(kg):
+            W[a, bb] = dot(lin, v3(rv[bb], g - s)) + dot(ang, v3(rw[bb], g - s))
+            if p >= 0:
+                W[a, bb] += dot(ap, v3(rw[bb], p - s))
+        free = dot(lin, lin) * inv_mass[g] + dot(ang, ang) * inv_I_max[g]
+        if p >= 0:
+            free += dot(ap, ap) * inv_I_max[p]
+        mobile[a] = W[a, a] > MOBILITY * free
+
+
+@njit(cache=True)
+def chain_impulses(W, mobile, b, bound, members):
+    """λ of one chain's rows (index into ``members``): the mobile rows' LCP on the
+    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others."""
+    sel = np.flatnonzero(mobile)
+    nm = sel.shape[0]
+    friction = bound.shape[0] > 0
+    Wc = np.empty((nm, nm))
+    bc = np.empty(nm)
+    bnd = np.empty(nm)
+    for a in range(nm):
+        bc[a] = b[members[sel[a]]]
+        bnd[a] = bound[members[sel[a]]] if friction else 0.0
+        for bb in range(nm):
+            Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
+    lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
+    lam = np.zeros(W.shape[0])
+    for a in range(nm):
+        lam[sel[a]] = lc[a]
+    return lam
+
+
+@njit(cache=True)
+def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
+    """Impulses λ ``(k,)`` of the rows and the velocity change they cause, added to
+    ``dv_out``, ``dw_out``: the exact LCP Wλ + b ≥ 0, λ ≥ 0, λ·(Wλ + b) = 0 (``bound``
+    empty), or the energy-safe friction step bounded by ``bound`` ``(k,)`` (a run-time
+    switch, not a compile-time one: one specialisation for both).
+
+    Rows couple only within a chain: per chain, W = J_r P M⁻¹ J_rᵀ from one response per row;
+    a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
+    mobility (a contact at the anchor) takes no impulse.
+    """
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    k = R.shape[0]
+    lam = np.zeros(k)
+    done = np.zeros(k, dtype=np.bool_)
+    members = np.empty(k, dtype=np.int64)
+    for r0 in range(k):
+        if done[r0]:
+            continue
+        kg = gather_chain(I, chain_of, r0, done, members)
+        c = chain_of[I[r0, SEG]]
+        s, e = chain_start[c], chain_end[c]
+        rv = np.empty((kg, e - s, 3))
+        rw = np.empty((kg, e - s, 3))
+        for a in range(kg):
+            row_response(R, I, members[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a])
+        W = np.empty((kg, kg))
+        mobile = np.empty(kg, dtype=np.bool_)
+        delassus(R, I, members, s, rv, rw, model, W, mobile)
+        lc = chain_impulses(W, mobile, b, bound, members)
+        for a in range(kg):
+            lam[members[a]] = lc[a]
+            if lc[a] != 0.0:
+                dv_out[s:e] += lc[a] * rv[a]
+                dw_out[s:e] += lc[a] * rw[a]
+    return lam
+
+
+@njit(cache=True)
+def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
+    """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
+    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place."""
+    n = v.shape[0]
+    dv = np.zeros((n, 3))
+    dw = np.zeros((n, 3))
+    lam = solve_rows(R, I, b, np.zeros(0), h, inv_I, C, Lo, model, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+    k = R.shape[0]
+    # Friction rows: minus the sliding direction at each pushing contact that slides.
+    Rf = np.zeros((k, NCOL))
+    If = np.zeros((k, 3), dtype=np.int64)
+    speed = np.empty(k)
+    bound = np.empty(k)
+    kf = 0
+    for r in range(k):
+        if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
+            continue
+        g = I[r, SEG]
+        arm = col3(R, r, ARM)
+        nrm = col3(R, r, LIN)
+        v_rel = sub(add(v3(v, g), cross(v3(w, g), arm)), col3(R, r, VOTH))
+        slip = sub(v_rel, scale(dot(v_rel, nrm), nrm))
+        sp = norm(slip)
+        if not sp > 1e-9:
+            continue
+        t = (slip[0] / sp, slip[1] / sp, slip[2] / sp)
+        ang = cross(arm, t)
+        for a in range(3):
+            Rf[kf, LIN + a] = -t[a]
+            Rf[kf, ANG + a] = -ang[a]
+        If[kf, SEG] = g
+        If[kf, PAR] = -1
+        If[kf, CONTACT] = 1
+        speed[kf] = sp
+        bound[kf] = R[r, MU] * lam[r]
+        kf += 1
+    if kf == 0:
+        return
+    dv[:] = 0.0
+    dw[:] = 0.0
+    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw)
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+
+
+# -- the pass after a step ------------------------------------------------------------------------
+@njit(cache=True)
+def deepest(R, I, with_limits):
+    """The deepest violation (≥ 0) of the contact rows (and of the limit rows if asked)."""
+    worst = 0.0
+    for r in range(R.shape[0]):
+        if I[r, CONTACT] or with_limits:
+            worst = max(worst, R[r, DEPTH])
+    return worst
+
+
+@njit(cache=True)
+def rotate_segments(q, dth, length):
+    """Turn every segment by its rotation vector ``dth`` (clamped in place to
+    ``MAX_ROTATION``): q ← normalise(exp(dth) ⊗ q). Returns whether the pass was small: no
+    clamp and max l θ² below a tenth of ``POSITION_TOLERANCE`` (its linearisation holds)."""
+    unclamped = True
+    small = 0.0
+    for i in range(q.shape[0]):
+        th = v3(dth, i)
+        ang2 = dot(th, th)
+        clamp = min(1.0, MAX_ROTATION / math.sqrt(max(ang2, 1e-300)))
+        unclamped = unclamped and clamp == 1.0
+        small = max(small, ang2 * length[i])
+        th = scale(clamp, th)
+        qi = qnormalize(qmul(qfrom_rotvec(th), q4(q, i)))
+        for a in range(3):
+            dth[i, a] = th[a]
+        for a in range(4):
+            q[i, a] = qi[a]
+    return unclamped and small < 0.1 * POSITION_TOLERANCE
+
+
+@njit(cache=True)
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, fac,
+                   stats):
+    """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
+    rows and those within the skin (plus 4× the deepest violation), each displacement
+    ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
+    contact is deeper than ``POSITION_TOLERANCE`` (limits: the first pass). ``x``, ``q`` in
+    place. Returns ``(status, moved, R, I)``: the rows at the final pose."""
+    length = model[LENGTH]
+    h, inv_I, C, Lo = fac
+    n = x.shape[0]
+    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    moved = False
+    for passes in range(POSITION_ITERATIONS):
+        if R.shape[0] == 0:
+            break
+        worst = deepest(R, I, passes == 0)
+        if worst <= POSITION_TOLERANCE:
+            break
+        active = np.empty(R.shape[0], dtype=np.bool_)
+        for r in range(R.shape[0]):
+            skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
+            active[r] = R[r, DEPTH] > -skin - 4.0 * worst
+        Rs, Is = take(R, I, active)
+        if not factor_chain(q, model, h, inv_I, C, Lo):
+            return NOT_POSITIVE_DEFINITE, moved, R, I
+        b = -Rs[:, DEPTH]
+        dx = np.zeros((n, 3))
+        dth = np.zeros((n, 3))
+        solve_rows(Rs, Is, b, np.zeros(0), h, inv_I, C, Lo, model, dx, dth)
+        small = rotate_segments(q, dth, length)
+        stats[2] = passes + 1
+        moved = True
+        x_old = x.copy()
+        half_vectors(length, q, h)
+        project_positions(anchor[0], h, model, x)
+        if small:
+            # The predicted depths stand (error ~ l θ²), no second detection.
+            moved_rows(R, I, x - x_old, dth)
+            break
+        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    return OK, moved, R, I
+
+
+@njit(cache=True)
+def limit_stage(x, q, anchor, q_rest, model):
+    """The limits' exact projection (``project_limits``) for what the linearisation of their
+    cones left; ``x``, ``q`` in place. Returns whether anything moved."""
+    n = q.shape[0]
+    q_lim = np.empty((n, 4))
+    if not project_limits(q, anchor[2], q_rest, model[IS_FIRST], model[CHAIN_OF],
+                          model[CHAIN_START], model[CHAIN_END], model[LIMITED],
+                          model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
+        return False
+    q[:] = q_lim
+    h = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    project_positions(anchor[0], h, model, x)
+    return True
+
+
+@njit(cache=True)
+def unprojected_positions(x0, q0, q, anchor, model, x):
+    """Without projection the centres move by the rotations about the joints only:
+    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0)."""
+    n = x.shape[0]
+    h = np.empty((n, 3))
+    p0 = np.empty((n, 3))
+    half_vectors(model[LENGTH], q0, h)
+    project_positions(anchor[0], h, model, p0)
+    p1 = np.empty((n, 3))
+    half_vectors(model[LENGTH], q, h)
+    project_positions(anchor[0], h, model, p1)
+    x[:] = x0 + (p1 - p0)
+
+
+@njit(cache=True)
+def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, fac, stats):
+    """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
+    steps at its current rate, gets the inelastic impulse of the LCP
+    ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
+    status (the chain is factorised here if it was not yet)."""
+    h, inv_I, C, Lo = fac
+    k = R.shape[0]
+    keep = np.empty(k, dtype=np.bool_)
+    for r in range(k):
+        gap = -R[r, DEPTH]
+        sep = R[r, SEP]
+        skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
+        keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
+    Rv, Iv = take(R, I, keep)
+    b = np.empty(Rv.shape[0])
+    for r in range(Rv.shape[0]):
+        stats[0 if Iv[r, CONTACT] else 1] += 1
+        b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
+    if not np.any(b < 0.0):
+        return OK
+    if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
+        return NOT_POSITIVE_DEFINITE
+    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
+    if project:
+        project_velocities(anchor[1], w, h, model, v)
+    return OK
+
+
+@njit(cache=True)
+def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt, stats):
+    """Contacts and limits at the end of a step of length ``dt`` (s): positions, then
+    velocities (inelastic impulses, then friction). Returns ``(status, x, q, v, w)`` (new
+    arrays; the inputs are not changed); ``stats`` ``(3,)`` receives the contacts and limits
+    of the velocity stage and the position passes taken.
+
+    ``anchor``: ``(position, velocity, orientation, angular_velocity)`` of every chain's
+    attachment (C rows); ``pose``: ``(a0, d2, normal, origin, velocity, omega, speed)`` of the
+    colliders (``collision.ColliderPose``); ``model`` and ``det``: the constant tuples built by
+    ``collision.Unilateral``; ``q_rest``: the joints' rest rotations (``Model.q_rest``).
+
+    Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
+    unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
+    energy), ``velocity_stage``, and the centre velocities rebuilt from ω.
+    """
+    n = x.shape[0]
+    x0, q0 = x, q
+    x, q, v, w = x.copy(), q.copy(), v.copy(), w.copy()
+    stats[:] = 0
+    fac = (np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
+    h, inv_I, C, Lo = fac
+    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
+                                         has_colliders, dt, fac, stats)
+    if status != OK:
+        return status, x, q, v, w
+    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model)
+    moved = moved or stale
+    if moved:
+        if not project:
+            unprojected_positions(x0, q0, q, anchor, model, x)
+        if not factor_chain(q, model, h, inv_I, C, Lo):
+            return NOT_POSITIVE_DEFINITE, x, q, v, w
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model)
+        if stale:
+            R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+        else:
+            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
+    if R.shape[0]:
+        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, fac, stats)
+        if status != OK:
+            return status, x, q, v, w
+    if moved and project:
+        half_vectors(model[LENGTH], q, h)
+        project_velocities(anchor[1], w, h, model, v)
+    return OK, x, q, v, w
