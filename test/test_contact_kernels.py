@@ -15,7 +15,7 @@ import pytest
 import _oracle_collision
 import _oracle_limits
 from ponytail_ros.core import ChainSpec, KinematicState, Scene, Simulator, StillMotion
-from ponytail_ros.core import collision, limits
+from ponytail_ros.core import collision, limits, step
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.state import half_vectors
@@ -107,9 +107,36 @@ def _moving_shoulder():
 SCENES['capsule on a moving body'] = (_moving_shoulder, _TwoBodies, 1.5)
 
 
+def _per_step(sim):
+    """Make ``sim`` take every step through ``Unilateral.resolve`` (the per-step path it uses
+    for sub-stepped steps) instead of its compiled step loop, so that calls can be recorded;
+    ``test_the_compiled_loop_equals_the_per_step_path`` shows both give the same state."""
+    sim._call_unilateral = lambda *args, **kw: (step.SUBSTEPS, 0)
+
+
+@pytest.mark.parametrize('name', ['sphere and limits', 'capsule on a moving body',
+                                  'swing and twist limits', 'several chains'])
+def test_the_compiled_loop_equals_the_per_step_path(name):
+    """The compiled step loop with contacts and limits inside (``step.advance_unilateral``)
+    gives bit for bit the state of the per-step path (compiled step, then ``resolve`` from
+    Python), so the oracle comparison below, made on the per-step path, covers it."""
+    make_scene, make_motion, seconds = SCENES[name]
+    motion = make_motion()
+    sims = [Simulator(make_scene(), motion), Simulator(make_scene(), motion)]
+    _per_step(sims[1])
+    for k in range(1, int(round(seconds / DT)) + 1):
+        for sim in sims:
+            assert sim.advance_to(k * DT, motion).reset_reason is None
+    for a, b in zip((sims[0].state.x, sims[0].state.q, sims[0].state.v, sims[0].state.w),
+                    (sims[1].state.x, sims[1].state.q, sims[1].state.v, sims[1].state.w)):
+        assert np.array_equal(a, b)
+    assert sims[0].unilateral.last == sims[1].unilateral.last
+
+
 def _recorded_calls(scene, motion, seconds):
     """Run ``scene``; return every resolve call's inputs (copied) and compiled outputs."""
     sim = Simulator(scene, motion)
+    _per_step(sim)
     uni = sim.unilateral
     compiled = uni.resolve
     calls = []

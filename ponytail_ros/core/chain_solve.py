@@ -21,6 +21,10 @@ never produces (a blow-up does).
 import numba as nb
 import numpy as np
 
+from .kernel_cache import ensure_fresh
+
+ensure_fresh()          # before any kernel's cache is loaded (see ``kernel_cache``)
+
 __all__ = ['factor', 'solve', 'solve_many']
 
 

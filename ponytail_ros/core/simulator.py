@@ -52,6 +52,9 @@ MAX_SUBSTEPS = 8
 GYROSCOPIC_REACH_RATIO = 2.5
 
 _X = np.array([1.0, 0.0, 0.0])
+# Collider arguments of a scene without colliders (limits only): no bodies, no colliders.
+_NO_COLLIDER_ARGS = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                     np.zeros((0, 3)), np.zeros(0))
 _INTEGRATOR_IDS = {'rk4': compiled.RK4, 'symplectic_euler': compiled.SYMPLECTIC_EULER,
                    'rattle': compiled.RATTLE}
 
@@ -273,7 +276,8 @@ class Simulator:
             b_new = _body_kinematics(head)
             body_track = AnchorTrack(t_prev, b_prev, t_frame, b_new)
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   _memo_last(body_track.at))
+                                   _memo_last(body_track.at), anchor_table=track.table,
+                                   body_table=body_track.table)
             self._bodies_at = body_track.at
             self._last_bodies = (float(t_frame), b_new)
         self._anchor_at = track.at
@@ -312,11 +316,8 @@ class Simulator:
 
     def _run_compiled(self, n_steps, h, table, x, q, v, w):
         """``n_steps`` steps of ``h`` in one compiled call, the state arrays updated in place."""
-        ext_F, ext_T = self.external if self.external is not None else (self._zeros,
-                                                                         self._zeros)
-        A = compiled.AnchorTable(*(np.ascontiguousarray(a, dtype=float) for a in (
-            table.position, table.velocity, table.acceleration, table.orientation,
-            table.angular_velocity)))
+        ext_F, ext_T = self._external_arrays()
+        A = self._table(table)
         f_c = np.zeros((self.model.n, 3))
         status = compiled.advance(self._step_model(), A, n_steps, h, x, q, v, w, ext_F, ext_T,
                                   f_c)
@@ -326,7 +327,8 @@ class Simulator:
         if status == compiled.DAMPING_SOLVE_FAILED:
             raise np.linalg.LinAlgError('implicit damping KKT system is singular')
 
-    def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None):
+    def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
+                 body_table=None):
         report = StepReport()
         n_target = int(np.floor((t_target - self._t_base) / self.dt + 1e-9))
         n_steps = n_target - self._n_steps
@@ -351,7 +353,7 @@ class Simulator:
         try:
             if self.unilateral is not None:
                 x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
-                                                    x, q, v, w)
+                                                    x, q, v, w, anchor_table, body_table)
             elif self._compiled:
                 if n_steps > 0:
                     table = anchor_table(self._stage_times(n_steps)) if anchor_table else \
@@ -397,37 +399,100 @@ class Simulator:
             v = project_velocities(m, anchor.velocity, w, h)
         return x, v
 
-    def _steps_unilateral(self, n_steps, system, anchor_at, bodies_at, x, q, v, w):
+    def _steps_unilateral(self, n_steps, system, anchor_at, bodies_at, x, q, v, w,
+                          anchor_table=None, body_table=None):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
-        above, then its contacts and limits are resolved (``collision``). A step in which some
-        joint turns faster than ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is
-        split into up to ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise."""
+        above, then its contacts and limits are resolved (``collision``), all in one compiled
+        call (``step.advance_unilateral``). A step in which some joint turns faster than
+        ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is split into up to
+        ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise: the compiled call stops
+        before it, and it is taken here (the anchors at the sub-step times are evaluated for
+        it), then the call goes on."""
+        if not self._compiled:
+            for _ in range(n_steps):
+                x, q, v, w = self._substepped(system, anchor_at, bodies_at, x, q, v, w)
+            return x, q, v, w
+        uni = self.unilateral
+        cols = uni.colliders
+        moving = bool(cols is not None and cols.moving.size > 0)
+        x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+        done = 0
+        while done < n_steps:
+            times = self._stage_times(n_steps - done)
+            A = self._table(anchor_table(times) if anchor_table else
+                            stack_anchors([anchor_at(t) for t in times]))
+            B = A
+            if moving:
+                B = self._table(body_table(times) if body_table else
+                                stack_anchors([bodies_at(t) for t in times]))
+            status, k = self._call_unilateral(n_steps - done, A, B, moving, x, q, v, w)
+            done += k
+            self._n_steps += k
+            if status == compiled.SUBSTEPS:
+                x, q, v, w = self._substepped(system, anchor_at, bodies_at, x, q, v, w)
+                x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+                done += 1
+        uni.dt = self.dt
+        return x, q, v, w
+
+    def _call_unilateral(self, n_steps, A, B, moving, x, q, v, w):
+        uni = self.unilateral
+        ext_F, ext_T = self._external_arrays()
+        f_c = np.zeros((self.model.n, 3))
+        stats = uni._stats
+        cols = uni.colliders
+        status, k = compiled.advance_unilateral(
+            self._step_model(), A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B, moving,
+            cols.args if cols is not None else _NO_COLLIDER_ARGS,
+            uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
+            uni.detector_args, np.ascontiguousarray(self.model.q_rest),
+            uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS)
+        self.dynamics.last_f_c = f_c
+        uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
+                    'position_passes': int(stats[2])}
+        if status == compiled.JOINT_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
+        if status == compiled.DAMPING_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('implicit damping KKT system is singular')
+        return status, k
+
+    def _substepped(self, system, anchor_at, bodies_at, x, q, v, w):
+        """One step split into sub-steps (``_substeps``), each integrated and resolved."""
         m, dyn, uni = self.model, self.dynamics, self.unilateral
         project = self.scene.solver.projection
         implicit_damping = m.implicit_damping and m.active_terms['damping']
-        for _ in range(n_steps):
-            t0 = self._t_base + self._n_steps * self.dt
-            n_sub = self._substeps(w - m.parent_side(anchor_at(t0).angular_velocity, w))
-            h = self.dt / n_sub
-            for k in range(n_sub):
-                t = t0 + k * h
-                t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
-                    self._t_base + (self._n_steps + 1) * self.dt
-                a1 = anchor_at(t1)
-                if self._compiled:
-                    x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
-                    self._run_compiled(1, h, stack_anchors([anchor_at(t), anchor_at(t + 0.5 * h),
-                                                            a1]), x, q, v, w)
-                else:
-                    x, q, v, w = self._step(system, t, h, x, q, v, w)
-                    if implicit_damping:
-                        v, w = dyn.implicit_damping(x, q, v, w, a1, h)
-                    if project:
-                        x, v = self._project(a1, x, q, v, w)
-                pose = uni.pose(bodies_at(t1) if bodies_at else None)
-                x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
-            self._n_steps += 1
+        t0 = self._t_base + self._n_steps * self.dt
+        n_sub = self._substeps(w - m.parent_side(anchor_at(t0).angular_velocity, w))
+        h = self.dt / n_sub
+        for k in range(n_sub):
+            t = t0 + k * h
+            t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
+                self._t_base + (self._n_steps + 1) * self.dt
+            a1 = anchor_at(t1)
+            if self._compiled:
+                x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+                self._run_compiled(1, h, stack_anchors([anchor_at(t), anchor_at(t + 0.5 * h),
+                                                        a1]), x, q, v, w)
+            else:
+                x, q, v, w = self._step(system, t, h, x, q, v, w)
+                if implicit_damping:
+                    v, w = dyn.implicit_damping(x, q, v, w, a1, h)
+                if project:
+                    x, v = self._project(a1, x, q, v, w)
+            pose = uni.pose(bodies_at(t1) if bodies_at else None)
+            x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
+        self._n_steps += 1
         return x, q, v, w
+
+    @staticmethod
+    def _table(t):
+        return compiled.AnchorTable(*(np.ascontiguousarray(a, dtype=float) for a in (
+            t.position, t.velocity, t.acceleration, t.orientation, t.angular_velocity)))
+
+    def _external_arrays(self):
+        if self.external is None:
+            return self._zeros, self._zeros
+        return tuple(np.ascontiguousarray(a, dtype=float) for a in self.external)
 
     def _substeps(self, w_rel):
         """Sub-steps of a step of a scene with colliders or limits, given the joints' relative

@@ -29,13 +29,15 @@ from collections import namedtuple
 import numba as nb
 import numpy as np
 
+from . import contact_kernels
 from .chain_solve import factor, solve
 
 __all__ = ['StepModel', 'AnchorTable', 'advance', 'RK4', 'SYMPLECTIC_EULER', 'RATTLE',
-           'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED']
+           'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'advance_unilateral',
+           'substeps']
 
 RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
-OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED = 0, 1, 2
+OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
 
 # The model's arrays and switches for one call (n segments, C chains; SI units).
 StepModel = namedtuple('StepModel', [
@@ -967,14 +969,15 @@ def _chain_model(M, s, e):
 
 
 @_jit
-def _chain_steps(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws):
-    """All ``n_steps`` steps of one chain (or of any set of whole chains)."""
-    for k in range(n_steps):
+def _chain_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws):
+    """Steps ``k0 .. k0 + n_steps - 1`` of the table of one chain (or any set of whole
+    chains)."""
+    for k in range(k0, k0 + n_steps):
         if M.integrator == RK4:
             ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c)
         else:
             ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c,
-                                   k == 0 or not M.projection)
+                                   k == k0 or not M.projection)
         if not ok:
             return JOINT_SOLVE_FAILED
         if M.implicit_damping:
@@ -1012,11 +1015,86 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
               W[7][:m], W[8][:m], W[9][:m])
         rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
                R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
-        status = _chain_steps(_chain_model(M, s, e), A, n_steps, h, x[s:e], q[s:e], v[s:e],
-                              w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+        status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
+                              v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
         if status != OK:
             return status
     return OK
+
+
+@_jit
+def _chain_starts(M, n):
+    starts = np.nonzero(M.is_first)[0]
+    ends = np.empty_like(starts)
+    for c in range(starts.shape[0]):
+        ends[c] = starts[c + 1] if c + 1 < starts.shape[0] else n
+    return starts, ends
+
+
+@_jit
+def substeps(M, A, row, w, h, substep_angle, max_substeps):
+    """Sub-steps of a step of a scene with contacts or limits: ⌈h |ω_rel|max / angle⌉ (at
+    least 1, at most ``max_substeps``), ω_rel every joint's relative angular velocity at the
+    step's start (``simulator.SUBSTEP_ANGLE``: an impact cracks the chain like a whip)."""
+    rate2 = 0.0
+    for i in range(w.shape[0]):
+        c = M.chain_of[i]
+        d2 = 0.0
+        for a in range(3):
+            p = A.angular_velocity[row, c, a] if M.is_first[i] else w[i - 1, a]
+            d2 += (w[i, a] - p) ** 2
+        rate2 = max(rate2, d2)
+    return min(max_substeps, max(1, int(np.ceil(np.sqrt(rate2) * h / substep_angle))))
+
+
+@nb.njit(cache=True, nogil=True)
+def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
+                       static_pose, umodel, det, q_rest, has_colliders, stats,
+                       substep_angle, max_substeps):
+    """``advance`` for scenes with colliders or joint limits: each step is integrated chain by
+    chain, then its contacts and limits are resolved (``contact_kernels.resolve``) at the
+    step's end, the colliders posed from the kinematic bodies' table ``B`` (rows as ``A``) if
+    ``moving``, else ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when
+    the next step needs sub-steps (``substeps`` > 1; it is not taken: the simulator takes
+    it), else as ``advance``."""
+    n = x.shape[0]
+    starts, ends = _chain_starts(M, n)
+    longest = 0
+    for c in range(starts.shape[0]):
+        longest = max(longest, ends[c] - starts[c])
+    W = _workspace(longest)
+    R = _rk4_workspace(longest)
+    for k in range(n_steps):
+        if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
+            return SUBSTEPS, k
+        for c in range(starts.shape[0]):
+            s, e = starts[c], ends[c]
+            m = e - s
+            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
+                  W[7][:m], W[8][:m], W[9][:m])
+            rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
+                   R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
+            status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
+                                  w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+            if status != OK:
+                return status, k
+        r = 2 * k + 2
+        anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
+        if moving:
+            pose = contact_kernels.collider_pose(B.position[r], B.orientation[r], B.velocity[r],
+                                                 B.angular_velocity[r], cols)
+        else:
+            pose = static_pose
+        status, x1, q1, v1, w1 = contact_kernels.resolve(
+            x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders, M.projection, h,
+            stats)
+        if status != contact_kernels.OK:
+            return JOINT_SOLVE_FAILED, k
+        x[:] = x1
+        q[:] = q1
+        v[:] = v1
+        w[:] = w1
+    return OK, n_steps
 
 
 # -- compilation -------------------------------------------------------------------------------
