@@ -233,7 +233,10 @@ def test_head_stamps_on_another_clock_are_said_with_the_fix_which_works(tmp_path
     # The fix given replays it as the correctly stamped bag: bit for bit with the same
     # stamp_source, and within the rounding of a stamp near 1.7e9 s (ulp 2.4e-7 s; sec +
     # nanosec * 1e-9 and ns * 1e-9 round differently) of its header-stamped replay -- while
-    # the unfixed replay is centimetres off.
+    # the unfixed replay is centimetres off. The chain starts moving with the head velocity
+    # estimated from the first three poses (10 ms apart): a 2.4e-7 s rounding of their
+    # spacing changes that start velocity by ~2e-5 relative, which the swing carries to
+    # ~1e-5 m (measured 1.1e-5 m); 1e-4 m stays three orders below the unfixed error.
     for name, bag in (('fixed', sim), ('good_receive', good)):
         code, _, err = run([bag, '-o', tmp_path / f'{name}.mcap', '--params', params,
                             '--stamp-source', 'receive'], capsys)
@@ -243,7 +246,7 @@ def test_head_stamps_on_another_clock_are_said_with_the_fix_which_works(tmp_path
     assert all(t == u and np.array_equal(x, y) for (t, x), (u, y) in zip(fixed, same))
     good_run, wrong = pose_arrays(tmp_path / 'good.mcap'), pose_arrays(tmp_path / 'sim.mcap')
     assert [t for t, _ in good_run] == [t for t, _ in fixed]
-    assert max(np.abs(x[:, :3] - y[:, :3]).max() for (_, x), (_, y) in zip(good_run, fixed)) < 1e-6
+    assert max(np.abs(x[:, :3] - y[:, :3]).max() for (_, x), (_, y) in zip(good_run, fixed)) < 1e-4
     assert max(np.abs(x[:, :3] - y[:, :3]).max() for (_, x), (_, y) in zip(good_run, wrong)) > 0.01
 
 

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 
 import ponytail_ros
+from ponytail_ros.ros.runner import START_SAMPLES
+from ponytail_ros.testing.motion import stamp_ns
 from ponytail_ros.testing import (CheckFailed, PoseSample, assert_energy_does_not_grow,
                                   assert_joints_closed, assert_no_penetration, assert_no_resets,
                                   assert_tips_close, assert_within_joint_limits, joint_gaps,
@@ -40,6 +42,15 @@ def _env(**extra):
     return env
 
 
+def published(duration, rate, input_rate=100.0):
+    """Ticks that publish in ``duration`` s at ``rate`` Hz with head poses at ``input_rate``
+    from t = 0: all but those before the chain starts, which waits for ``START_SAMPLES`` poses
+    (so that it starts moving with the head)."""
+    start_ns = stamp_ns((START_SAMPLES - 1) / input_rate)
+    period = tick_period_ns(rate)
+    return sum(k * period >= start_ns for k in range(1, n_ticks(duration, rate) + 1))
+
+
 # -- offline ---------------------------------------------------------------------------------
 
 def test_offline_path_imports_no_rclpy_and_ticks_at_the_rate():
@@ -53,7 +64,7 @@ def test_offline_path_imports_no_rclpy_and_ticks_at_the_rate():
     out = subprocess.run([sys.executable, '-c', code], env=_env(), capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ['30', 'False']          # 0.5 s at 60 Hz, no rclpy
+    assert out.stdout.split() == [str(published(0.5, 60.0)), 'False']  # no rclpy
 
 
 def test_config_errors_name_the_parameter():
@@ -85,7 +96,7 @@ def test_penetration_check_passes_the_example_and_names_a_skull_grown_into_the_r
         assert_no_penetration(broken, max_depth=1e-3, since=0.05)
     text = str(err.value)
     assert "collider 'skull'" in text and "chain 'ponytail' segment 1" in text
-    assert 'max_depth 0.001 m' in text and re.search(r'at t = \d+\.\d{3} s \(tick \d+ of 30\)',
+    assert 'max_depth 0.001 m' in text and re.search(r'at t = \d+\.\d{3} s \(tick \d+ of \d+\)',
                                                      text)
     # The root is fixed 0.11006 m from the centre: a 0.12 m skull (+ 0.02 m hair) holds it
     # 0.0299 m deep, and no part of the first segment can be deeper than its root there.
@@ -95,16 +106,17 @@ def test_penetration_check_passes_the_example_and_names_a_skull_grown_into_the_r
 
 def test_joint_check_measures_every_joint_and_names_an_opened_one(walked):
     gaps = joint_gaps(walked)
-    assert gaps.shape == (60, 8) and gaps.max() < 1e-12     # rigid chain, root on the head
+    assert gaps.shape == (published(1.0, 60.0), 8) and gaps.max() < 1e-12     # rigid chain, root on the head
     assert assert_joints_closed(walked, tolerance=1e-9) < 1e-12
     bad = dataclasses.replace(walked, origins=walked.origins.copy())
-    bad.origins[20, 3] += [0.0, 0.0, 2e-3]                 # segment 4 lifted off at tick 21
+    bad.origins[20, 3] += [0.0, 0.0, 2e-3]                 # segment 4 lifted off, 21st tick
     with pytest.raises(CheckFailed) as err:
         assert_joints_closed(bad, tolerance=1e-6)
     text = str(err.value)
     assert _number(r'joint gap ([0-9.e-]+) m', text) == pytest.approx(2e-3, rel=1e-6)
     assert "chain 'ponytail', joint 4 (between segments 3 and 4)" in text
-    assert f't = {walked.t[20]:.3f} s (tick 21 of 60)' in text and '1 of 60 ticks' in text
+    n = published(1.0, 60.0)
+    assert f't = {walked.t[20]:.3f} s (tick 21 of {n})' in text and f'1 of {n} ticks' in text
 
 
 def test_limit_check_names_the_joint_and_the_excess(walked):
@@ -174,11 +186,12 @@ def test_harness_is_driven_by_sim_time_and_publishes_what_the_offline_path_compu
     run = h.run(slow_walk, 1.0)
     period = tick_period_ns(60.0)
     # Every tick at a /clock time, one per period of sim time, as many as sim time gives.
-    assert run.n_ticks == n_ticks(1.0, 60.0) == 60 and h.ticks == 60
-    assert np.array_equal(np.round(run.t * 1e9), period * np.arange(1, 61))
+    assert h.ticks == n_ticks(1.0, 60.0) == 60 and run.n_ticks == published(1.0, 60.0)
+    first = 1 + n_ticks(1.0, 60.0) - published(1.0, 60.0)     # the first tick that publishes
+    assert np.array_equal(np.round(run.t * 1e9), period * np.arange(first, 61))
     got = run.poses['segment_poses']
     assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == \
-        [period * k for k in range(1, 61)]
+        [period * k for k in range(first, 61)]
     assert len(run.markers) == 30                                       # markers.rate 30 Hz
     # Bit for bit what the node's logic gives offline, without ROS and without sleeping.
     offline = run_offline(PARAMS, walk, 1.0)
@@ -240,11 +253,12 @@ def test_two_harnesses_in_parallel_on_one_domain_do_not_hear_each_other(tmp_path
     pytest.importorskip('rclpy')
     for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF')):
         assert 'error' not in r, r['error']
-        assert r['n'] == 60 and r['resets'] == []
+        assert r['n'] == published(1.0, 60.0) and r['resets'] == []
         roots, anchors = np.array(r['roots']), np.array(r['anchors'])
         # Every PoseArray received is this run's: its root on this run's own head ...
         assert np.max(np.linalg.norm(roots - anchors, axis=1)) < 1e-12
-        assert np.all(np.abs(roots[:, 0] - offset - 1.2 * np.arange(1, 61) / 60.0) < 0.2)
+        first = 1 + n_ticks(1.0, 60.0) - published(1.0, 60.0)
+        assert np.all(np.abs(roots[:, 0] - offset - 1.2 * np.arange(first, 61) / 60.0) < 0.2)
         # ... and the physics is untouched: the same as this head offline.
         assert r['same_as_offline']
 
@@ -281,7 +295,7 @@ def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path)
     assert [stamp_ns(s.t) for s in read] == [stamp_ns(s.t) for s in samples]
     run = ponytail(PARAMS).run(read, 0.5)
     reference = run_offline(PARAMS, samples, 0.5)
-    assert run.n_ticks == 30
+    assert run.n_ticks == published(0.5, 60.0)
     assert np.array_equal(run.origins, reference.origins)
 
 
@@ -297,7 +311,7 @@ def test_extra_frames_are_fed_on_their_topics_as_offline(ponytail):
     assert run_offline(arm_params, head, 0.2).n_ticks == 0
     run = ponytail(arm_params).run(head, 0.3, frames={'left_forearm': forearm})
     reference = run_offline(arm_params, head, 0.3, frames={'left_forearm': forearm})
-    assert run.n_ticks == reference.n_ticks == 36                     # 0.3 s at 120 Hz
+    assert run.n_ticks == reference.n_ticks == published(0.3, 120.0)
     assert np.array_equal(run.origins, reference.origins)
     assert assert_no_penetration(run, max_depth=0.0, colliders=['left_forearm_capsule']) < -0.1
     with pytest.raises(ValueError, match="no frame 'right_forearm'"):
