@@ -1,0 +1,74 @@
+"""``python -m ponytail_ros.bench.node_cpu``: what a ponytail node costs beside the head demo.
+
+Starts ``ponytail_head_demo`` (the built-in animation publisher) and ``ponytail_node`` with a
+params file as two processes in a private ROS domain, as a user would, lets the node start
+(compile or load the step, first poses), then reads the node process's CPU time (user +
+system, ``/proc/<pid>/stat``) over ``--seconds`` of wall time: the share of one core it takes.
+Prints one line per run; ``--json`` writes them.
+"""
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+_TICK = os.sysconf('SC_CLK_TCK')
+
+
+def _cpu_seconds(pid):
+    with open(f'/proc/{pid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / _TICK       # utime + stime
+
+
+def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    head = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.head_demo import main; '
+                             'main()', '--ros-args', '-p', f'rate:={head_rate}'],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    node = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.node import main; '
+                             'main()', '--ros-args', '--params-file', str(params), *extra],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        time.sleep(warmup)
+        c0, t0 = _cpu_seconds(node.pid), time.monotonic()
+        time.sleep(seconds)
+        c1, t1 = _cpu_seconds(node.pid), time.monotonic()
+        if node.poll() is not None:
+            raise RuntimeError(f'the node exited: {node.stderr.read().decode()[-2000:]}')
+        return (c1 - c0) / (t1 - t0)
+    finally:
+        for p in (node, head):
+            p.send_signal(signal.SIGINT)
+        for p in (node, head):
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.node_cpu',
+                                description=__doc__.split('\n\n')[0])
+    p.add_argument('params', nargs='*', default=['config/ponytail.yaml'])
+    p.add_argument('--seconds', type=float, default=15.0, help='measured wall time (s)')
+    p.add_argument('--warmup', type=float, default=8.0, help='start-up left out (s)')
+    p.add_argument('--json', help='write the results to this file')
+    args = p.parse_args(argv)
+    rows = []
+    for params in args.params:
+        share = measure(params, args.seconds, args.warmup)
+        rows.append(dict(params=params, cpu_share=share, seconds=args.seconds))
+        print(f'{params}: {100 * share:.1f} % of one core (CPU time over {args.seconds:g} s '
+              f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz)')
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == '__main__':
+    main()
