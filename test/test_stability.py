@@ -537,7 +537,7 @@ def test_head_turned_half_round_in_one_frame_is_caught():
 def test_jump_in_time_is_capped_and_reported():
     """A frame hitch of 1000 s: at most max_steps_per_call steps, the rest dropped and reported."""
     motion = reference_motion()
-    sc = Scene(chains=(ponytail(),), solver=SolverSpec(max_steps_per_call=240))
+    sc = Scene(chains=(ponytail(),), solver=SolverSpec(dt=1 / 240, max_steps_per_call=240))
     sim = Simulator(sc, motion)
     r = sim.advance_to(1000.0, motion)
     assert r.steps == 240 and r.dropped_time == pytest.approx(1000.0 - 1.0, abs=1 / 240)

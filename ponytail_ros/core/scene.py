@@ -300,8 +300,11 @@ class SolverSpec:
             1st order, cheapest, bounded energy error, any spin about a segment's own axis) or
             ``'rattle'`` (the same split into two half kicks: 2nd order, bounded energy error
             ∝ dt², about the same cost; needs ``projection``). See ``integrators``.
-        dt: fixed internal step, s, in [1e-6, 0.1]. Frames of any length are advanced in
-            these steps (an accumulator), so results do not depend on the frame rate.
+        dt: fixed internal step, s, in [1e-6, 0.1]; default 1/960 s (eight steps per
+            120 Hz tick: the cheapest RK4 step that follows violent head motion without a
+            guard reset and ordinary motion to about a millimetre, ``docs/bench``). Frames of
+            any length are advanced in these steps (an accumulator), so results do not
+            depend on the frame rate.
         max_steps_per_call: cap on internal steps per ``advance``; time beyond it is dropped
             and reported (a frame hitch must not cause a spiral of death).
         linear_solver: ``'banded'`` (O(n) banded Cholesky of J M⁻¹ Jᵀ) or ``'dense'`` (O(n³)
@@ -337,7 +340,7 @@ class SolverSpec:
     """
 
     integrator: str = 'rk4'
-    dt: float = 1.0 / 240.0
+    dt: float = 1.0 / 960.0
     max_steps_per_call: int = 240
     linear_solver: str = 'banded'
     projection: bool = True
