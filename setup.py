@@ -19,7 +19,8 @@ ROS_WHEELS = [
     'ros-rosgraph-msgs',
     'ros-diagnostic-msgs',
 ]
-CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML']
+# numba compiles the internal step (ponytail_ros.core.step); nopython, cache=True, no fastmath.
+CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60']
 
 setup(
     name=package_name,
