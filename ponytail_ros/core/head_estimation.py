@@ -198,6 +198,10 @@ class HeadEstimator:
         self._p = np.empty((self.max_samples, 3))
         self._q = np.empty((self.max_samples, 4))
         self._n = 0
+        # ``state_at`` of the last few times, valid while the history and settings hold: a
+        # tick asks for the same instants several times (the frame, its start, the bodies).
+        self._memo = {}
+        self._version = 0
         #: Count of rejected samples per reason code (diagnostics).
         self.rejected = {r: 0 for r in REJECT_REASONS}
 
@@ -229,6 +233,7 @@ class HeadEstimator:
     def reset(self):
         """Forget the history (after a teleport): the next accepted sample starts anew."""
         self._n = 0
+        self._version += 1
 
     def is_stale(self, t, timeout):
         """True when no sample is stored or the newest is more than ``timeout`` s before ``t``."""
@@ -291,6 +296,7 @@ class HeadEstimator:
             n -= 1
         self._t[n], self._p[n], self._q[n] = t, p, q
         self._n = n + 1
+        self._version += 1
         return None
 
     def detect_teleport(self, position, orientation, max_distance, max_angle):
@@ -319,6 +325,16 @@ class HeadEstimator:
         """
         if not math.isfinite(t):
             raise ValueError(f'state_at({t!r}): time must be finite')
+        key = (float(t), self._version, self.delay, self.window, self.degree, self.min_samples,
+               self.max_extrapolation)
+        state = self._memo.get(key)
+        if state is None:
+            if len(self._memo) >= 4:
+                self._memo.pop(next(iter(self._memo)))
+            state = self._memo[key] = self._state_at(t)
+        return state
+
+    def _state_at(self, t):
         n = self._n
         if n == 0:
             raise LookupError('HeadEstimator has no sample yet')
