@@ -10,7 +10,7 @@ from ponytail_ros.core import ChainSpec, KinematicState, Scene, SceneError, Simu
 from ponytail_ros.core import collision, limits
 from ponytail_ros.core.head import HeadMotion
 from ponytail_ros.core.rotations import quat_rotate
-from ponytail_ros.core.scene import ColliderSpec
+from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 

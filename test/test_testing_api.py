@@ -106,7 +106,8 @@ def test_penetration_check_passes_the_example_and_names_a_skull_grown_into_the_r
 
 def test_joint_check_measures_every_joint_and_names_an_opened_one(walked):
     gaps = joint_gaps(walked)
-    assert gaps.shape == (published(1.0, 60.0), 8) and gaps.max() < 1e-12     # rigid chain, root on the head
+    # rigid chain, root on the head
+    assert gaps.shape == (published(1.0, 60.0), 8) and gaps.max() < 1e-12
     assert assert_joints_closed(walked, tolerance=1e-9) < 1e-12
     bad = dataclasses.replace(walked, origins=walked.origins.copy())
     bad.origins[20, 3] += [0.0, 0.0, 2e-3]                 # segment 4 lifted off, 21st tick
