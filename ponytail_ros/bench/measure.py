@@ -28,7 +28,7 @@ import numpy as np
 from ponytail_ros.core.scene import SolverSpec
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.core.integrators import SOLVES_PER_STEP
+from ponytail_ros.core.step import INTEGRATORS
 
 __all__ = ['Setting', 'Trajectory', 'reference', 'simulate', 'time_setting', 'run_setting',
            'load_shared', 'rest_energy', 'check_against_shared', 'fmt_dt']
@@ -247,7 +247,7 @@ def run_setting(bench, setting, ref, repeats=3, timing_window=1.0, sample_dt=0.0
         scene=bench.name, n_segments=bench.n_segments, setting=setting.label,
         **{k: v for k, v in asdict(setting).items() if k != 'extra'},
         dt_label=fmt_dt(setting.dt), steps_per_sim_s=steps_per_s,
-        solves_per_sim_s=steps_per_s * SOLVES_PER_STEP[setting.integrator],
+        solves_per_sim_s=steps_per_s * INTEGRATORS[setting.integrator].solves_per_step,
         cpu_s_per_sim_s=cpu_med,
         cpu_s_per_sim_s_min=float(np.min(cpu)) / window,
         wall_s_per_sim_s=float(np.median(wall)) / window,

@@ -40,8 +40,7 @@ from .rotations import (cross, quat_axis_x, quat_conjugate, quat_integrate, quat
                         quat_normalize, quat_rotate)
 
 __all__ = ['symplectic_euler', 'rattle', 'rk4', 'rotation_kick', 'drift', 'torque_kick',
-           'free_rotation', 'INTEGRATOR_STEPS',
-           'SOLVES_PER_STEP']
+           'free_rotation', 'INTEGRATOR_STEPS']
 
 
 # -- symplectic Euler ------------------------------------------------------------------------
@@ -343,7 +342,5 @@ def rk4(system, t, h, x, q, v, w):
     return x1, q1, v1, quat_rotate(q1, wb1)
 
 
+# The NumPy reference steps by integrator name (what each is: ``step.INTEGRATORS``).
 INTEGRATOR_STEPS = {'symplectic_euler': symplectic_euler, 'rattle': rattle, 'rk4': rk4}
-# Linear solves with A per step (symplectic Euler: two triangular solves on one factorisation,
-# which the next step reuses while the orientations are unchanged).
-SOLVES_PER_STEP = {'symplectic_euler': 2, 'rattle': 2, 'rk4': 4}

@@ -22,7 +22,9 @@ failure: ...'), speeds below ``guard_max_speed``, no joint turning more than
 ``guard_max_step_angle / GYROSCOPIC_REACH_RATIO``), joint gaps below ``guard_max_gap``; a
 blow-up resets the chains to rest at the current head pose and is reported, never propagated.
 """
+import time
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 
@@ -55,8 +57,6 @@ _X = np.array([1.0, 0.0, 0.0])
 # Collider arguments of a scene without colliders (limits only): no bodies, no colliders.
 _NO_COLLIDER_ARGS = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
                      np.zeros((0, 3)), np.zeros(0))
-_INTEGRATOR_IDS = {'rk4': compiled.RK4, 'symplectic_euler': compiled.SYMPLECTIC_EULER,
-                   'rattle': compiled.RATTLE}
 
 # name -> (allowed range, per-chain?) of the parameters that can change between steps.
 TUNABLE_PARAMETERS = {
@@ -71,13 +71,18 @@ TUNABLE_PARAMETERS = {
 
 @dataclass
 class StepReport:
-    """What one ``advance`` call did."""
+    """What one ``advance`` call did.
+
+    ``timings``: wall seconds of the call's stages, like Box2D's ``b2Profile``: ``steps``
+    (the anchor table and the compiled steps, contacts and limits included) and ``guard``
+    (the checks of the state after the call, and a reset if one was needed).
+    """
 
     steps: int = 0
     dropped_time: float = 0.0
-    reset_reason: str = None
+    reset_reason: Optional[str] = None
     max_gap: float = 0.0
-    resets: list = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
 
 
 class Simulator:
@@ -98,9 +103,10 @@ class Simulator:
         self._step = INTEGRATOR_STEPS[s.integrator]
         # RK4's joint projection rebuilds v from ω; symplectic Euler's and RATTLE's steps end
         # with their own (M-orthogonal) velocity projection, which a rebuild would undo.
-        self._rebuild_velocities = s.integrator == 'rk4'
+        self.integrator = compiled.INTEGRATORS[s.integrator]
+        self._rebuild_velocities = self.integrator.rebuilds_velocities
         # RK4 integrates the gyroscopic term explicitly (the others: ``rotation_kick``).
-        self._explicit_gyroscopic = s.integrator == 'rk4'
+        self._explicit_gyroscopic = self.integrator.explicit_gyroscopic
         self.dynamics = Dynamics(self.model, s.linear_solver,
                                  (s.baumgarte_stiffness, s.baumgarte_damping))
         # The compiled step (``step``) runs every banded scene; ``linear_solver: dense`` keeps
@@ -305,7 +311,7 @@ class Simulator:
             drag_linear=m.drag_linear, drag_quadratic=m.drag_quadratic, q_rest=m.q_rest,
             gravity=np.asarray(m.gravity, dtype=float), wind=np.asarray(m.wind, dtype=float),
             axisymmetric=bool(self.dynamics.axisymmetric),
-            integrator=_INTEGRATOR_IDS[s.integrator], projection=bool(s.projection),
+            integrator=self.integrator.id, projection=bool(s.projection),
             gravity_on=m.active_terms['gravity'],
             explicit_damping=bool(damping and not m.implicit_damping),
             implicit_damping=bool(damping and m.implicit_damping),
@@ -350,6 +356,7 @@ class Simulator:
         implicit_damping = m.implicit_damping and m.active_terms['damping']
         system = _System(self, anchor_at)
         failure = None
+        t_start = time.perf_counter()
         try:
             if self.unilateral is not None:
                 x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
@@ -377,6 +384,7 @@ class Simulator:
             # The state reached a configuration the joint solve cannot handle: reset, and say so.
             failure = str(err)
             x = np.full_like(x, np.nan)
+        t_steps = time.perf_counter()
         self.t = self._t_base + self._n_steps * self.dt
         self.state = ChainState(x, q, v, w)
         anchor = anchor_at(self.t)
@@ -388,6 +396,7 @@ class Simulator:
             report.reset_reason = reason
             self.reset(head_at(self.t))
             report.max_gap = float(np.max(self.joint_gaps(self.anchors(head_at(self.t)))))
+        report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
         return report
 
     def _project(self, anchor, x, q, v, w):

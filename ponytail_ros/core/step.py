@@ -32,12 +32,29 @@ import numpy as np
 from . import contact_kernels
 from .chain_solve import factor, solve
 
-__all__ = ['StepModel', 'AnchorTable', 'advance', 'RK4', 'SYMPLECTIC_EULER', 'RATTLE',
+__all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4', 'SYMPLECTIC_EULER', 'RATTLE',
            'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'advance_unilateral',
            'substeps']
 
 RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
 OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
+
+Integrator = namedtuple('Integrator', ['name', 'id', 'order', 'solves_per_step',
+                                       'rebuilds_velocities', 'explicit_gyroscopic'])
+Integrator.__doc__ = """What the simulator needs to know of an integrator, in one record.
+
+``id``: the compiled step's switch; ``order``: of accuracy; ``solves_per_step``: joint solves
+with A (RK4: one factorisation and solve per stage; the constrained steps: one factorisation,
+reused by the next step, and two solves); ``rebuilds_velocities``: the stabilisation rebuilds
+v from ω after the step (RK4; the constrained steps end with their own mass-weighted
+projection, which a rebuild would undo); ``explicit_gyroscopic``: ω × Iω is integrated
+explicitly, so the guard must watch the precession it can follow (RK4)."""
+
+INTEGRATORS = {
+    'rk4': Integrator('rk4', RK4, 4, 4, True, True),
+    'symplectic_euler': Integrator('symplectic_euler', SYMPLECTIC_EULER, 1, 2, False, False),
+    'rattle': Integrator('rattle', RATTLE, 2, 2, False, False),
+}
 
 # The model's arrays and switches for one call (n segments, C chains; SI units).
 StepModel = namedtuple('StepModel', [
