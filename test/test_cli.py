@@ -15,11 +15,11 @@ from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
 from test_bag_integrity import head_samples, rosbags_bag  # noqa: E402
 from test_node import TIMEOUT_SCALE  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.node import PonytailNode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXECUTABLES = {
-    'ponytail_node': 'ponytail_ros.ros.node',
+    'ponytail_node': 'ponytail_ros.node',
     'ponytail_head_demo': 'ponytail_ros.ros.head_demo',
     'ponytail_replay': 'ponytail_ros.recording.replay',
     'ponytail_demo': 'ponytail_ros.demo',

@@ -5,10 +5,10 @@ import pytest
 
 from ponytail_ros.core import ChainSpec, Scene, SwayYawMotion
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate
-from ponytail_ros.ros.head_script import PHASES, HeadScript
-from ponytail_ros.ros.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
+from ponytail_ros.app.head_script import PHASES, HeadScript
+from ponytail_ros.app.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
                                          check_values)
-from ponytail_ros.ros.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
+from ponytail_ros.app.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
                                      structural_change)
 
 ATTACH = np.array([-0.09, 0.0, 0.06])

@@ -39,9 +39,9 @@ from test_bag import plain  # noqa: E402
 from test_node import TIMEOUT_SCALE, overrides, pose_msg  # noqa: E402
 from ponytail_ros.core.rotations import quat_from_rotvec  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
-from ponytail_ros.recording.params import values_from_metadata  # noqa: E402
+from ponytail_ros.app.param_values import values_from_metadata  # noqa: E402
 from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.node import PonytailNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -325,7 +325,7 @@ def child_env():
 def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_context, tmp_path):
     files = {ns: tmp_path / f'{ns}.mcap' for ns in ('kill', 'term', 'int')}
     procs = {ns: subprocess.Popen(
-        [sys.executable, '-m', 'ponytail_ros.ros.node', '--ros-args', '--params-file',
+        [sys.executable, '-m', 'ponytail_ros.node', '--ros-args', '--params-file',
          str(CONFIG), '-r', f'__ns:=/{ns}', '-p', f'record_path:={path}',
          # a light chain: three nodes share a (possibly loaded) test machine
          '-p', 'ponytail.n_segments:=4', '-p', 'markers.style:=line'],

@@ -26,11 +26,11 @@ from test_node import TIMEOUT_SCALE  # noqa: E402
 from ponytail_ros.bench import replay_bench  # noqa: E402
 from ponytail_ros.core.rotations import quat_rotate  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter  # noqa: E402
-from ponytail_ros.recording.params import (  # noqa: E402
+from ponytail_ros.app.param_values import (  # noqa: E402
     complete_values, values_from_metadata, values_from_params_file)
 from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
 from ponytail_ros.recording.replay import live_replay, main, replay  # noqa: E402
-from ponytail_ros.ros.runner import START_SAMPLES  # noqa: E402
+from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
 from ponytail_ros.resources import config_path  # noqa: E402
 
 pytestmark = pytest.mark.ros

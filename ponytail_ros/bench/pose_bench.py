@@ -356,7 +356,7 @@ def start_whip(case, input_rate, tick_rate=120.0, t_event=0.6):
     first output; ``'teleport'``: a 1 m jump of the running head at ``t_event``;
     ``'rebuild'``: a structural change at ``t_event``), the node's defaults with
     ``output_stamp: simulated``. Returns ``(speeds, runner, t_from)``."""
-    from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
+    from ponytail_ros.app.runner import ChainRunner, RunnerSettings
     t_event = 0.0 if case == 'start' else t_event
     motion = RunAndTurn(t_jump=t_event if case == 'teleport' else None)
     r = ChainRunner(whip_scene(), RunnerSettings(output_stamp='simulated'))

@@ -78,6 +78,7 @@ from rclpy.qos import (
 from rclpy.serialization import deserialize_message
 
 from ponytail_ros.recording.cdr import serialize_canonical
+from ponytail_ros.recording.mcap_scan import MAGIC as _MCAP_MAGIC
 from ponytail_ros.recording.mcap_scan import McapScan, ScanError, is_finished
 
 try:
@@ -97,7 +98,6 @@ _ROSBAG2_METADATA_VERSION = 9
 # The PyPI wheels this package targets are Kilted builds and do not set ROS_DISTRO.
 _DEFAULT_ROS_DISTRO = 'kilted'
 _MAX_TIME_NS = 2**63 - 1  # rosbag2's "no message yet" starting time (nanoseconds::max())
-_MCAP_MAGIC = b'\x89MCAP0\r\n'
 # opcode 1 + record length 8 + channel id 2 + sequence 4 + log time 8 + publish time 8 bytes
 _MESSAGE_RECORD_OVERHEAD = 31
 

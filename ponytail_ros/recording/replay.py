@@ -100,18 +100,20 @@ import sys
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import yaml
 
-from ponytail_ros.ros.parameters import ParameterError, frame_names
-from ponytail_ros.ros.parameters import frame_topics as topics_of
+from ponytail_ros.app.node_core import NodeCore, time_msg
+from ponytail_ros.app.parameters import ParameterError, frame_names
+from ponytail_ros.app.parameters import frame_topics as topics_of
+from ponytail_ros.app.sink import HEAD, TickSink
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
-from .params import (IGNORED_NAMES, resolve_values, unknown_parameter_warnings,
+from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values, unknown_parameter_warnings,
                      values_from_metadata, values_from_params_file)
 from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, resolve_topic,
                        stamp_ns)
@@ -119,7 +121,6 @@ from .recorder import (HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, r
 __all__ = ['main', 'replay', 'ReplayError', 'ReplayResult', 'ReplayInput', 'compare',
            'load_chain_runs', 'format_comparison', 'plot_comparison', 'live_replay']
 
-_MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: Output chunks are cut by size only: the log-time/idle limit of BagWriter is set beyond any
 #: replay, so that no wall-time effect changes the bytes.
 _OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
@@ -251,17 +252,18 @@ def _head_pose(msg, head_type):
 
 
 class ReplayNode:
-    """What ``PonytailNode`` does with a head pose, a tick and a parameter change, without ROS:
-    the same ``NodeCore`` (``ponytail_ros/ros/node_core.py``) with the same arguments, its
-    messages recorded with ``RunRecorder`` instead of published. Times are integer ns of the
-    recorded clock."""
+    """What ``PonytailNode`` does with a head pose, a tick and a parameter change, on the
+    recorded clock: the same ``NodeCore`` (``ponytail_ros/app/node_core.py``) with the same
+    arguments, its output sent to a ``TickSink`` (``app/sink.py``; here the ``RunRecorder``)
+    through the same calls as the node's sinks. Times are integer ns of the recorded clock."""
 
     def __init__(self, values: Mapping[str, Any], recorder: RunRecorder, head_type: str,
                  frame_types: Sequence[str] = (), zero_stamp_valid: bool = False):
-        from ponytail_ros.ros.node_core import NodeCore
         self.core = NodeCore(values)
         self.runner = self.core.runner
         self._recorder = recorder
+        #: Where the output goes (the node's is its recorder and its publishers).
+        self.sink: TickSink = recorder
         self._head_type = head_type
         self._frame_types = list(frame_types) or [HEAD_TYPES[0]] * len(self.core.frames)
         self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
@@ -279,9 +281,9 @@ class ReplayNode:
     def published(self):
         return self.core.published
 
-    # PonytailNode._on_head_pose
     def head(self, msg, log_time_ns: int) -> None:
-        self._recorder.head(msg, log_time_ns)
+        """A recorded head pose at its receive time."""
+        self.sink.on_input(HEAD, msg, log_time_ns)
         p, q = _head_pose(msg, self._head_type)
         stamp = msg.header.stamp
         if (self._zero_stamp_valid and stamp.sec == 0 and stamp.nanosec == 0
@@ -290,25 +292,22 @@ class ReplayNode:
             return
         self.core.push_head(stamp, log_time_ns, p, q, msg.header.frame_id)
 
-    # PonytailNode._on_frame_pose
     def frame(self, i: int, msg, log_time_ns: int) -> None:
-        self._recorder.frame(i, msg, log_time_ns)
+        """A recorded pose of frame ``i`` at its receive time."""
+        self.sink.on_input(i, msg, log_time_ns)
         p, q = _head_pose(msg, self._frame_types[i])
         self.core.push_frame(i, msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
 
-    # PonytailNode._on_tick
     def tick(self, t_ns: int):
+        """Tick at ``t_ns``; its ``TickOutput`` (None: nothing to publish yet)."""
         tick = self.core.tick(t_ns)
         if tick is None:
             return None
-        for c, msg in enumerate(tick.poses):
-            self._recorder.poses(c, msg, t_ns)
-        if tick.markers is not None:
-            self._recorder.markers(tick.markers, t_ns)
+        self.sink.on_tick(tick, t_ns)
         return tick.output
 
-    # PonytailNode._on_set_parameters + _post_set_parameters
     def set_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
+        """A recorded live change: checked and applied as the node's parameter callbacks do."""
         changed = self.core.ours(changed)
         if not changed:
             return
@@ -316,11 +315,11 @@ class ReplayNode:
             self.core.check_change(changed)
         except ParameterError:
             return  # the node rejects it too
-        self._recorder.parameters_changed(changed, log_time_ns)
+        self.sink.on_parameters(changed, log_time_ns)
         self.core.apply_change(changed)
 
-    # PonytailNode._on_diagnostics, on the recorded clock
     def maybe_diagnostics(self, t_ns: int) -> None:
+        """Diagnostics every ``diagnostics_period`` of the recorded clock (the node's timer)."""
         if self._diag_next_ns is None:
             self._diag_next_ns = t_ns + self._diag_period_ns
             self.core.window.t0_ns = t_ns
@@ -329,7 +328,7 @@ class ReplayNode:
             return
         self._diag_next_ns += self._diag_period_ns * max(
             1, (t_ns - self._diag_next_ns) // self._diag_period_ns + 1)
-        self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+        self.sink.on_diagnostics(self.diagnostics_message(t_ns), t_ns)
         self._diag_last_ns = t_ns
 
     def final_diagnostics(self, t_ns: int) -> None:
@@ -338,12 +337,11 @@ class ReplayNode:
         counts in the file are the run's totals."""
         if self._diag_next_ns is not None and t_ns != self._diag_last_ns \
                 and t_ns > self.core.window.t0_ns:
-            self._recorder.diagnostics(self.diagnostics_message(t_ns), t_ns)
+            self.sink.on_diagnostics(self.diagnostics_message(t_ns), t_ns)
             self._diag_last_ns = t_ns
 
     def diagnostics_message(self, t_ns: int):
         from diagnostic_msgs.msg import DiagnosticArray
-        from ponytail_ros.ros.node_core import time_msg
         span = (t_ns - self.core.window.t0_ns) * 1e-9
         status = self.core.diagnostic_status(t_ns, span, self._recorder.layout.node)
         msg = DiagnosticArray(status=[status])
@@ -372,7 +370,6 @@ class ReplayResult:
     tick_mode: str = ''
     parameters_from: str = ''
     truncated: bool = False
-    notes: List[str] = field(default_factory=list)
 
     @property
     def sim_seconds(self) -> float:

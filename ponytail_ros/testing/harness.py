@@ -43,8 +43,8 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rosgraph_msgs.msg import Clock
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.ros.node import PonytailNode
-from ponytail_ros.ros.node_core import NodeTick, time_msg
+from ponytail_ros.node import PonytailNode
+from ponytail_ros.app.node_core import NodeTick, time_msg
 
 from .config import Config, load_config
 from .motion import HeadInput, PoseSample, head_samples, stamp_ns
