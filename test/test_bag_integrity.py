@@ -29,7 +29,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer as RosbagsWriter  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from ponytail_ros.recording.bag import BagError, BagReader, message_definition  # noqa: E402
-from ponytail_ros.recording.replay import main  # noqa: E402
+from ponytail_ros.recording.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAD = '/head_pose'

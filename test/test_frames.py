@@ -198,7 +198,8 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
 from ponytail_ros.recording.recorder import RECORDING_METADATA, RunLayout  # noqa: E402
-from ponytail_ros.recording.replay import ReplayError, replay  # noqa: E402
+from ponytail_ros.recording.inputs import ReplayError  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
 from test_node import Harness, arrays, diag_values, overrides, pose_msg, t_of  # noqa: E402
 

@@ -29,7 +29,9 @@ from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter
 from ponytail_ros.app.param_values import (  # noqa: E402
     complete_values, values_from_metadata, values_from_params_file)
 from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
-from ponytail_ros.recording.replay import live_replay, main, replay  # noqa: E402
+from ponytail_ros.recording.live import live_replay  # noqa: E402
+from ponytail_ros.recording.cli import main  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
 from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
 from ponytail_ros.resources import config_path  # noqa: E402
 

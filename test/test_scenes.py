@@ -159,7 +159,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from ponytail_ros.recording.replay import replay  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
 from ponytail_ros.app.head_script import HeadScript  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
 from test_node import TIMEOUT_SCALE, pose_msg  # noqa: E402

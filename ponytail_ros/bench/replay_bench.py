@@ -101,7 +101,7 @@ def simulation_only(head_path, values):
 
 def bench_scene(tmp, head_path, n_chains, repeat=1):
     from ponytail_ros.app.param_values import complete_values, values_from_params_file
-    from ponytail_ros.recording.replay import replay
+    from ponytail_ros.recording.offline import replay
     params_path = Path(tmp) / f'params_{n_chains}.yaml'
     params_path.write_text(yaml.safe_dump(scene_params(n_chains)))
     best = None

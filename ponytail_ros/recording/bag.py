@@ -767,47 +767,13 @@ class BagReader:
         """
         if order not in ('log_time', 'file'):
             raise ValueError(f'order must be log_time or file, not {order!r}')
-        recorded = self.topics()
-        if topics is None:
-            wanted = set(recorded)
-            if not raw:
-                for name in list(wanted):
-                    try:
-                        _message_class(recorded[name])
-                    except BagError:
-                        wanted.discard(name)
-        else:
-            expected = (dict(topics) if isinstance(topics, Mapping)
-                        else dict.fromkeys([topics] if isinstance(topics, str) else topics))
-            missing = sorted(set(expected) - set(recorded))
-            if missing:
-                raise BagError(f'{self.path} has no topic {", ".join(missing)} '
-                               f'(recorded: {", ".join(sorted(recorded)) or "none"})')
-            for name, msg_type in expected.items():
-                if msg_type is not None and _type_string(msg_type) != recorded[name]:
-                    raise BagError(f'{self.path}: topic {name} holds {recorded[name]}, '
-                                   f'not {_type_string(msg_type)}')
-            wanted = set(expected)
+        wanted, recorded = self._wanted_topics(topics, raw)
         classes = {} if raw else {name: _message_class(recorded[name]) for name in wanted}
 
         def decode(data, name):
             return bytes(data) if raw else deserialize_message(data, classes[name])
 
-        # Log-time order with bounded memory: the earliest log time any later chunk may hold
-        # (each chunk's message_start_time, suffix minimum) says which buffered messages are
-        # due. A file already in order buffers at most one chunk.
-        bound: Dict[int, float] = {}
-        if order == 'log_time':
-            try:
-                units = McapScan(self.path).chunk_start_times()
-            except OSError as exc:
-                raise BagError(f'cannot read bag {self.path}: {exc.strerror or exc}') from None
-            low = float('inf')
-            for offset, start in reversed(units):
-                low = min(low, start)
-                bound[offset] = low
-        schemas: Dict[int, str] = {}
-        channels: Dict[int, Tuple[str, str]] = {}
+        bound = self._chunk_bounds() if order == 'log_time' else {}
         pending: list = []
         sequence = 0
         newest = -1
@@ -818,6 +784,22 @@ class BagReader:
                 log_time, _, name, type_name, data = heapq.heappop(pending)
                 yield name, type_name, decode(data, name), log_time
 
+        for offset, name, type_name, record in self._message_records(wanted):
+            if record.log_time < newest:
+                self.out_of_order += 1
+            newest = max(newest, record.log_time)
+            if order == 'file':
+                yield name, type_name, decode(record.data, name), record.log_time
+                continue
+            yield from due(bound.get(offset, -1))
+            heapq.heappush(pending, (record.log_time, sequence, name, type_name, record.data))
+            sequence += 1
+        yield from due(float('inf'))
+
+    def _message_records(self, wanted: set) -> Iterator[Tuple[int, str, str, Message]]:
+        """``(offset, topic, type, Message record)`` of the ``wanted`` topics in file order."""
+        schemas: Dict[int, str] = {}
+        channels: Dict[int, Tuple[str, str]] = {}
         for offset, record in self._scan():
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
@@ -828,19 +810,48 @@ class BagReader:
                     raise BagError(f'{self.path}: a message at byte {offset} is on channel '
                                    f'{record.channel_id}, which no channel record defines')
                 name, type_name = channels[record.channel_id]
-                if name not in wanted:
-                    continue
-                if record.log_time < newest:
-                    self.out_of_order += 1
-                newest = max(newest, record.log_time)
-                if order == 'file':
-                    yield name, type_name, decode(record.data, name), record.log_time
-                    continue
-                yield from due(bound.get(offset, -1))
-                heapq.heappush(pending, (record.log_time, sequence, name, type_name,
-                                         record.data))
-                sequence += 1
-        yield from due(float('inf'))
+                if name in wanted:
+                    yield offset, name, type_name, record
+
+    def _wanted_topics(self, topics, raw: bool) -> Tuple[set, Dict[str, str]]:
+        """The topics :meth:`messages` reads (checked against what was recorded), and the
+        recorded topic -> type."""
+        recorded = self.topics()
+        if topics is None:
+            wanted = set(recorded)
+            if not raw:
+                for name in list(wanted):
+                    try:
+                        _message_class(recorded[name])
+                    except BagError:
+                        wanted.discard(name)
+            return wanted, recorded
+        expected = (dict(topics) if isinstance(topics, Mapping)
+                    else dict.fromkeys([topics] if isinstance(topics, str) else topics))
+        missing = sorted(set(expected) - set(recorded))
+        if missing:
+            raise BagError(f'{self.path} has no topic {", ".join(missing)} '
+                           f'(recorded: {", ".join(sorted(recorded)) or "none"})')
+        for name, msg_type in expected.items():
+            if msg_type is not None and _type_string(msg_type) != recorded[name]:
+                raise BagError(f'{self.path}: topic {name} holds {recorded[name]}, '
+                               f'not {_type_string(msg_type)}')
+        return set(expected), recorded
+
+    def _chunk_bounds(self) -> Dict[int, float]:
+        """Log-time order with bounded memory: chunk offset -> the earliest log time it or any
+        later chunk may hold (each chunk's ``message_start_time``, suffix minimum), which says
+        which buffered messages are due. A file already in order buffers at most one chunk."""
+        try:
+            units = McapScan(self.path).chunk_start_times()
+        except OSError as exc:
+            raise BagError(f'cannot read bag {self.path}: {exc.strerror or exc}') from None
+        bound: Dict[int, float] = {}
+        low = float('inf')
+        for offset, start in reversed(units):
+            low = min(low, start)
+            bound[offset] = low
+        return bound
 
     def metadata(self) -> Dict[str, Dict[str, str]]:
         """Metadata records, name -> key/value dict (the last record of a name wins, as in
