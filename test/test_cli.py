@@ -13,8 +13,8 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
-from test_bag_integrity import head_samples, rosbags_bag  # noqa: E402
-from test_node import TIMEOUT_SCALE  # noqa: E402
+pytest.importorskip('rosbags')
+from ros_helpers import TIMEOUT_SCALE, head_samples, rosbags_bag  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -222,7 +222,7 @@ def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
 
 def test_head_stamps_on_another_clock_are_said_on_the_terminal_with_the_fix(ros_context, capfd):
     from geometry_msgs.msg import PoseStamped
-    from test_node import overrides
+    from ros_helpers import overrides
     node = PonytailNode(context=ros_context, parameter_overrides=overrides())
     tester = rclpy.create_node('tester', context=ros_context)
     pub = tester.create_publisher(PoseStamped, 'head_pose', 10)

@@ -17,7 +17,8 @@ from ponytail_ros.core.rotations import cross, quat_axis_x, quat_from_rotvec, qu
 from ponytail_ros.core.solver import Dynamics
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.bench.motions import reference_motion
+from ponytail_ros.app.motions import reference_motion
+from helpers import total_energy as energy
 
 HEAD = (0.0, 0.0, 1.6)
 STILL = StillMotion(HEAD)
@@ -41,10 +42,6 @@ def make_sim(chain, integrator=SE, dt=1 / 240, motion=STILL, **solver):
     return Simulator(Scene(chains=(chain,), solver=SolverSpec(integrator=integrator, dt=dt, **solver)),
                      motion, 0.0)
 
-
-def energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 def spun(chain, spin, **kw):
@@ -294,7 +291,7 @@ def test_rattle_is_second_order_with_axial_spin():
     """The 10-segment ponytail hanging from a head that yaws at up to π rad/s (segments spin
     about their own axes with it), 0.25 s: self-convergence 4x per halving down to 1/15360 s
     (measured 4.0x; with the gyroscopic precession split into the kicks instead: 2.3x)."""
-    from ponytail_ros.bench.motions import SinusoidHead
+    from ponytail_ros.app.motions import SinusoidHead
     motion = SinusoidHead(p0=HEAD, amplitude=(0.0, 0.0, 0.0), frequency=(0.0, 0.0, 0.0),
                           yaw_amplitude=0.5, yaw_frequency=1.0)
     x = {hz: _end_positions(ponytail(), 'rattle', 1 / hz, motion, duration=0.25)

@@ -201,7 +201,7 @@ from ponytail_ros.recording.recorder import RECORDING_METADATA, RunLayout  # noq
 from ponytail_ros.recording.inputs import ReplayError  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
-from test_node import Harness, arrays, diag_values, overrides, pose_msg, t_of  # noqa: E402
+from ros_helpers import Harness, arrays, diag_values, overrides, pose_msg, t_of  # noqa: E402
 
 A = P_STILL + ATTACH            # the attachment point of the still head (identity rotation)
 

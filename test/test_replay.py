@@ -21,8 +21,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from test_recording import TYPES, live_recording  # noqa: E402
-from test_node import TIMEOUT_SCALE  # noqa: E402
+from ros_helpers import TIMEOUT_SCALE, TYPES, poses_by_stamp, topic_messages  # noqa: E402
 from ponytail_ros.bench import replay_bench  # noqa: E402
 from ponytail_ros.core.rotations import quat_rotate  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter  # noqa: E402
@@ -36,19 +35,6 @@ from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
 from ponytail_ros.resources import config_path  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def live_run(tmp_path_factory):
-    return live_recording(tmp_path_factory.getbasetemp())
-
-
-def topic_messages(path, topic):
-    return [(m, t) for _, _, m, t in BagReader(path).messages(topic)]
-
-
-def poses_by_stamp(path, topic='/segment_poses'):
-    return {stamp_ns(m.header.stamp): m for m, _ in topic_messages(path, topic)}
 
 
 def pose_array(msg):

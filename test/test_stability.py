@@ -58,7 +58,8 @@ from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, Sce
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.bench.motions import SinusoidHead, SpinHead, reference_motion
+from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
+from helpers import total_energy as energy
 
 hypothesis = pytest.importorskip('hypothesis')
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
@@ -82,10 +83,6 @@ def make_sim(chain, motion=STILL, integrator=RK4, dt=1 / 240, gravity=(0.0, 0.0,
                solver=SolverSpec(integrator=integrator, dt=dt, **solver))
     return Simulator(sc, motion, 0.0)
 
-
-def energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 def tilted(angle_deg):
