@@ -35,7 +35,7 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     import rclpy
     from rclpy.qos import QoSProfile
     from rosgraph_msgs.msg import Clock
-    from .bag import _message_class
+    from .bag.msgdefs import _message_class
 
     warn = warn or (lambda text: None)
     if not rate > 0.0:

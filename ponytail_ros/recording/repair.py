@@ -211,7 +211,7 @@ class _Copier:
 def _final_rosbag2(record: Dict[str, str], channels, schemas, counts, first: int, last: int,
                    file_name: str) -> Dict[str, str]:
     """The input's last ``rosbag2`` record with the counts and times of what was kept."""
-    from .bag import _dump_yaml
+    from .bag.metadata import _dump_yaml
     try:
         bag = yaml.safe_load(record.get('serialized_metadata', '')) or {}
     except yaml.YAMLError:

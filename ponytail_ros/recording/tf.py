@@ -83,7 +83,7 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     referenced descriptions are read from their packages' ``.json`` files, then hashed as
     ``rosidl_generator_type_description.calculate_type_hash`` does. '' if a dependency has no
     type description installed."""
-    from .bag import _interface_file
+    from .bag.msgdefs import _interface_file
     described = {type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
     pending = [f['type']['nested_type_name'] for f in fields if f['type']['nested_type_name']]
     while pending:
