@@ -82,7 +82,8 @@ def summarize(data):
     from ponytail_ros.app.head_script import PHASES
     segs, lengths = data['segments'], data['lengths']
     distal = segs[..., :3] + lengths[None, :, None] * quat_axis_x(segs[..., 3:])
-    gap = np.linalg.norm(distal[:, :-1] - segs[:, 1:, :3], axis=2).max() if segs.shape[1] > 1 else 0
+    gap = (np.linalg.norm(distal[:, :-1] - segs[:, 1:, :3], axis=2).max() if segs.shape[1] > 1
+           else 0)
     pts = chain_points(segs, lengths)
     t = data['t']
     tip_v = np.linalg.norm(np.diff(pts[:, -1], axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)

@@ -132,7 +132,8 @@ def test_projection_puts_every_joint_on_its_limits_in_one_pass(seed):
     rel1 = quat_multiply(quat_conjugate(parent_new), q)
     same = np.abs(np.sum(rel0 * rel1, axis=1))
     assert np.allclose(same[ok], 1.0, atol=1e-12)
-    assert np.allclose(swing[~(swing0 <= 0.4)], 0.4) and project_limits(m, q, anchor_q, 1e-9) is None
+    assert np.allclose(swing[~(swing0 <= 0.4)], 0.4)
+    assert project_limits(m, q, anchor_q, 1e-9) is None
 
 
 # -- in motion ----------------------------------------------------------------------------------

@@ -26,7 +26,8 @@ from visualization_msgs.msg import Marker
 
 import numpy as np
 
-from ponytail_ros.core.rotations import quat_axis_x, quat_from_two_vectors, quat_multiply, quat_rotate
+from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
+                                         quat_rotate)
 
 __all__ = ['ChainMessages', 'ColliderMarkers', 'delete_all_marker', 'Q_Z_TO_X',
            'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
