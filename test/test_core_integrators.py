@@ -18,6 +18,7 @@ from ponytail_ros.core.solver import Dynamics
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 from ponytail_ros.app.motions import reference_motion
+from helpers import chain_sim, reference_ponytail
 from helpers import total_energy as energy
 
 HEAD = (0.0, 0.0, 1.6)
@@ -26,9 +27,7 @@ SE = 'symplectic_euler'
 
 
 def ponytail(n=10, **kw):
-    kw.setdefault('damping', 0.0)
-    return ChainSpec(n_segments=n, length=0.4, mass=0.1, radius=0.01, attach=(-0.10, 0.0, 0.05),
-                     **kw)
+    return reference_ponytail(n, **kw)
 
 
 def thin_chain(n=5):
@@ -39,9 +38,7 @@ def thin_chain(n=5):
 
 
 def make_sim(chain, integrator=SE, dt=1 / 240, motion=STILL, **solver):
-    solver.setdefault('max_steps_per_call', 1_000_000)
-    spec = SolverSpec(integrator=integrator, dt=dt, **solver)
-    return Simulator(Scene(chains=(chain,), solver=spec), motion, 0.0)
+    return chain_sim(chain, motion, integrator, dt, **solver)
 
 
 
