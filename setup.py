@@ -50,9 +50,9 @@ setup(
     entry_points={
         'console_scripts': [
             'ponytail_demo = ponytail_ros.demo:main',
-            'ponytail_node = ponytail_ros.ros.node:main',
+            'ponytail_node = ponytail_ros.node:main',
             'ponytail_head_demo = ponytail_ros.ros.head_demo:main',
-            'ponytail_replay = ponytail_ros.recording.replay:main',
+            'ponytail_replay = ponytail_ros.recording.cli:main',
             'ponytail_bench = ponytail_ros.bench.cli:main',
         ],
         # pytest plugin: the ponytail / ponytail_offline fixtures (ponytail_ros.testing). Named

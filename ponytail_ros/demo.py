@@ -26,7 +26,7 @@ def run_demo(duration, config, domain_id=None):
     from rclpy.qos import qos_profile_sensor_data
 
     from ponytail_ros.ros.head_demo import HeadDemoNode
-    from ponytail_ros.ros.node import PonytailNode
+    from ponytail_ros.node import PonytailNode
 
     ctx = Context()
     init_kw = {} if domain_id is None else {'domain_id': domain_id}
@@ -79,10 +79,11 @@ def chain_points(segments, lengths):
 
 def summarize(data):
     from ponytail_ros.core.rotations import quat_axis_x
-    from ponytail_ros.ros.head_script import PHASES
+    from ponytail_ros.app.head_script import PHASES
     segs, lengths = data['segments'], data['lengths']
     distal = segs[..., :3] + lengths[None, :, None] * quat_axis_x(segs[..., 3:])
-    gap = np.linalg.norm(distal[:, :-1] - segs[:, 1:, :3], axis=2).max() if segs.shape[1] > 1 else 0
+    gap = (np.linalg.norm(distal[:, :-1] - segs[:, 1:, :3], axis=2).max() if segs.shape[1] > 1
+           else 0)
     pts = chain_points(segs, lengths)
     t = data['t']
     tip_v = np.linalg.norm(np.diff(pts[:, -1], axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)
@@ -125,7 +126,7 @@ def plot(data, path):
     rel = pts[:, -1] - pts[:, 0]
     swing = np.degrees(np.arccos(np.clip(-rel[:, 2] / np.linalg.norm(rel, axis=1), -1, 1)))
     ax.plot(t, swing, color='tab:orange')
-    from ponytail_ros.ros.head_script import PHASES
+    from ponytail_ros.app.head_script import PHASES
     for name, a, b in PHASES:
         if a < t[-1]:
             ax.axvspan(a, min(b, t[-1]), alpha=0.08, color='k')
@@ -159,7 +160,7 @@ def main(argv=None):
     print(f'Running the head demo and ponytail_node for {args.duration:g} s ({config}) ...',
           flush=True)
     from rclpy.exceptions import ParameterException
-    from ponytail_ros.ros.parameters import ParameterError
+    from ponytail_ros.app.parameters import ParameterError
     from ponytail_ros.ros.spin import describe_error
     try:
         data = run_demo(args.duration, config)

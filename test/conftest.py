@@ -32,6 +32,23 @@ def pytest_configure(config):
 
 
 @pytest.fixture
+def params(tmp_path):
+    """A node params file for the bag tests (``ros_helpers.PARAMS``: 100 Hz, 4 segments)."""
+    from ros_helpers import PARAMS
+    path = tmp_path / 'params.yaml'
+    path.write_text(PARAMS)
+    return path
+
+
+@pytest.fixture(scope='session')
+def live_run(tmp_path_factory):
+    """The node's recorded live run (``ros_helpers.live_recording``), made once per session
+    and read by ``test_recording.py`` and ``test_replay.py``."""
+    from ros_helpers import live_recording
+    return live_recording(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture
 def ros_context():
     """A fresh, initialised ``rclpy`` context on the test domain; shut down afterwards."""
     rclpy = pytest.importorskip('rclpy')

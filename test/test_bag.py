@@ -5,8 +5,6 @@ The rosbags checks decode our files with an independent implementation, once wit
 stored in the file -- the real check that the schema texts are right -- and once with rosbags'
 built-in Kilted type store.
 """
-import array
-import dataclasses
 import json
 import os
 import shutil
@@ -21,7 +19,6 @@ import pytest
 
 pytest.importorskip('rclpy', reason='rclpy (ROS 2 wheels or a sourced workspace) is not installed')
 
-import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from builtin_interfaces.msg import Duration, Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
@@ -31,6 +28,7 @@ from rclpy.qos import QoSDurabilityPolicy, QoSProfile  # noqa: E402
 from std_msgs.msg import ColorRGBA  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
+from ros_helpers import plain  # noqa: E402
 from ponytail_ros.recording.bag import (  # noqa: E402
     PARAMETERS_METADATA, BagError, BagReader, BagWriter,
 )
@@ -126,23 +124,6 @@ def recorded(tmp_path):
                 writer.write(name, msg, t_ns)
                 written.append((name, msg, t_ns))
     return path, written
-
-
-def plain(value):
-    """rclpy or rosbags message -> nested dicts/lists of Python scalars, for comparison."""
-    if hasattr(value, 'get_fields_and_field_types'):
-        return {f: plain(getattr(value, f)) for f in value.get_fields_and_field_types()}
-    if dataclasses.is_dataclass(value):
-        # rosbags lists constants (upper case; ROS field names are lower case) as fields too.
-        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)
-                if not f.name.startswith('_') and not f.name.isupper()}
-    if isinstance(value, bytes) and len(value) == 1:  # rclpy 'byte' field; rosbags gives int
-        return value[0]
-    if isinstance(value, (bytes, bytearray, list, tuple, array.array, np.ndarray)):
-        return [plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 # -- round trips -------------------------------------------------------------------------------

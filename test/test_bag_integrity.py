@@ -6,7 +6,6 @@ which writes chunk CRCs as rosbag2's C++ storage does), then damaged the way fil
 one line naming the file and the problem, or exit 0 with a warning on the terminal naming it --
 never exit 0 in silence with partial output.
 """
-import math
 import os
 import signal
 import struct
@@ -21,71 +20,13 @@ import yaml
 pytest.importorskip('rclpy')
 rosbags_highlevel = pytest.importorskip('rosbags.highlevel')
 
-from geometry_msgs.msg import PoseStamped  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap.writer import CompressionType, Writer as McapWriter  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer as RosbagsWriter  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from ponytail_ros.recording.bag import BagError, BagReader, message_definition  # noqa: E402
-from ponytail_ros.recording.replay import main  # noqa: E402
+from ros_helpers import HEAD, N_POSES, PERIOD_NS, T0_NS, head_samples, rosbags_bag, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAD = '/head_pose'
-T0_NS = 1_700_000_000_000_000_000
-PERIOD_NS = 10_000_000   # 100 Hz
-N_POSES = 300            # 3 s
-PARAMS = """/**:
-  ros__parameters:
-    rate: 100.0
-    diagnostics_period: 1.0
-    ponytail:
-      n_segments: 4
-"""
-
-
-@pytest.fixture
-def params(tmp_path):
-    path = tmp_path / 'params.yaml'
-    path.write_text(PARAMS)
-    return path
-
-
-def head_msg(i, stamp_ns, nan=False):
-    t = i * PERIOD_NS * 1e-9
-    m = PoseStamped()
-    m.header.frame_id = 'world'
-    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-    m.pose.position.x = 0.1 * math.sin(2 * math.pi * t)
-    m.pose.position.z = 1.6
-    m.pose.orientation.z = math.sin(0.2 * math.sin(3 * t))
-    m.pose.orientation.w = math.cos(0.2 * math.sin(3 * t))
-    if nan:
-        m.pose.orientation.w = float('nan')
-    return m
-
-
-def head_samples(n=N_POSES, stamp_offset_ns=0, nan=()):
-    """(log time, serialised PoseStamped) at 100 Hz from T0; stamps = log time + offset."""
-    return [(T0_NS + i * PERIOD_NS,
-             serialize_message(head_msg(i, T0_NS + i * PERIOD_NS + stamp_offset_ns, i in nan)))
-            for i in range(n)]
-
-
-def rosbags_bag(tmp_path, name, samples):
-    """A rosbag2 MCAP bag written by rosbags (one chunk, no CRCs), messages in list order;
-    the .mcap file's path."""
-    store = get_typestore(Stores.ROS2_KILTED)
-    folder = tmp_path / name
-    with RosbagsWriter(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(HEAD, 'geometry_msgs/msg/PoseStamped', typestore=store)
-        for log_ns, data in samples:
-            writer.write(conn, log_ns, data)
-    (path,) = folder.glob('*.mcap')
-    return path
-
-
 def mcap_bag(path, samples, chunk_size=4096):
     """The same, written by the mcap library's writer (ros2 profile, chunk CRCs), several
     chunks."""
@@ -99,13 +40,6 @@ def mcap_bag(path, samples, chunk_size=4096):
             w.add_message(cid, log_ns, data, log_ns, k)
         w.finish()
     return path
-
-
-def run(argv, capsys):
-    """main(argv) -> (exit code, stdout, stderr lines)."""
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, [line for line in err.splitlines() if line.strip()]
 
 
 def replayed(path):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ponytail_ros.bench import cli, measure, mujoco_chain
-from ponytail_ros.bench.motions import SinusoidHead, SpinHead, crowd_motion, reference_motion
+from ponytail_ros.app.motions import SinusoidHead, SpinHead, crowd_motion, reference_motion
 from ponytail_ros.bench.scenes import SCENES, make_scene
 from ponytail_ros.core import SwayYawMotion
 

@@ -13,15 +13,15 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
-from test_bag_integrity import head_samples, rosbags_bag  # noqa: E402
-from test_node import TIMEOUT_SCALE  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+pytest.importorskip('rosbags')
+from ros_helpers import TIMEOUT_SCALE, head_samples, rosbags_bag  # noqa: E402
+from ponytail_ros.node import PonytailNode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXECUTABLES = {
-    'ponytail_node': 'ponytail_ros.ros.node',
+    'ponytail_node': 'ponytail_ros.node',
     'ponytail_head_demo': 'ponytail_ros.ros.head_demo',
-    'ponytail_replay': 'ponytail_ros.recording.replay',
+    'ponytail_replay': 'ponytail_ros.recording.cli',
     'ponytail_demo': 'ponytail_ros.demo',
 }
 
@@ -69,7 +69,7 @@ def test_bad_input_is_one_line_naming_it_and_exit_2(program, args, words):
 
 
 def test_compare_plot_into_a_missing_folder_checks_before_reading(tmp_path, capsys):
-    from ponytail_ros.recording.replay import main
+    from ponytail_ros.recording.cli import main
     bag = rosbags_bag(tmp_path, 'in', head_samples(20))
     code = main(['compare', str(bag), str(bag), '--plot', str(tmp_path / 'no' / 'x.png')])
     err = capsys.readouterr().err.strip().splitlines()
@@ -103,7 +103,7 @@ def test_a_typo_in_the_params_file_is_warned_with_the_closest_name(ros_context, 
 
 
 def test_replay_warns_a_params_file_typo_with_the_closest_name(tmp_path, capsys):
-    from ponytail_ros.recording.replay import main
+    from ponytail_ros.recording.cli import main
     bag = rosbags_bag(tmp_path, 'in', head_samples(50))
     params = tmp_path / 'p.yaml'
     params.write_text('/**:\n  ros__parameters:\n    ponytail:\n      n_segmentz: 5\n')
@@ -199,7 +199,7 @@ class _Terminal:
 @pytest.mark.parametrize('quiet', [False, True])
 def test_replay_shows_a_progress_bar_on_a_terminal_unless_quiet(tmp_path, monkeypatch, quiet):
     pytest.importorskip('tqdm')
-    from ponytail_ros.recording.replay import main
+    from ponytail_ros.recording.cli import main
     bag = rosbags_bag(tmp_path, 'in', head_samples(150))
     term = _Terminal()
     monkeypatch.setattr(sys, 'stderr', term)
@@ -214,7 +214,7 @@ def test_replay_shows_a_progress_bar_on_a_terminal_unless_quiet(tmp_path, monkey
 
 
 def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
-    from ponytail_ros.recording.replay import main
+    from ponytail_ros.recording.cli import main
     bag = rosbags_bag(tmp_path, 'in', head_samples(150))
     assert main([str(bag), '-o', str(tmp_path / 'out.mcap')]) == 0
     assert 'replay (simulated s)' not in capsys.readouterr().err
@@ -222,7 +222,7 @@ def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
 
 def test_head_stamps_on_another_clock_are_said_on_the_terminal_with_the_fix(ros_context, capfd):
     from geometry_msgs.msg import PoseStamped
-    from test_node import overrides
+    from ros_helpers import overrides
     node = PonytailNode(context=ros_context, parameter_overrides=overrides())
     tester = rclpy.create_node('tester', context=ros_context)
     pub = tester.create_publisher(PoseStamped, 'head_pose', 10)

@@ -8,49 +8,17 @@ import pytest
 
 from ponytail_ros.core import ChainSpec, KinematicState, Scene, SceneError, Simulator, StillMotion
 from ponytail_ros.core import collision, limits
+from ponytail_ros.app.motions import ShakeNodHead
 from ponytail_ros.core.head import HeadMotion
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
+from helpers import PENETRATION_TOLERANCE, total_energy
 
 DT = 1.0 / 240.0
-TOLERANCE = 2e-5           # m: stated penetration bound (solver stops at 1e-5 m)
+TOLERANCE = PENETRATION_TOLERANCE
 SAMPLES = np.linspace(0.0, 1.0, 41)
-
-
-class ShakeMotion(HeadMotion):
-    """A violent head shake with exact derivatives: ±A along X at f Hz and ±Y rad of yaw at
-    f_y Hz about the head's vertical axis, plus a nod (pitch) of ±P rad at f_p Hz."""
-
-    def __init__(self, p0=(0.0, 0.0, 1.6), amplitude=0.1, frequency=3.0, yaw=1.0,
-                 yaw_frequency=2.5, pitch=0.3, pitch_frequency=1.7):
-        self.p0 = np.asarray(p0, dtype=float)
-        self.A, self.w = amplitude, 2 * np.pi * frequency
-        self.Y, self.wy = yaw, 2 * np.pi * yaw_frequency
-        self.P, self.wp = pitch, 2 * np.pi * pitch_frequency
-
-    def state_at(self, t):
-        A, w, Y, wy, P, wp = self.A, self.w, self.Y, self.wy, self.P, self.wp
-        yaw, yd, ydd = Y * np.sin(wy * t), Y * wy * np.cos(wy * t), -Y * wy * wy * np.sin(wy * t)
-        pit, pd, pdd = P * np.sin(wp * t), P * wp * np.cos(wp * t), -P * wp * wp * np.sin(wp * t)
-        # R = Rz(yaw) Ry(pitch): ω = yaw' z + pitch' Rz(yaw) y; α = its derivative.
-        z = np.array([0.0, 0.0, 1.0])
-        y_axis = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-        y_axis_dot = yd * np.array([-np.cos(yaw), -np.sin(yaw), 0.0])
-        omega = yd * z + pd * y_axis
-        alpha = ydd * z + pdd * y_axis + pd * y_axis_dot
-        qz = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-        qy = np.array([0.0, np.sin(pit / 2), 0.0, np.cos(pit / 2)])
-        from ponytail_ros.core.rotations import quat_multiply
-        q = quat_multiply(qz, qy)
-        return KinematicState(
-            position=(self.p0 + [A * np.sin(w * t), 0.0, 0.0])[None],
-            orientation=q[None],
-            linear_velocity=np.array([[A * w * np.cos(w * t), 0.0, 0.0]]),
-            angular_velocity=omega[None],
-            linear_acceleration=np.array([[-A * w * w * np.sin(w * t), 0.0, 0.0]]),
-            angular_acceleration=alpha[None])
 
 
 def sampled_depth_sphere(sim, centre, radius, skip_first=False):
@@ -72,10 +40,6 @@ def sampled_depth_capsule(sim, a, b, radius):
     d = np.linalg.norm(pts - (a + t[..., None] * ab), axis=2)
     return float((radius + sim.model.radius[:, None] - d).max())
 
-
-def total_energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 # -- scene description --------------------------------------------------------------------------
@@ -118,7 +82,7 @@ def test_scenes_without_colliders_or_limits_never_run_collision_code(monkeypatch
     monkeypatch.setattr(collision._Detector, 'detect', fail)
     monkeypatch.setattr(limits, 'limit_rows', fail)
     monkeypatch.setattr(limits, 'project_limits', fail)
-    motion = ShakeMotion()
+    motion = ShakeNodHead()
     for scene in (Scene(chains=(ChainSpec(n_segments=6, damping=2e-4),)),
                   Scene(chains=(ChainSpec(n_segments=6, damping=2e-4, collide=False),),
                         colliders=(ColliderSpec.sphere(radius=0.1),))):
@@ -161,7 +125,7 @@ def test_ponytail_stays_out_of_a_violently_shaken_head(friction):
     chain = ChainSpec(n_segments=10, length=0.4, mass=0.1, radius=r, attach=tuple(root),
                       damping=2e-4, drag_linear=0.1, drag_quadratic=0.1)
     scene = Scene(chains=(chain,), colliders=(ColliderSpec.sphere(radius=R, friction=friction),))
-    motion = ShakeMotion()
+    motion = ShakeNodHead()
     sim = Simulator(scene, motion)
     worst, worst_root, worst_gap, touching, fastest = -1.0, -1.0, 0.0, 0, 0.0
     for k in range(1, int(round(10.0 / DT)) + 1):

@@ -17,7 +17,9 @@ from ponytail_ros.core.rotations import cross, quat_axis_x, quat_from_rotvec, qu
 from ponytail_ros.core.solver import Dynamics
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.bench.motions import reference_motion
+from ponytail_ros.app.motions import reference_motion
+from helpers import chain_sim, reference_ponytail
+from helpers import total_energy as energy
 
 HEAD = (0.0, 0.0, 1.6)
 STILL = StillMotion(HEAD)
@@ -25,8 +27,7 @@ SE = 'symplectic_euler'
 
 
 def ponytail(n=10, **kw):
-    kw.setdefault('damping', 0.0)
-    return ChainSpec(n_segments=n, length=0.4, mass=0.1, radius=0.01, attach=(-0.10, 0.0, 0.05), **kw)
+    return reference_ponytail(n, **kw)
 
 
 def thin_chain(n=5):
@@ -37,14 +38,8 @@ def thin_chain(n=5):
 
 
 def make_sim(chain, integrator=SE, dt=1 / 240, motion=STILL, **solver):
-    solver.setdefault('max_steps_per_call', 1_000_000)
-    return Simulator(Scene(chains=(chain,), solver=SolverSpec(integrator=integrator, dt=dt, **solver)),
-                     motion, 0.0)
+    return chain_sim(chain, motion, integrator, dt, **solver)
 
-
-def energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 def spun(chain, spin, **kw):
@@ -54,7 +49,8 @@ def spun(chain, spin, **kw):
     st = sim.state.copy()
     st.w = spin * quat_axis_x(st.q) + np.array([0.5, 0.0, 0.3])
     anchor = sim.anchors(STILL.state_at(0.0))
-    st.v = project_velocities(sim.model, anchor.velocity, st.w, half_vectors(sim.model.length, st.q))
+    st.v = project_velocities(sim.model, anchor.velocity, st.w,
+                              half_vectors(sim.model.length, st.q))
     sim.reset(STILL.state_at(0.0), 0.0, state=st)
     return sim
 
@@ -244,7 +240,8 @@ def test_symplectic_euler_accuracy_against_the_reference(name, bound_240, bound_
     1.1e-2 and 2.6e-3 m (the unconstrained v += h a, ω += h α before: 8.4e-2, 2.3e-2 m and
     0.20, 1.9e-2 m)."""
     ref = load_reference(REF_DIR / f'ponytail_{name}.json')
-    errors = [reference_errors(ref, SolverSpec(integrator=SE, dt=dt, max_steps_per_call=10**6)).max()
+    errors = [reference_errors(ref, SolverSpec(integrator=SE, dt=dt,
+                                               max_steps_per_call=10**6)).max()
               for dt in (1 / 240, 1 / 1000)]
     assert errors[0] < bound_240
     assert errors[1] < bound_1000
@@ -278,13 +275,15 @@ def test_rattle_is_second_order(case):
     free rotation keeps the order (a drift with ω⊥ held and the gyroscopic precession in the
     kicks fell to 2.3x at 1/7680 s, ``test_rattle_is_second_order_with_axial_spin``)."""
     if case == 'release':
-        chain, motion, solver = ponytail(5, rest_direction=(math.sqrt(0.5), 0.0, -math.sqrt(0.5))), STILL, {}
+        chain = ponytail(5, rest_direction=(math.sqrt(0.5), 0.0, -math.sqrt(0.5)))
+        motion, solver = STILL, {}
     else:
         chain, motion = ponytail(5, damping=2e-4, drag_linear=0.05), reference_motion()
         solver = dict(damping_method='explicit')
     ref = _end_positions(chain, 'rk4', 1 / 4000, motion, **solver)
-    errors = [np.max(np.linalg.norm(_end_positions(chain, 'rattle', 1 / hz, motion, **solver) - ref,
-                                    axis=1)) for hz in (480, 960, 1920)]
+    errors = [np.max(np.linalg.norm(
+        _end_positions(chain, 'rattle', 1 / hz, motion, **solver) - ref, axis=1))
+        for hz in (480, 960, 1920)]
     assert errors[0] < 1e-4
     for coarse, fine in zip(errors, errors[1:]):
         assert 3.5 < coarse / fine < 4.6
@@ -294,7 +293,7 @@ def test_rattle_is_second_order_with_axial_spin():
     """The 10-segment ponytail hanging from a head that yaws at up to π rad/s (segments spin
     about their own axes with it), 0.25 s: self-convergence 4x per halving down to 1/15360 s
     (measured 4.0x; with the gyroscopic precession split into the kicks instead: 2.3x)."""
-    from ponytail_ros.bench.motions import SinusoidHead
+    from ponytail_ros.app.motions import SinusoidHead
     motion = SinusoidHead(p0=HEAD, amplitude=(0.0, 0.0, 0.0), frequency=(0.0, 0.0, 0.0),
                           yaw_amplitude=0.5, yaw_frequency=1.0)
     x = {hz: _end_positions(ponytail(), 'rattle', 1 / hz, motion, duration=0.25)
@@ -367,11 +366,13 @@ def test_guard_reports_a_solver_failure(integrator):
 
 
 def _set_rates(sim, w):
-    """Give ``sim`` the angular velocities ``w`` (rad/s), linear ones consistent with the joints."""
+    """Give ``sim`` the angular velocities ``w`` (rad/s), linear ones consistent with the
+    joints."""
     st = sim.state.copy()
     st.w = np.asarray(w, dtype=float)
     anchor = sim.anchors(STILL.state_at(sim.t))
-    st.v = project_velocities(sim.model, anchor.velocity, st.w, half_vectors(sim.model.length, st.q))
+    st.v = project_velocities(sim.model, anchor.velocity, st.w,
+                              half_vectors(sim.model.length, st.q))
     sim.reset(STILL.state_at(sim.t), sim.t, state=st)
 
 

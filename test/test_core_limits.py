@@ -14,10 +14,10 @@ from ponytail_ros.core.rotations import (quat_axis_x, quat_conjugate, quat_from_
 from ponytail_ros.core.state import half_vectors
 from ponytail_ros.core.stabilization import project_positions
 
-from test_core_collision import ShakeMotion
+from ponytail_ros.app.motions import ShakeNodHead
+from helpers import ANGLE_TOLERANCE, total_energy
 
 DT = 1.0 / 240.0
-ANGLE_TOLERANCE = 2e-5     # rad: stated bound on a swing or twist beyond its limit
 
 
 def angles(sim, state=None):
@@ -49,10 +49,6 @@ def make(scene, motion):
     sim._head_for_test = motion.state_at(0.0)
     return sim
 
-
-def total_energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 # -- scene description --------------------------------------------------------------------------
@@ -136,7 +132,8 @@ def test_projection_puts_every_joint_on_its_limits_in_one_pass(seed):
     rel1 = quat_multiply(quat_conjugate(parent_new), q)
     same = np.abs(np.sum(rel0 * rel1, axis=1))
     assert np.allclose(same[ok], 1.0, atol=1e-12)
-    assert np.allclose(swing[~(swing0 <= 0.4)], 0.4) and project_limits(m, q, anchor_q, 1e-9) is None
+    assert np.allclose(swing[~(swing0 <= 0.4)], 0.4)
+    assert project_limits(m, q, anchor_q, 1e-9) is None
 
 
 # -- in motion ----------------------------------------------------------------------------------
@@ -147,7 +144,7 @@ def test_swing_and_twist_hold_under_a_violent_shake():
     chain = ChainSpec(n_segments=10, length=0.4, mass=0.1, radius=0.01, attach=(-0.1, 0, 0),
                       damping=2e-4, drag_linear=0.1, drag_quadratic=0.1, swing_limit=0.3,
                       twist_limit=0.2)
-    motion = ShakeMotion()
+    motion = ShakeNodHead()
     sim = make(Scene(chains=(chain,)), motion)
     worst_s = worst_t = -1.0
     at_limit = 0
@@ -169,7 +166,7 @@ def test_first_joint_limit_is_about_the_rest_direction_in_the_head_frame():
     about the head's -X, not about the vertical."""
     chain = ChainSpec(n_segments=4, length=0.3, mass=0.05, radius=0.01, attach=(-0.1, 0, 0),
                       rest_direction=(-1, 0, 0), damping=1e-3, swing_limit=(0.25, 3.1, 3.1, 3.1))
-    motion = ShakeMotion(amplitude=0.0, pitch=0.0, yaw=0.8, yaw_frequency=0.5)
+    motion = ShakeNodHead(amplitude=0.0, pitch=0.0, yaw=0.8, yaw_frequency=0.5)
     sim = make(Scene(chains=(chain,)), motion)
     for k in range(1, int(round(3.0 / DT)) + 1):
         sim.advance_to(k * DT, motion)

@@ -6,6 +6,7 @@ from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Sim
                                StillMotion, SwayYawMotion)
 from ponytail_ros.core.forces import applied_forces
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_rotate
+from helpers import total_energy
 
 G = 9.81
 ANCHOR = np.array([0.0, 0.0, 2.0])
@@ -34,10 +35,6 @@ def quat_multiply_left(a, q):
     from ponytail_ros.core.rotations import quat_multiply
     return quat_multiply(np.broadcast_to(a, q.shape), q)
 
-
-def total_energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 def test_single_segment_small_angle_period_is_compound_pendulum():

@@ -6,17 +6,19 @@ import is still a dependency), relative imports resolved against the file's pack
 
 - ``ponytail_ros.core`` is ROS-free: it imports neither rclpy, nor mcap, nor a ROS message
   package, nor any other part of ``ponytail_ros``.
-- The top-level subpackages (``core``, ``ros``, ``recording``, ``bench``, and the top-level
-  modules) form no cycle. Today ``ros`` and ``recording`` import each other (the node wraps its
-  publishers in the recorder; the replay builds on the node's parameters and tick): that one
-  cycle is allowed until the ROS-free application layer is moved out of ``ros/`` (issue 11),
-  and the strict xfail below turns into a failure the day it is gone, to be removed then.
+- ``ponytail_ros.app`` (the runner, the parameters, the node's behaviour as messages, the
+  tick's output interface) imports no rclpy, and of the package only ``core`` (and the
+  top-level ``resources``): the node (``ros``) and the offline tools (``recording``) both build
+  on it.
+- ``ros`` and ``recording`` do not import each other (the node records through a ``TickSink``
+  it is given; ``ponytail_ros/node.py`` wires the two together).
+- The top-level subpackages (``core``, ``app``, ``ros``, ``recording``, ``bench``, ``testing``
+  and the top-level modules) form no cycle: core <- app <- (ros, recording) <- (node, testing,
+  bench, demo).
 """
 import ast
 from collections.abc import Iterator
 from pathlib import Path
-
-import pytest
 
 PACKAGE = 'ponytail_ros'
 ROOT = Path(__file__).resolve().parent.parent / PACKAGE
@@ -24,8 +26,8 @@ ROOT = Path(__file__).resolve().parent.parent / PACKAGE
 #: External packages the core must not import (top-level names; ``*_msgs`` are ROS messages).
 ROS_OR_MCAP = ('rclpy', 'rosidl_runtime_py', 'ament_index_python', 'mcap', 'mcap_ros2')
 
-#: The one cycle between top-level subpackages that exists today (issue 11 removes it).
-KNOWN_CYCLE = frozenset({'recording', 'ros'})
+#: What the application layer may import of the package.
+APP_MAY_IMPORT = frozenset({'core', 'resources'})
 
 
 def module_name(path: Path) -> str:
@@ -151,15 +153,28 @@ def test_core_imports_no_other_part_of_the_package() -> None:
     assert not bad, f'ponytail_ros.core imports only itself: {bad}'
 
 
-def test_no_cycle_between_subpackages_but_the_known_one() -> None:
-    """Guard while the known cycle exists: no other cycle appears, and none grows into it."""
-    found = cycles(unit_graph())
-    assert all(c == KNOWN_CYCLE for c in found), f'new import cycle(s): {found}'
+def test_app_imports_no_rclpy() -> None:
+    bad = {}
+    for module, targets in import_graph().items():
+        if unit(module) != 'app':
+            continue
+        found = sorted(t for t in targets if t.split('.')[0] in ('rclpy', 'rosidl_runtime_py'))
+        if found:
+            bad[module] = found
+    assert 'ponytail_ros.app.runner' in import_graph()
+    assert not bad, f'the application layer must not import rclpy: {bad}'
 
 
-@pytest.mark.xfail(strict=True, reason='ros <-> recording import each other (ros/node.py imports '
-                   'recording.recorder; recording/params.py and replay.py import ros.parameters '
-                   'and ros.node_core) until the application layer is moved (issue 11)')
+def test_app_builds_on_the_core_only() -> None:
+    assert unit_graph()['app'] <= APP_MAY_IMPORT, unit_graph()['app']
+
+
+def test_node_and_recording_do_not_import_each_other() -> None:
+    graph = unit_graph()
+    assert 'recording' not in graph['ros'] and 'ros' not in graph['recording'], graph
+    assert {'app'} <= graph['ros'] and {'app'} <= graph['recording']
+
+
 def test_no_cycle_between_subpackages() -> None:
     found = cycles(unit_graph())
     assert not found, f'import cycles between top-level subpackages: {found}'

@@ -16,85 +16,10 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
-from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate  # noqa: E402
 from ponytail_ros.ros.head_demo import HeadDemoNode  # noqa: E402
-from ponytail_ros.testing import Harness as PublicHarness  # noqa: E402
 from ponytail_ros.testing.harness import TIMEOUT_SCALE, diagnostic_values  # noqa: E402,F401
-from ponytail_ros.testing.harness import pose_msg as _public_pose_msg  # noqa: E402
-
-#: (``/diagnostics`` values; ``TIMEOUT_SCALE`` and this are imported by other test modules.)
-diag_values = diagnostic_values
-
-pytestmark = pytest.mark.ros
-
-ATTACH = [-0.09, 0.0, 0.06]
-CHAIN = {'n_segments': 6, 'length': 0.3, 'mass': 0.1, 'radius': 0.03, 'attach': ATTACH,
-         'damping': 1e-3, 'drag_linear': 0.05}
-Q_TILT = quat_from_rotvec(np.array([0.2, -0.1, 0.8]))
-P_HEAD = np.array([1.0, -2.0, 1.5])
-
-
-def overrides(chains=('ponytail',), **values):
-    params = {'diagnostics_period': 0.2, 'chains': list(chains)}
-    for c in chains:
-        params.update({f'{c}.{k}': v for k, v in CHAIN.items()})
-    params.update({k.replace('__', '.'): v for k, v in values.items()})
-    return [Parameter(k, value=v) for k, v in params.items()]
-
-
-def stamp(t):
-    sec = math.floor(t)
-    return Time(sec=int(sec), nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
-
-
-def t_of(header):
-    return header.stamp.sec + header.stamp.nanosec * 1e-9
-
-
-def pose_msg(t, p=P_HEAD, q=Q_TILT, frame='world'):
-    return _public_pose_msg(stamp(t) if isinstance(t, float) else t, p, q, frame)
-
-
-def attach_point(p, q, attach=ATTACH):
-    return np.asarray(p) + quat_rotate(np.asarray(q, dtype=float), np.asarray(attach))
-
-
-def arrays(msg):
-    o = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
-    q = np.array([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
-                  for p in msg.poses])
-    return o, q
-
-
-def check_geometry(msg, n, length):
-    """N poses, finite, neighbouring segments meet: distal = origin + R (l, 0, 0)."""
-    assert len(msg.poses) == n
-    o, q = arrays(msg)
-    assert np.all(np.isfinite(o)) and np.all(np.isfinite(q))
-    distal = o + quat_axis_x(q) * (length / n)
-    assert np.max(np.linalg.norm(distal[:-1] - o[1:], axis=1)) < 1e-6
-    return o, q
-
-
-class Harness(PublicHarness):
-    """The public harness on the wall clock (the node, a tester node publishing ``h.head`` at
-    100 Hz and collecting every output, one executor, a fresh context of its own with
-    discovery off), called as this module always called its harness: ``Harness(ctx, params)``
-    with ``Parameter`` overrides (``ctx`` is not used: the harness makes its own context), and
-    the names ``diags`` / ``fresh_diag`` that ``test_frames.py`` uses."""
-
-    def __init__(self, ctx=None, params=(), topics=('segment_poses',), namespace=None,
-                 head_qos=10):
-        super().__init__(None, {p.name: p.value for p in params}, sim_time=False,
-                         topics=topics, namespace=namespace, head_qos=head_qos)
-
-    @property
-    def diags(self):
-        return self.diagnostics
-
-    def fresh_diag(self):
-        return self.fresh_diagnostics(3.0)
-
+from ros_helpers import (Harness, P_HEAD, Q_TILT, arrays, attach_point,  # noqa: E402
+                         check_geometry, overrides, pose_msg, stamp, t_of)
 
 @pytest.fixture
 def harness():

@@ -20,8 +20,8 @@ rclpy = pytest.importorskip('rclpy')
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 
-from test_node import attach_point, check_geometry, pose_msg  # noqa: E402
-from ponytail_ros.recording.params import values_from_params_file  # noqa: E402
+from ros_helpers import attach_point, check_geometry, pose_msg  # noqa: E402
+from ponytail_ros.app.param_values import values_from_params_file  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -68,9 +68,9 @@ def processes():
 
 
 def test_two_namespaced_nodes_side_by_side_and_clean_shutdown(ros_context, processes):
-    alice = spawn('ponytail_ros.ros.node', '--params-file', str(CONFIG), '-r', '__ns:=/alice',
+    alice = spawn('ponytail_ros.node', '--params-file', str(CONFIG), '-r', '__ns:=/alice',
                   '-p', 'diagnostics_period:=0.5')
-    bob = spawn('ponytail_ros.ros.node', '--params-file', str(CONFIG), '-r', '__ns:=/bob',
+    bob = spawn('ponytail_ros.node', '--params-file', str(CONFIG), '-r', '__ns:=/bob',
                 '-p', 'ponytail.n_segments:=5')
     demo = spawn('ponytail_ros.ros.head_demo', '-r', '__ns:=/alice', '-p', 'motion:=still',
                  '-p', 'origin:=[1.0, 2.0, 1.6]', '-p', 'frame_id:=map')
@@ -116,7 +116,7 @@ def test_two_namespaced_nodes_side_by_side_and_clean_shutdown(ros_context, proce
 
 
 def test_invalid_parameters_rejected_at_start_up_with_the_name(processes):
-    proc = spawn('ponytail_ros.ros.node', '--params-file', str(CONFIG),
+    proc = spawn('ponytail_ros.node', '--params-file', str(CONFIG),
                  '-p', 'ponytail.attach:=[0.1, 0.2]')
     processes.append(proc)
     out, err = proc.communicate(timeout=20)

@@ -5,10 +5,10 @@ import pytest
 
 from ponytail_ros.core import ChainSpec, Scene, SwayYawMotion
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate
-from ponytail_ros.ros.head_script import PHASES, HeadScript
-from ponytail_ros.ros.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
+from ponytail_ros.app.head_script import PHASES, HeadScript
+from ponytail_ros.app.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
                                          check_values)
-from ponytail_ros.ros.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
+from ponytail_ros.app.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
                                      structural_change)
 
 ATTACH = np.array([-0.09, 0.0, 0.06])
@@ -183,7 +183,7 @@ def test_teleport_resets_the_chain_at_rest_at_the_new_pose():
 
 def test_stale_head_holds_the_last_pose_and_the_chain_settles():
     r = ChainRunner(scene(drag_linear=0.2), RunnerSettings(stale_timeout=0.25))
-    outs = drive(r, SwayYawMotion(), 0.0, 2.0)
+    drive(r, SwayYawMotion(), 0.0, 2.0)
     tips, heads = [], []
     t = 2.0
     while t < 14.0:
@@ -283,7 +283,8 @@ def _values(**changes):
     ({'ponytail.length': 0.0}, 'ponytail.length'),
     ({'gravity': [0.0, 0.0, -1e5]}, 'gravity'),
     ({'ponytail.color': [1.0, 0.0, 0.0]}, 'ponytail.color'),
-    ({'ponytail.n_segments': 3, 'ponytail.segment_lengths': [0.1, 0.2]}, 'ponytail.segment_lengths'),
+    ({'ponytail.n_segments': 3, 'ponytail.segment_lengths': [0.1, 0.2]},
+     'ponytail.segment_lengths'),
     ({'ponytail.segment_masses': [0.01] * 9 + [-0.01]}, 'ponytail.segment_masses'),
     ({'ponytail.segment_masses': ['heavy'] * 10}, 'ponytail.segment_masses'),
     ({'ponytail.inertia': [1e-6] * 29}, 'ponytail.inertia'),
@@ -317,7 +318,8 @@ def test_per_segment_parameters_reach_the_scene():
     assert np.allclose(c.joint_limits('swing_limit'), [0.3, 0.6, 0.9])
     assert np.allclose(c.joint_limits('twist_limit'), [0.2, 0.2, 0.4])
     uniform = check_values(_values(**{'ponytail.swing_limit': 1.0}), ['ponytail']).chains[0]
-    assert np.allclose(uniform.lengths(), 0.04) and np.allclose(uniform.joint_limits('swing_limit'), 1.0)
+    assert np.allclose(uniform.lengths(), 0.04)
+    assert np.allclose(uniform.joint_limits('swing_limit'), 1.0)
     assert np.all(np.isinf(uniform.joint_limits('twist_limit')))
 
 

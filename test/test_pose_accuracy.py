@@ -87,7 +87,7 @@ def reference_params(path, dt=DT, **extra):
 
 def tip_track(path):
     """(t from the reference's start, s; tips ``(k, 3)``) of a replay's output, by stamp."""
-    from ponytail_ros.recording.replay import load_chain_runs
+    from ponytail_ros.recording.compare import load_chain_runs
     runs, values = load_chain_runs(path)
     run = runs['ponytail']
     return (run.stamps - T0_NS) * 1e-9, run.tips, values
@@ -97,7 +97,7 @@ def tip_track(path):
 def replays(tmp_path_factory):
     """Look-ahead and live replays of the reference head at every rate in ``RATES``."""
     _need_reference()
-    from ponytail_ros.recording.replay import replay
+    from ponytail_ros.recording.offline import replay
     d = tmp_path_factory.mktemp('pose_bags')
     params_la = reference_params(d / 'look_ahead.yaml')
     # Live: the node's defaults (2 input periods of delay, cubic fit over 0.1 s), stamped
@@ -197,7 +197,8 @@ def test_simulated_stamps_are_recorded_and_a_replay_of_the_replay_is_bit_exact(t
     setting; replaying that recording with its own parameters ticks at its log times (not its
     stamps) and reproduces it exactly; ``compare`` names the stamp modes."""
     pytest.importorskip('rosbags')
-    from ponytail_ros.recording.replay import compare, format_comparison, replay
+    from ponytail_ros.recording.compare import compare, format_comparison
+    from ponytail_ros.recording.offline import replay
     bag = write_pose_bag(tmp_path / 'head', 120, duration=0.6)
     params = reference_params(tmp_path / 'p.yaml', dt=1 / 500, output_stamp='simulated')
     first = replay(bag, tmp_path / 'a.mcap', params_file=params)

@@ -15,130 +15,32 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from mcap.exceptions import EndOfFile  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap.records import Chunk, Message  # noqa: E402
 from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
-from visualization_msgs.msg import MarkerArray  # noqa: E402
 import yaml  # noqa: E402
 
-from conftest import TEST_DOMAIN_ID  # noqa: E402
-from test_bag import plain  # noqa: E402
-from test_node import TIMEOUT_SCALE, overrides, pose_msg  # noqa: E402
-from ponytail_ros.core.rotations import quat_from_rotvec  # noqa: E402
+from ros_helpers import (CHANGES, P_HEAD, TIMEOUT_SCALE, TYPES, head_at, overrides,  # noqa: E402
+                         plain, pose_msg)
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
-from ponytail_ros.recording.params import values_from_metadata  # noqa: E402
+from ponytail_ros.app.param_values import values_from_metadata  # noqa: E402
 from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.node import PonytailNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / 'config' / 'ponytail.yaml'
-P_HEAD = np.array([1.0, -2.0, 1.5])
-#: Head samples (counted from the node's first output) sent with NaN / with a zero stamp.
-NAN_SAMPLE, ZERO_STAMP_SAMPLE = 20, 40
-#: Live parameter changes of the recorded run: (after this many ticks, {name: value}).
-CHANGES = ((50, {'ponytail.damping': 0.01}), (100, {'ponytail.n_segments': 8}))
-#: Ticks recorded (1.25 s at 120 Hz; counted, not timed, so that a loaded machine gets as many).
-RUN_TICKS = 150
-TYPES = {
-    '/head_pose': 'geometry_msgs/msg/PoseStamped',
-    '/segment_poses': 'geometry_msgs/msg/PoseArray',
-    '/segment_markers': 'visualization_msgs/msg/MarkerArray',
-    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
-    '/parameter_events': 'rcl_interfaces/msg/ParameterEvent',
-    '/tf': 'tf2_msgs/msg/TFMessage',
-}
-
-
-def head_at(t):
-    """A swaying, turning head (m, quaternion)."""
-    w = 2.0 * math.pi * 1.5
-    p = P_HEAD + np.array([0.12 * math.sin(w * t), 0.04 * math.cos(w * t),
-                           0.02 * math.sin(2 * w * t)])
-    q = quat_from_rotvec(np.array([0.2, -0.1, 0.8 + 0.3 * math.sin(w * t)]))
-    return p, q
-
-
-_LIVE = {}
-
-
-def live_recording(tmp_root):
-    """Run the node in-process with ``record_path`` set for ``RUN_TICKS`` ticks, a moving head
-    published at 100 Hz (one NaN sample, one zero stamp), a live tunable and a live structural
-    parameter change; return what was sent and received and the recording's path. Made once."""
-    if 'run' in _LIVE:
-        return _LIVE['run']
-    path = Path(tmp_root) / 'live_run.mcap'
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=TEST_DOMAIN_ID)
-    try:
-        # One RK4 step per tick (dt = 1/rate): a loaded machine's late ticks then cost few
-        # steps, so the run cannot fall further and further behind.
-        node = PonytailNode(context=ctx, parameter_overrides=overrides(
-            record_path=str(path), diagnostics_period=0.2, solver__dt=1.0 / 120.0))
-        tester = rclpy.create_node('tester', context=ctx)
-        head_pub = tester.create_publisher(PoseStamped, 'head_pose', 10)
-        got = SimpleNamespace(path=path, sent=[], poses=[], markers=[], diags=[], first=10**9)
-        tester.create_subscription(PoseArray, 'segment_poses', got.poses.append, 100)
-        tester.create_subscription(MarkerArray, 'segment_markers', got.markers.append, 100)
-        tester.create_subscription(DiagnosticArray, '/diagnostics', got.diags.append, 100)
-
-        def publish_head():
-            t = tester.get_clock().now().nanoseconds * 1e-9
-            p, q = head_at(t)
-            k = len(got.sent) - got.first
-            if k == NAN_SAMPLE:
-                p = np.array([math.nan, 0.0, 0.0])
-            msg = pose_msg(t, p, q, 'world')
-            if k == ZERO_STAMP_SAMPLE:
-                msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
-            head_pub.publish(msg)
-            got.sent.append(msg)
-        tester.create_timer(0.01, publish_head)
-        executor = SingleThreadedExecutor(context=ctx)
-        executor.add_node(node)
-        executor.add_node(tester)
-        deadline = time.monotonic() + 10.0 * TIMEOUT_SCALE
-        while not got.poses and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.005)
-        assert got.poses, 'the node published nothing'
-        got.first = len(got.sent)
-        pending = list(CHANGES)
-        deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
-        while len(got.poses) < RUN_TICKS and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.005)
-            if pending and len(got.poses) >= pending[0][0]:
-                _, change = pending.pop(0)
-                results = node.set_parameters([Parameter(k, value=v) for k, v in change.items()])
-                assert all(r.successful for r in results)
-        names = node.list_parameters([], 0).names
-        got.parameters = {p.name: p.value for p in node.get_parameters(names)}
-        executor.shutdown()
-        node.destroy_node()          # finalises the recording
-        tester.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-    _LIVE['run'] = got
-    return got
-
-
-@pytest.fixture
-def live_run(tmp_path_factory):
-    return live_recording(tmp_path_factory.getbasetemp())
 
 
 def by_topic(path):
@@ -325,7 +227,7 @@ def child_env():
 def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_context, tmp_path):
     files = {ns: tmp_path / f'{ns}.mcap' for ns in ('kill', 'term', 'int')}
     procs = {ns: subprocess.Popen(
-        [sys.executable, '-m', 'ponytail_ros.ros.node', '--ros-args', '--params-file',
+        [sys.executable, '-m', 'ponytail_ros.node', '--ros-args', '--params-file',
          str(CONFIG), '-r', f'__ns:=/{ns}', '-p', f'record_path:={path}',
          # a light chain: three nodes share a (possibly loaded) test machine
          '-p', 'ponytail.n_segments:=4', '-p', 'markers.style:=line'],

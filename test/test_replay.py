@@ -21,32 +21,20 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from test_recording import TYPES, live_recording  # noqa: E402
-from test_node import TIMEOUT_SCALE  # noqa: E402
+from ros_helpers import TIMEOUT_SCALE, TYPES, poses_by_stamp, topic_messages  # noqa: E402
 from ponytail_ros.bench import replay_bench  # noqa: E402
 from ponytail_ros.core.rotations import quat_rotate  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter  # noqa: E402
-from ponytail_ros.recording.params import (  # noqa: E402
+from ponytail_ros.app.param_values import (  # noqa: E402
     complete_values, values_from_metadata, values_from_params_file)
 from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
-from ponytail_ros.recording.replay import live_replay, main, replay  # noqa: E402
-from ponytail_ros.ros.runner import START_SAMPLES  # noqa: E402
+from ponytail_ros.recording.live import live_replay  # noqa: E402
+from ponytail_ros.recording.cli import main  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
+from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
 from ponytail_ros.resources import config_path  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def live_run(tmp_path_factory):
-    return live_recording(tmp_path_factory.getbasetemp())
-
-
-def topic_messages(path, topic):
-    return [(m, t) for _, _, m, t in BagReader(path).messages(topic)]
-
-
-def poses_by_stamp(path, topic='/segment_poses'):
-    return {stamp_ns(m.header.stamp): m for m, _ in topic_messages(path, topic)}
 
 
 def pose_array(msg):

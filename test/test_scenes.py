@@ -14,12 +14,13 @@ import pytest
 from ponytail_ros.core import Simulator
 from ponytail_ros.core.head import HeadMotion, KinematicState, WithStaticBodies
 from ponytail_ros.core.rotations import quat_multiply, quat_rotate
-from ponytail_ros.recording.params import (complete_values, scene_and_settings,
+from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
                                            values_from_params_file)
 from ponytail_ros.resources import config_path
 
-from test_core_collision import TOLERANCE, ShakeMotion
-from test_core_limits import ANGLE_TOLERANCE
+from ponytail_ros.app.motions import ShakeNodHead
+from helpers import ANGLE_TOLERANCE
+from helpers import PENETRATION_TOLERANCE as TOLERANCE
 
 SCENES = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail.yaml',
           'tail_and_ponytail.yaml', 'ponytail_arm.yaml')
@@ -69,7 +70,7 @@ def test_rope_from_the_ceiling_conserves_energy_with_gravity_only():
     with its energy conserved (RK4 at 1/240 s) and its root on the ceiling point."""
     values, scene = scene_of('rope.yaml')
     # The head is irrelevant.
-    motion = WithStaticBodies(ShakeMotion(), scene.n_kinematic_bodies - 1)
+    motion = WithStaticBodies(ShakeNodHead(), scene.n_kinematic_bodies - 1)
     sim = Simulator(scene, motion)
     (c,) = scene.chains
     e0 = sum(float(e.sum()) for e in sim.energy())
@@ -129,7 +130,7 @@ def test_colliders_and_limits_of_each_scene_hold_under_a_violent_shake(name):
     forearm) are carried by the shaken head."""
     values, scene = scene_of(name)
     frames = list(values['frames'])
-    motion = FramesOnHead(ShakeMotion(), frames, scene.n_kinematic_bodies - 1 - len(frames))
+    motion = FramesOnHead(ShakeNodHead(), frames, scene.n_kinematic_bodies - 1 - len(frames))
     sim = Simulator(scene, motion)
     m = sim.model
     swing_max = np.concatenate([c.joint_limits('swing_limit') for c in scene.chains])
@@ -159,11 +160,10 @@ from rclpy.parameter import Parameter  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from ponytail_ros.recording.replay import replay  # noqa: E402
-from ponytail_ros.ros.head_script import HeadScript  # noqa: E402
-from ponytail_ros.ros.node import PonytailNode  # noqa: E402
-from test_node import TIMEOUT_SCALE, pose_msg  # noqa: E402
-from test_replay import poses_by_stamp  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
+from ponytail_ros.app.head_script import HeadScript  # noqa: E402
+from ponytail_ros.node import PonytailNode  # noqa: E402
+from ros_helpers import TIMEOUT_SCALE, pose_msg, poses_by_stamp  # noqa: E402
 
 TICKS = 60
 
@@ -247,7 +247,7 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
 def test_collider_and_limit_parameters_are_checked_named_and_applied_live(ros_context):
     """Bad collider/limit values are refused at start-up and live with the parameter's name
     and range (the running value stays); a good live change rebuilds the chain with it."""
-    from ponytail_ros.ros.parameters import ParameterError
+    from ponytail_ros.app.parameters import ParameterError
     params = dict(values_from_params_file(config_path('ponytail.yaml')))
 
     def make(**changes):
@@ -289,7 +289,7 @@ def test_per_segment_parameters_in_the_node(ros_context):
     """Per-segment lengths and masses and per-joint limits as node parameters: integers are
     taken for doubles, a list of the wrong size is refused naming it (the running value stays),
     a good live change rebuilds the chain with it, and [] goes back to the uniform chain."""
-    from ponytail_ros.ros.parameters import ParameterError
+    from ponytail_ros.app.parameters import ParameterError
     lengths = [0.2, 0.1, 0.05]
 
     def make(**p):

@@ -58,7 +58,9 @@ from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, Sce
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.bench.motions import SinusoidHead, SpinHead, reference_motion
+from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
+from helpers import chain_sim, reference_ponytail
+from helpers import total_energy as energy
 
 hypothesis = pytest.importorskip('hypothesis')
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
@@ -69,23 +71,12 @@ RK4, SE, RATTLE = 'rk4', 'symplectic_euler', 'rattle'
 
 
 # -- helpers ------------------------------------------------------------------------------------
-def ponytail(n=10, length=0.4, mass=0.1, radius=0.01, **kw):
-    """The reference ponytail's geometry, undamped unless ``damping`` is given."""
-    kw.setdefault('damping', 0.0)
-    return ChainSpec(n_segments=n, length=length, mass=mass, radius=radius,
-                     attach=(-0.10, 0.0, 0.05), **kw)
+ponytail = reference_ponytail
 
 
 def make_sim(chain, motion=STILL, integrator=RK4, dt=1 / 240, gravity=(0.0, 0.0, -9.81), **solver):
-    solver.setdefault('max_steps_per_call', 1_000_000)
-    sc = Scene(chains=(chain,), gravity=gravity,
-               solver=SolverSpec(integrator=integrator, dt=dt, **solver))
-    return Simulator(sc, motion, 0.0)
+    return chain_sim(chain, motion, integrator, dt, gravity=gravity, **solver)
 
-
-def energy(sim):
-    ke, pe = sim.energy()
-    return float(ke.sum() + pe.sum())
 
 
 def tilted(angle_deg):

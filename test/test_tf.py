@@ -10,8 +10,7 @@ pytest.importorskip('rclpy')
 highlevel = pytest.importorskip('rosbags.highlevel')
 typesys = pytest.importorskip('rosbags.typesys')
 
-from test_bag_integrity import head_samples, rosbags_bag, run  # noqa: E402
-from test_bag_integrity import params  # noqa: E402,F401  (fixture)
+from ros_helpers import head_samples, rosbags_bag, run  # noqa: E402
 from ponytail_ros.recording.tf import (TFMESSAGE_TYPE, tf_message_cdr,  # noqa: E402
                                        tfmessage_type_hash)
 

@@ -34,7 +34,7 @@ import numpy as np
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
-from .motions import SinusoidHead
+from ponytail_ros.app.motions import SinusoidHead
 
 try:  # optional dependency
     import mujoco

@@ -43,8 +43,8 @@ import numpy as np
 
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ChainSpec, Scene
-from ponytail_ros.ros.head_script import HeadScript
-from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
+from ponytail_ros.app.head_script import HeadScript
+from ponytail_ros.app.runner import ChainRunner, RunnerSettings
 
 CHAIN = dict(n_segments=20, length=0.4, mass=0.12, radius=0.03, attach=(-0.09, 0.0, 0.06),
              damping=1e-3, drag_linear=0.05)
@@ -118,7 +118,7 @@ def ros_case(n_chains, duration, input_rate, domain_id):
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from ponytail_ros.ros.node import PonytailNode
+    from ponytail_ros.node import PonytailNode
 
     params = [Parameter(name, value=v) for name, v in _node_parameters(n_chains)]
     topic = 'segment_poses' if n_chains == 1 else 'segment_poses/c0'

@@ -74,7 +74,7 @@ KEYS = (('p', 'position'), ('v', 'linear_velocity'), ('a', 'linear_acceleration'
 
 
 def _look_ahead_estimator():
-    from ponytail_ros.recording.replay import LOOK_AHEAD_VALUES as L
+    from ponytail_ros.recording.offline import LOOK_AHEAD_VALUES as L
     return HeadEstimator(degree=L['head.degree'], min_samples=L['head.min_samples'],
                          window=L['head.window'], max_samples=100000)
 
@@ -164,7 +164,8 @@ def tip_errors(rate, jitter, mode, dt, duration=3.0, seed=0, workdir=None, motio
                exact_cache=None):
     """RMS and max tip distance (m) of the replayed chain to the exactly driven one."""
     import yaml
-    from ponytail_ros.recording.replay import load_chain_runs, replay
+    from ponytail_ros.recording.compare import load_chain_runs
+    from ponytail_ros.recording.offline import replay
     motion = motion or SwayYawMotion()
     # 0.4 s of poses beyond the compared span: the look-ahead fit is centred up to its end.
     ts, ps, qs = sample_stream(motion, rate, duration + 0.4, jitter=jitter, seed=seed)
@@ -247,7 +248,8 @@ def reference_figures(log=print, rates=(30, 60, 120, 1000), workdir=None):
     import yaml
     from scipy.interpolate import CubicSpline
     from ponytail_ros.core.reference import default_reference_dir, load_reference
-    from ponytail_ros.recording.replay import load_chain_runs, replay
+    from ponytail_ros.recording.compare import load_chain_runs
+    from ponytail_ros.recording.offline import replay
     ref = load_reference(default_reference_dir() / 'ponytail_N10_moving_hanging.json')
     ok = ref.t <= ref.window() + 1e-9
     t_ref, tip_ref = ref.t[ok], ref.points[-1][ok]
@@ -356,7 +358,7 @@ def start_whip(case, input_rate, tick_rate=120.0, t_event=0.6):
     first output; ``'teleport'``: a 1 m jump of the running head at ``t_event``;
     ``'rebuild'``: a structural change at ``t_event``), the node's defaults with
     ``output_stamp: simulated``. Returns ``(speeds, runner, t_from)``."""
-    from ponytail_ros.ros.runner import ChainRunner, RunnerSettings
+    from ponytail_ros.app.runner import ChainRunner, RunnerSettings
     t_event = 0.0 if case == 'start' else t_event
     motion = RunAndTurn(t_jump=t_event if case == 'teleport' else None)
     r = ChainRunner(whip_scene(), RunnerSettings(output_stamp='simulated'))

@@ -38,7 +38,7 @@ def make_head_recording(path, seconds, rate=INPUT_RATE, t0_ns=1_700_000_000_000_
     """A head-only recording of the demo head script (as ``ros2 bag record`` would store it)."""
     from geometry_msgs.msg import PoseStamped
     from ponytail_ros.recording.bag import BagWriter
-    from ponytail_ros.ros.head_script import HeadScript
+    from ponytail_ros.app.head_script import HeadScript
     script = HeadScript()
     period_ns = int(round(1e9 / rate))
     msg = PoseStamped()
@@ -77,8 +77,8 @@ def scene_params(n_chains, n_segments=20):
 def simulation_only(head_path, values):
     """Wall time of the runner alone over the input (pushes and nominal ticks)."""
     from ponytail_ros.recording.bag import BagReader
-    from ponytail_ros.recording.params import scene_and_settings
-    from ponytail_ros.ros.runner import ChainRunner
+    from ponytail_ros.app.param_values import scene_and_settings
+    from ponytail_ros.app.runner import ChainRunner
     _, scene, settings = scene_and_settings(values)
     samples = []
     for _, _, m, log_ns in BagReader(head_path).messages('/head_pose'):
@@ -100,8 +100,8 @@ def simulation_only(head_path, values):
 
 
 def bench_scene(tmp, head_path, n_chains, repeat=1):
-    from ponytail_ros.recording.params import complete_values, values_from_params_file
-    from ponytail_ros.recording.replay import replay
+    from ponytail_ros.app.param_values import complete_values, values_from_params_file
+    from ponytail_ros.recording.offline import replay
     params_path = Path(tmp) / f'params_{n_chains}.yaml'
     params_path.write_text(yaml.safe_dump(scene_params(n_chains)))
     best = None

@@ -31,7 +31,7 @@ import numpy as np
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
 
-from .motions import reference_motion, shake_motion
+from ponytail_ros.app.motions import reference_motion, shake_motion
 
 __all__ = ['BenchScene', 'make_scene', 'SCENES', 'EXTRA_SCENES', 'REFERENCE_DIR',
            'shared_reference_path', 'ponytail_chain']

@@ -133,7 +133,7 @@ READY_MADE = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail
 def ready_made_scenes(names=READY_MADE):
     """``[(name, Scene, what it enables)]`` of the ready-made params files, as the node builds
     them (a world-anchored chain gets the static world body)."""
-    from ponytail_ros.recording.params import (complete_values, scene_and_settings,
+    from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
                                                values_from_params_file)
     from ponytail_ros.resources import config_path
     out = []
@@ -168,7 +168,7 @@ def bench_ready_made(seconds=3.0, repeats=3, out=print):
     Returns ``[(name, what, segments, cpu_s_per_simulated_s, rows_per_step)]``.
     """
     from ponytail_ros.core.head import WithStaticBodies
-    from ponytail_ros.ros.head_script import HeadScript
+    from ponytail_ros.app.head_script import HeadScript
     scenes = ready_made_scenes()
     best, rows = {}, {}
     for _ in range(repeats):

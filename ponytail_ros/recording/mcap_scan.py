@@ -106,6 +106,21 @@ def _opcode_name(opcode: int) -> str:
         return f'opcode {opcode:#04x}'
 
 
+#: ``McapScan._next_record``: nothing more can be read.
+_STOP = object()
+
+
+@dataclass
+class _Walk:
+    """Where a walk through the records is: the next offset, the running CRC of the bytes
+    read (the data section's, while ``in_data``) and its value at the ``DataEnd`` record."""
+
+    offset: int
+    crc: int
+    in_data: bool = True
+    data_crc: int = 0
+
+
 class McapScan:
     """Reads an MCAP file record by record (see the module docstring).
 
@@ -156,87 +171,123 @@ class McapScan:
         with self.path.open('rb') as f:
             if f.read(len(MAGIC)) != MAGIC:
                 self._damaged(0, 'not an MCAP file (no leading magic)', False)
-            crc = zlib.crc32(MAGIC)
-            offset = len(MAGIC)
-            in_data = True
+            walk = _Walk(offset=len(MAGIC), crc=zlib.crc32(MAGIC))
             while True:
-                frame = f.read(_FRAME.size)
-                if not frame:
-                    self._cut(offset, 'the file ends before its footer (summary and index '
-                                      'missing: was its writer killed?)', skip_damaged)
+                item = self._next_record(f, walk, skip_damaged)
+                if item is _STOP:
                     return
-                if len(frame) < _FRAME.size:
-                    self._cut(offset, f'the last record is cut short ({len(frame)} bytes of '
-                                      f'its 9-byte header)', skip_damaged)
-                    return
-                opcode, length = _FRAME.unpack(frame)
-                if opcode not in _READERS and opcode != Opcode.MESSAGE:
-                    if 0x01 <= opcode <= 0x7F or opcode == 0:
-                        # 0x01-0x7F are reserved for the spec (0x10-0x7F unused so far);
-                        # an unknown opcode there, or 0, is not a record.
-                        resync = self._damaged_frame(
-                            f, offset, f'{_opcode_name(opcode)} is not a record type',
-                            skip_damaged)
-                        if resync is None:
-                            return
-                        offset = resync
-                        in_data = False  # the data-section CRC cannot be checked any more
-                        continue
-                remaining = self.size - offset - _FRAME.size
-                if length > remaining:
-                    text = (f'{_opcode_name(opcode)} record claims {length} bytes but only '
-                            f'{remaining} follow')
-                    if self.finished:
-                        resync = self._damaged_frame(f, offset, text, skip_damaged)
-                        if resync is None:
-                            return
-                        offset = resync
-                        in_data = False
-                        continue
-                    self.truncation = Problem('truncated', offset, text + ' (the file is cut '
-                                                                           'short)')
-                    return
-                content = f.read(length)
-                if opcode == Opcode.DATA_END and in_data:
-                    data_crc = crc
-                crc = zlib.crc32(content, zlib.crc32(frame, crc))
-                if opcode not in _READERS and opcode != Opcode.MESSAGE:
-                    offset += _FRAME.size + length  # a user opcode (0x80-0xFF): skipped
+                if item is None:
                     continue
-                try:
-                    record = _parse(opcode, content)
-                except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
-                    self._damaged(offset, f'malformed {_opcode_name(opcode)} record '
-                                          f'({exc or type(exc).__name__})', skip_damaged)
-                    offset += _FRAME.size + length
-                    continue
-                here, offset = offset, offset + _FRAME.size + length
-                if isinstance(record, DataEnd):
-                    if (in_data and record.data_section_crc
-                            and record.data_section_crc != data_crc):
-                        self._damaged(here, f'the data section CRC does not match (stored '
-                                            f'{record.data_section_crc:#010x}, computed '
-                                            f'{data_crc:#010x}): bytes were changed',
-                                      skip_damaged)
-                    in_data = False
+                here, record = item
+                self._check_data_end(here, record, walk, skip_damaged)
                 if isinstance(record, Chunk) and expand_chunks:
-                    inner = self._chunk_records(here, record, skip_damaged)
-                    if inner is None:
-                        continue
-                    for item in inner:
-                        yield here, item
+                    for inner in self._chunk_records(here, record, skip_damaged) or ():
+                        yield here, inner
                     continue
                 yield here, record
                 if isinstance(record, Footer):
                     self.footer_seen = True
                     if f.read(len(MAGIC)) != MAGIC:
-                        self._damaged(offset, 'no trailing magic after the footer',
+                        self._damaged(walk.offset, 'no trailing magic after the footer',
                                       skip_damaged)
                     return
+
+    def _next_record(self, f, walk: '_Walk', skip: bool):
+        """The next record at ``walk.offset`` as ``(offset, record)``; None when there was
+        none to give there (damage skipped, a user opcode); ``_STOP`` at the end of what can
+        be read (a cut, or damage that cannot be skipped past)."""
+        offset = walk.offset
+        frame = f.read(_FRAME.size)
+        if not frame:
+            self._cut(offset, 'the file ends before its footer (summary and index '
+                              'missing: was its writer killed?)', skip)
+            return _STOP
+        if len(frame) < _FRAME.size:
+            self._cut(offset, f'the last record is cut short ({len(frame)} bytes of '
+                              f'its 9-byte header)', skip)
+            return _STOP
+        opcode, length = _FRAME.unpack(frame)
+        known = opcode in _READERS or opcode == Opcode.MESSAGE
+        if not known and (0x01 <= opcode <= 0x7F or opcode == 0):
+            # 0x01-0x7F are reserved for the spec (0x10-0x7F unused so far); an unknown
+            # opcode there, or 0, is not a record.
+            return self._resync(f, walk, f'{_opcode_name(opcode)} is not a record type', skip)
+        remaining = self.size - offset - _FRAME.size
+        if length > remaining:
+            text = (f'{_opcode_name(opcode)} record claims {length} bytes but only '
+                    f'{remaining} follow')
+            if self.finished:
+                return self._resync(f, walk, text, skip)
+            self.truncation = Problem('truncated', offset, text + ' (the file is cut short)')
+            return _STOP
+        content = f.read(length)
+        if opcode == Opcode.DATA_END and walk.in_data:
+            walk.data_crc = walk.crc
+        walk.crc = zlib.crc32(content, zlib.crc32(frame, walk.crc))
+        walk.offset = offset + _FRAME.size + length
+        if not known:
+            return None  # a user opcode (0x80-0xFF): skipped
+        try:
+            return offset, _parse(opcode, content)
+        except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
+            self._damaged(offset, f'malformed {_opcode_name(opcode)} record '
+                                  f'({exc or type(exc).__name__})', skip)
+            return None
+
+    def _resync(self, f, walk: '_Walk', text: str, skip: bool):
+        """Damage at ``walk.offset``: on at the next record found (None), or ``_STOP``; the
+        data-section CRC cannot be checked any more either way."""
+        resync = self._damaged_frame(f, walk.offset, text, skip)
+        if resync is None:
+            return _STOP
+        walk.offset = resync
+        walk.in_data = False
+        return None
+
+    def _check_data_end(self, offset: int, record: McapRecord, walk: '_Walk',
+                        skip: bool) -> None:
+        """At the data section's end: its CRC (when it was read through) against the stored."""
+        if not isinstance(record, DataEnd):
+            return
+        if walk.in_data and record.data_section_crc and record.data_section_crc != walk.data_crc:
+            self._damaged(offset, f'the data section CRC does not match (stored '
+                                  f'{record.data_section_crc:#010x}, computed '
+                                  f'{walk.data_crc:#010x}): bytes were changed', skip)
+        walk.in_data = False
 
     def _chunk_records(self, offset: int, chunk: Chunk, skip: bool
                        ) -> Optional[List[McapRecord]]:
         """The records of a chunk, checked; None (damage recorded) if it is damaged."""
+        data = self._chunk_data(offset, chunk, skip)
+        if data is None:
+            return None
+        out = []
+        pos = 0
+        while pos < len(data):
+            if len(data) - pos < _FRAME.size:
+                self._damaged(offset, f'chunk ends inside a record header (at {pos} of '
+                                      f'{len(data)} bytes)', skip)
+                return None
+            opcode, length = _FRAME.unpack_from(data, pos)
+            start = pos + _FRAME.size
+            if length > len(data) - start:
+                self._damaged(offset, f'a {_opcode_name(opcode)} record in the chunk claims '
+                                      f'{length} bytes, only {len(data) - start} follow', skip)
+                return None
+            pos = start + length
+            if opcode not in _IN_CHUNK:
+                continue  # unknown in-chunk record types are skipped (the spec's rule)
+            try:
+                out.append(_parse(opcode, data[start:pos]))
+            except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
+                self._damaged(offset, f'malformed {_opcode_name(opcode)} record in the chunk '
+                                      f'({exc or type(exc).__name__})', skip)
+                return None
+        return out
+
+    def _chunk_data(self, offset: int, chunk: Chunk, skip: bool) -> Optional[bytes]:
+        """A chunk's records as bytes, decompressed and checked (size, CRC); None (damage
+        recorded) if damaged. A compression mcap cannot read is an error, not damage."""
         try:
             if chunk.compression == '':
                 data = chunk.data
@@ -265,29 +316,7 @@ class McapScan:
                                       f', computed {actual:#010x}): its bytes were changed',
                               skip)
                 return None
-        out = []
-        pos = 0
-        while pos < len(data):
-            if len(data) - pos < _FRAME.size:
-                self._damaged(offset, f'chunk ends inside a record header (at {pos} of '
-                                      f'{len(data)} bytes)', skip)
-                return None
-            opcode, length = _FRAME.unpack_from(data, pos)
-            start = pos + _FRAME.size
-            if length > len(data) - start:
-                self._damaged(offset, f'a {_opcode_name(opcode)} record in the chunk claims '
-                                      f'{length} bytes, only {len(data) - start} follow', skip)
-                return None
-            pos = start + length
-            if opcode not in _IN_CHUNK:
-                continue  # unknown in-chunk record types are skipped (the spec's rule)
-            try:
-                out.append(_parse(opcode, data[start:pos]))
-            except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
-                self._damaged(offset, f'malformed {_opcode_name(opcode)} record in the chunk '
-                                      f'({exc or type(exc).__name__})', skip)
-                return None
-        return out
+        return data
 
     def _damaged_frame(self, f, offset: int, text: str, skip: bool) -> Optional[int]:
         """A record whose framing cannot be trusted: raise (strict) or find the next intact

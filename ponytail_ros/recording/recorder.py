@@ -48,7 +48,7 @@ from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of
 from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
                  tfmessage_type_hash)
 from .cdr import serialize_canonical
-from .params import metadata_from_values
+from ponytail_ros.app.param_values import metadata_from_values
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
            'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'stamp_ns', 'expand_record_path',
@@ -222,7 +222,6 @@ class RunRecorder:
         self.layout = layout
         self.on_error = on_error
         self._error_reported = False
-        self._clock = None  # the node clock of a for_node recorder
         self._canonical = canonical
         self._closed = False
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
@@ -327,6 +326,27 @@ class RunRecorder:
                                     for name, value in sorted(changed.items())]
         self.write(self.layout.parameter_events_topic, event, log_time_ns)
 
+    # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
+    def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
+        """The head pose (``source`` None) or frame ``source``'s, as received."""
+        if source is None:
+            self.head(msg, log_time_ns)
+        else:
+            self.frame(source, msg, log_time_ns)
+
+    def on_tick(self, tick: Any, log_time_ns: int) -> None:
+        """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""
+        for c, msg in enumerate(tick.poses):
+            self.poses(c, msg, log_time_ns)
+        if tick.markers is not None:
+            self.markers(tick.markers, log_time_ns)
+
+    def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
+        self.diagnostics(msg, log_time_ns)
+
+    def on_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
+        self.parameters_changed(changed, log_time_ns)
+
     def close(self) -> None:
         """Finalise the file (idempotent)."""
         self._closed = True
@@ -379,39 +399,11 @@ class RunRecorder:
                         f'(remove it, or use a new record_path, e.g. with %Y%m%d_%H%M%S)')
             logger.error(f'Not recording: {text}; the simulation goes on without recording')
             return None
-        recorder._clock = node.get_clock()
         logger.info(f'Recording to {recorder.path}')
         return recorder
-
-    def recording(self, publisher) -> '_RecordingPublisher':
-        """``publisher`` wrapped: ``publish(msg)`` records ``msg`` at the node clock's time, then
-        publishes it (:meth:`for_node` recorders only)."""
-        return _RecordingPublisher(publisher, self, self._clock)
 
 
 def _plain(value):
     if isinstance(value, (str, bool, int, float)) or value is None:
         return value
     return list(value)
-
-
-class _RecordingPublisher:
-    """An rclpy publisher whose ``publish`` also records the message (log time: the node clock
-    at publishing, as a recorder subscribed to the topic would see it).
-
-    Recorded first, then published: a SIGTERM or Ctrl-C that shuts the context down between the
-    two must never leave a message that a subscriber received but the file lacks.
-    """
-
-    def __init__(self, publisher, recorder: RunRecorder, clock):
-        self._publisher = publisher
-        self._recorder = recorder
-        self._clock = clock
-        self._topic = publisher.topic_name
-
-    def publish(self, msg) -> None:
-        self._recorder.write(self._topic, msg, self._clock.now().nanoseconds)
-        self._publisher.publish(msg)
-
-    def __getattr__(self, name):
-        return getattr(self._publisher, name)

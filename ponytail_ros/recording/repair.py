@@ -112,77 +112,106 @@ def repair(input_path: Union[str, os.PathLike], output_path: Union[str, os.PathL
 
 
 def _copy(scan: McapScan, stream, result: RepairResult) -> None:
-    writer = Writer(stream, compression=CompressionType.NONE, enable_data_crcs=True)
-    started = False
-    schema_ids: Dict[int, int] = {}
-    channel_ids: Dict[int, int] = {}
-    channels: Dict[int, Channel] = {}
-    schemas: Dict[int, Schema] = {}
-    counts: Dict[int, int] = {}
-    first, last = _MAX_TIME_NS, 0
-    rosbag2: Optional[Dict[str, str]] = None
-
-    def start(profile='', library=''):
-        nonlocal started
-        if not started:
-            writer.start(profile=profile, library=library or 'ponytail_replay repair')
-            started = True
-
+    """Every intact record of the data section of ``scan`` into a new MCAP file on
+    ``stream`` (its summary and index written anew), counted into ``result``."""
+    copier = _Copier(stream, result)
     in_summary = False
+    # Read to the end even past the data section: the scan checks the summary and footer too.
     for _, record in scan.records(skip_damaged=True):
         if isinstance(record, Header):
-            start(record.profile, record.library)
+            copier.start(record.profile, record.library)
             continue
-        start()
+        copier.start()
         if type(record).__name__ == 'DataEnd':
             in_summary = True   # summary records repeat the data section's: not copied twice
-        if in_summary:
-            continue
+        if not in_summary:
+            copier.copy(record)
+    copier.finish()
+
+
+class _Copier:
+    """The records of a data section copied one by one; schemas and channels re-numbered by
+    the writer, a channel whose schema was lost dropped with its messages, and the counts and
+    times of what was kept (the rosbag2 metadata is rewritten from them)."""
+
+    def __init__(self, stream, result: RepairResult):
+        self.writer = Writer(stream, compression=CompressionType.NONE, enable_data_crcs=True)
+        self.result = result
+        self.started = False
+        self.schema_ids: Dict[int, int] = {}
+        self.channel_ids: Dict[int, int] = {}
+        self.channels: Dict[int, Channel] = {}
+        self.schemas: Dict[int, Schema] = {}
+        self.counts: Dict[int, int] = {}
+        self.first, self.last = _MAX_TIME_NS, 0
+        self.rosbag2: Optional[Dict[str, str]] = None
+
+    def start(self, profile: str = '', library: str = '') -> None:
+        if not self.started:
+            self.writer.start(profile=profile, library=library or 'ponytail_replay repair')
+            self.started = True
+
+    def copy(self, record) -> None:
         if isinstance(record, Schema):
-            if record.id not in schema_ids:
-                schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
-                                                               record.data)
-                schemas[record.id] = record
+            self._schema(record)
         elif isinstance(record, Channel):
-            if record.id not in channel_ids:
-                if record.schema_id and record.schema_id not in schema_ids:
-                    continue  # its schema was in a damaged part: its messages cannot be read
-                channel_ids[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding,
-                    schema_ids.get(record.schema_id, 0), dict(record.metadata))
-                channels[record.id] = record
-                counts[record.id] = 0
+            self._channel(record)
         elif isinstance(record, Message):
-            new = channel_ids.get(record.channel_id)
-            if new is None:
-                continue
-            writer.add_message(new, record.log_time, record.data, record.publish_time,
-                               record.sequence)
-            counts[record.channel_id] += 1
-            first, last = min(first, record.log_time), max(last, record.log_time)
+            self._message(record)
         elif isinstance(record, Metadata):
             if record.name == _ROSBAG2:
-                rosbag2 = dict(record.metadata)
-            writer.add_metadata(record.name, dict(record.metadata))
-            result.metadata += 1
+                self.rosbag2 = dict(record.metadata)
+            self.writer.add_metadata(record.name, dict(record.metadata))
+            self.result.metadata += 1
         elif isinstance(record, Attachment):
-            writer.add_attachment(record.create_time, record.log_time, record.name,
-                                  record.media_type, record.data)
-            result.attachments += 1
-    start()
-    result.messages = sum(counts.values())
-    result.topics = len(channels)
-    if rosbag2 is not None:
-        writer.add_metadata(_ROSBAG2, _final_rosbag2(rosbag2, channels, schemas, counts,
-                                                     first, last, result.output.name))
-        result.metadata += 1
-    writer.finish()
+            self.writer.add_attachment(record.create_time, record.log_time, record.name,
+                                       record.media_type, record.data)
+            self.result.attachments += 1
+
+    def _schema(self, record: Schema) -> None:
+        if record.id not in self.schema_ids:
+            self.schema_ids[record.id] = self.writer.register_schema(
+                record.name, record.encoding, record.data)
+            self.schemas[record.id] = record
+
+    def _channel(self, record: Channel) -> None:
+        if record.id in self.channel_ids:
+            return
+        if record.schema_id and record.schema_id not in self.schema_ids:
+            return  # its schema was in a damaged part: its messages cannot be read
+        self.channel_ids[record.id] = self.writer.register_channel(
+            record.topic, record.message_encoding,
+            self.schema_ids.get(record.schema_id, 0), dict(record.metadata))
+        self.channels[record.id] = record
+        self.counts[record.id] = 0
+
+    def _message(self, record: Message) -> None:
+        new = self.channel_ids.get(record.channel_id)
+        if new is None:
+            return
+        self.writer.add_message(new, record.log_time, record.data, record.publish_time,
+                                record.sequence)
+        self.counts[record.channel_id] += 1
+        self.first = min(self.first, record.log_time)
+        self.last = max(self.last, record.log_time)
+
+    def finish(self) -> None:
+        self.start()
+        result = self.result
+        result.messages = sum(self.counts.values())
+        result.topics = len(self.channels)
+        if self.rosbag2 is not None:
+            self.writer.add_metadata(_ROSBAG2, _final_rosbag2(
+                self.rosbag2, self.channels, self.schemas, self.counts, self.first, self.last,
+                result.output.name))
+            result.metadata += 1
+        self.writer.finish()
 
 
 def _final_rosbag2(record: Dict[str, str], channels, schemas, counts, first: int, last: int,
                    file_name: str) -> Dict[str, str]:
     """The input's last ``rosbag2`` record with the counts and times of what was kept."""
-    from .bag import _dump_yaml
+    from .bag.metadata import _dump_yaml
     try:
         bag = yaml.safe_load(record.get('serialized_metadata', '')) or {}
     except yaml.YAMLError:

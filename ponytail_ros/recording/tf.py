@@ -22,6 +22,8 @@ import struct
 from functools import lru_cache
 from typing import Iterable, Sequence, Tuple
 
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
+
 __all__ = ['TFMESSAGE_TYPE', 'TFMESSAGE_MSG', 'TF_TOPIC', 'TF_QOS_DEPTH', 'tf_message_cdr',
            'segment_frame', 'tf_from_pose_array', 'tfmessage_type_hash',
            'type_description_hash', 'tf2_msgs_available']
@@ -29,9 +31,6 @@ __all__ = ['TFMESSAGE_TYPE', 'TFMESSAGE_MSG', 'TF_TOPIC', 'TF_QOS_DEPTH', 'tf_me
 TFMESSAGE_TYPE = 'tf2_msgs/msg/TFMessage'
 #: ``tf2_msgs/msg/TFMessage.msg`` of ros2/geometry2, byte for byte.
 TFMESSAGE_MSG = 'geometry_msgs/TransformStamped[] transforms\n'
-TF_TOPIC = '/tf'
-#: tf2_ros's ``DynamicBroadcasterQoS``: reliable, volatile, keep last 100.
-TF_QOS_DEPTH = 100
 
 _U32 = struct.Struct('<I')
 _TIME = struct.Struct('<iI')
@@ -39,11 +38,6 @@ _POSE = struct.Struct('<7d')
 _HEADER = b'\x00\x01\x00\x00'  # CDR little endian, options 0
 # rosidl type ids (type_description_interfaces/msg/FieldType)
 _NESTED_UNBOUNDED_SEQUENCE = 145
-
-
-def segment_frame(prefix: str, chain: str, index: int) -> str:
-    """The TF frame of segment ``index`` (0 = root) of ``chain``: ``<prefix><chain>/<index>``."""
-    return f'{prefix}{chain}/{index}'
 
 
 def _string(out: bytearray, text: str) -> None:
@@ -89,7 +83,7 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     referenced descriptions are read from their packages' ``.json`` files, then hashed as
     ``rosidl_generator_type_description.calculate_type_hash`` does. '' if a dependency has no
     type description installed."""
-    from .bag import _interface_file
+    from .bag.msgdefs import _interface_file
     described = {type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
     pending = [f['type']['nested_type_name'] for f in fields if f['type']['nested_type_name']]
     while pending:

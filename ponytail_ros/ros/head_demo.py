@@ -13,7 +13,7 @@ Parameters:
     origin (3 doubles, m, default [0, 0, 1.6]): where the head starts (moves the whole motion).
     time_scale (0.01–100, default 1): play speed of the motion.
     best_effort (default False): publish best effort instead of reliable.
-The motion itself is ROS-free (``ponytail_ros/ros/head_script.py``).
+The motion itself is ROS-free (``ponytail_ros/app/head_script.py``).
 """
 import sys
 
@@ -25,7 +25,7 @@ from geometry_msgs.msg import PoseStamped
 import numpy as np
 
 from ponytail_ros.core.head import StillMotion, SwayYawMotion
-from .head_script import HeadScript
+from ponytail_ros.app.head_script import HeadScript
 from ponytail_ros.ros.spin import run_node
 
 __all__ = ['HeadDemoNode', 'make_motion', 'main']

@@ -1,8 +1,8 @@
 """The ponytail node: head pose in, segment poses out, on every timer tick.
 
 Run: ``ponytail_node --ros-args --params-file config/ponytail.yaml [-p key:=value]
-[-r __ns:=/alice]`` (or ``python -m ponytail_ros.ros.node --ros-args ...``). Node name
-``ponytail``.
+[-r __ns:=/alice]`` (or ``python -m ponytail_ros.node --ros-args ...``: the node with recording
+wired in, ``ponytail_ros/node.py``). Node name ``ponytail``.
 
 Topics (all relative, so a namespace per character scales out; no global state):
 
@@ -17,8 +17,11 @@ Topics (all relative, so a namespace per character scales out; no global state):
   (or parameter ``frame_id``), ``header.stamp`` = the tick time (node clock);
 * publishes ``segment_markers`` (``visualization_msgs/MarkerArray``, reliable, depth 10) at up to
   ``markers.rate``: capsules or line strip + spheres (``markers.style``), one namespace per chain;
-* records the run when ``record_path`` is set (``ponytail_ros/recording/recorder.py``: head
-  input, outputs, parameter changes, parameters in effect; replay it with ``ponytail_replay``);
+* records the run when ``record_path`` is set and the node was given a recorder
+  (``recording_sink``; ``ponytail_node`` and ``ponytail_ros.node.PonytailNode`` give it
+  ``recording/recorder.py``'s: head input, outputs, parameter changes, parameters in effect;
+  replay it with ``ponytail_replay``). This module does not import ``recording/``: the
+  recorder is one more ``TickSink`` (``app/sink.py``) next to the publishers;
 * publishes ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every
   ``diagnostics_period`` s of wall time): one status named ``ponytail: <node FQN>`` with the
   solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state
@@ -39,13 +42,12 @@ another clock than the node's are said on the terminal with the fix (``stamp_sou
 
 Each tick advances the chains by the clock's elapsed time (``use_sim_time`` and ``/clock`` work;
 late or skipped timer periods are caught up, at most ``solver.max_steps_per_call`` steps). The
-per-tick logic (input checks, estimation, stepping) is ``ChainRunner`` (``runner.py``); the
-parameters are in ``parameters.py``.
+per-tick logic (input checks, estimation, stepping) is ``ChainRunner`` (``app/runner.py``);
+the parameters are in ``app/parameters.py``.
 
 Note: no ``from __future__ import annotations`` here: rclpy passes ``TimerInfo`` to a timer
 callback only if the parameter's annotation *is* the class.
 """
-import sys
 import time
 
 import numpy as np
@@ -62,12 +64,16 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
-from .node_core import NodeCore
-from .parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, FRAME_PARAMS,
-                         GLOBAL_PARAMS, ParameterError, chain_param_name, check_names, definition)
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
+from ponytail_ros.app.node_core import NodeCore, NodeTick
+from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
+from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
+                                         FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
+                                         chain_param_name, check_names, definition)
+from ponytail_ros.app.sink import HEAD, Sinks
 from .spin import run_node
 
-__all__ = ['PonytailNode', 'main', 'OUTPUT_QOS', 'INPUT_QOS']
+__all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS']
 
 #: ``head_pose`` and frame subscriptions: the sensor-data preset (best effort, volatile, keep
 #: last 5).
@@ -151,16 +157,55 @@ class _Timing:
         }
 
 
+class _Publishers:
+    """The node's publishers as a ``TickSink``: a tick's poses (then ``/tf``, when live) and
+    markers, and the diagnostics; inputs and parameter changes publish nothing."""
+
+    def __init__(self, node, poses, markers, diagnostics, tf=None):
+        self._node = node
+        self.poses = poses
+        self.markers = markers
+        self.diagnostics = diagnostics
+        self.tf = tf
+        #: ``perf_counter`` when the last tick's poses were out (the node's ``tick_hook``).
+        self.poses_published_at = 0.0
+
+    def on_input(self, source, msg, log_time_ns):
+        pass
+
+    def on_tick(self, tick, log_time_ns):
+        for pub, msg in zip(self.poses, tick.poses):
+            pub.publish(msg)
+        self.poses_published_at = time.perf_counter()
+        if self.tf is not None:
+            self._node._publish_tf(tick.poses)
+        if tick.markers is not None:
+            self.markers.publish(tick.markers)
+
+    def on_diagnostics(self, msg, log_time_ns):
+        self.diagnostics.publish(msg)
+
+    def on_parameters(self, changed, log_time_ns):
+        pass
+
+    def close(self):
+        pass
+
+
 class PonytailNode(Node):
     """Simulates the configured chains hanging from the head given on ``head_pose`` (and from
     the extra frames given on their own topics).
 
     ``node_name``/``context``/``**kwargs`` go to ``rclpy.node.Node`` (e.g. ``namespace``,
-    ``parameter_overrides``, ``cli_args``). Raises ``ParameterError`` (or rclpy's
-    ``ParameterException``) if the parameters are invalid at start-up.
+    ``parameter_overrides``, ``cli_args``). ``recording_sink``: called as
+    ``RunRecorder.for_node`` is when ``record_path`` is set, returns the ``TickSink`` that
+    records the run (or None: not recording); without it ``record_path`` is refused with a
+    start-up warning (``ponytail_ros.node.PonytailNode`` passes the recorder). Raises
+    ``ParameterError`` (or rclpy's ``ParameterException``) if the parameters are invalid at
+    start-up.
     """
 
-    def __init__(self, node_name='ponytail', *, context=None, **kwargs):
+    def __init__(self, node_name='ponytail', *, context=None, recording_sink=None, **kwargs):
         super().__init__(node_name, context=context, **kwargs)
         self._declare_parameters()
         values = {name: self._value(name) for name in self._param_names}
@@ -204,19 +249,23 @@ class PonytailNode(Node):
         self.add_pre_set_parameters_callback(self._pre_set_parameters)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
-        # Recording (record_path): the publishers are wrapped to record what they publish.
+        # Where the tick's output goes (app/sink.py): the recorder first (record_path), so
+        # that nothing reaches a subscriber that the file lacks, then the publishers.
+        self._publisher_sink = _Publishers(self, self._pose_pubs, self._marker_pub, self._diag_pub,
+                                       self._tf_pub)
         self._recorder = None
         if values['record_path']:
-            from ponytail_ros.recording.recorder import RunRecorder
-            self._recorder = RunRecorder.for_node(
-                self, values['record_path'], self._chains, self._head_sub,
-                self._pose_pubs, self._marker_pub, self._diag_pub,
-                frames=self._frames, frame_subscriptions=self._frame_subs,
-                tf_prefix=self._tf_prefix)
-        if self._recorder is not None:
-            self._pose_pubs = [self._recorder.recording(p) for p in self._pose_pubs]
-            self._marker_pub = self._recorder.recording(self._marker_pub)
-            self._diag_pub = self._recorder.recording(self._diag_pub)
+            if recording_sink is None:
+                self._startup_warning(
+                    'Not recording: record_path is set but this node was built without a '
+                    'recorder (use ponytail_node or ponytail_ros.node.PonytailNode)')
+            else:
+                self._recorder = recording_sink(
+                    self, values['record_path'], self._chains, self._head_sub,
+                    self._pose_pubs, self._marker_pub, self._diag_pub,
+                    frames=self._frames, frame_subscriptions=self._frame_subs,
+                    tf_prefix=self._tf_prefix)
+        self._sinks = Sinks([s for s in (self._recorder, self._publisher_sink) if s is not None])
         scene = self.core.scene
         inputs = ', '.join(['head_pose'] + list(self.core.frame_topics))
         #: Set (and logged once) when another node with this node's name is in the graph.
@@ -253,14 +302,11 @@ class PonytailNode(Node):
                     'not ship it): the segments are not published on /tf. Source a ROS 2 '
                     'workspace that has tf2_msgs; recordings (record_path) hold /tf regardless')
             return None
-        from rclpy.qos import QoSProfile as _QoS
-        from ponytail_ros.recording.tf import TF_QOS_DEPTH, TF_TOPIC
         self._tf_message = TFMessage
-        return self.create_publisher(TFMessage, TF_TOPIC, _QoS(depth=TF_QOS_DEPTH))
+        return self.create_publisher(TFMessage, TF_TOPIC, QoSProfile(depth=TF_QOS_DEPTH))
 
     def _publish_tf(self, poses):
         from geometry_msgs.msg import TransformStamped
-        from ponytail_ros.recording.tf import segment_frame
         msg = self._tf_message()
         for chain, array in zip(self._chains, poses):
             for i, pose in enumerate(array.poses):
@@ -281,7 +327,6 @@ class PonytailNode(Node):
     def _warn_unknown_overrides(self):
         """Overrides (params file, ``-p``) that name no parameter of this node are ignored by
         rclpy without a word: say so, with the closest known name (a typo)."""
-        from ponytail_ros.recording.params import unknown_parameter_warning
         known = set(self._param_names) | {'tf.publish', 'tf.prefix'}
         for name in sorted(self._parameter_overrides):
             if name in known or self.has_parameter(name):
@@ -385,7 +430,6 @@ class PonytailNode(Node):
         return super().set_parameters_atomically(parameter_list)
 
     def _refusal(self, params):
-        from ponytail_ros.recording.params import closest_name
         for p in params:
             if not self.has_parameter(p.name):
                 close = closest_name(p.name, self._parameters)
@@ -423,8 +467,7 @@ class PonytailNode(Node):
         changed = self.core.ours({p.name: _plain(p.value) for p in params})
         if not changed:
             return
-        if self._recorder is not None:
-            self._recorder.parameters_changed(changed, self.get_clock().now().nanoseconds)
+        self._sinks.on_parameters(changed, self.get_clock().now().nanoseconds)
         self.core.apply_change(changed)
         if 'rate' in changed:
             self._timer.timer_period_ns = int(round(1e9 / self._values['rate']))
@@ -434,16 +477,14 @@ class PonytailNode(Node):
     # -- input -----------------------------------------------------------------------------
     def _on_head_pose(self, msg):
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
-        if self._recorder is not None:
-            self._recorder.head(msg, now_ns)
+        self._sinks.on_input(HEAD, msg, now_ns)
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_head(msg.header.stamp, now_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w),
                             msg.header.frame_id)
 
     def _on_frame_pose(self, i, msg):
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
-        if self._recorder is not None:
-            self._recorder.frame(i, msg, now_ns)
+        self._sinks.on_input(i, msg, now_ns)
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_frame(i, msg.header.stamp, now_ns, (p.x, p.y, p.z),
                              (q.x, q.y, q.z, q.w), msg.header.frame_id)
@@ -489,13 +530,8 @@ class PonytailNode(Node):
                 self._log_throttled('no_head', 5.0, 'warning',
                                     f'{what} on {topics} yet: nothing is published')
             return
-        for pub, msg in zip(self._pose_pubs, tick.poses):
-            pub.publish(msg)
-        wall_published = time.perf_counter()
-        if self._tf_pub is not None:
-            self._publish_tf(tick.poses)
-        if tick.markers is not None:
-            self._marker_pub.publish(tick.markers)
+        self._emit(tick)
+        wall_published = self._publisher_sink.poses_published_at
         out, rep = tick.output, tick.output.report
         timing.solve.append(wall1 - wall0)
         timing.tick_wall.append(time.perf_counter() - wall0)
@@ -522,6 +558,10 @@ class PonytailNode(Node):
             self.tick_hook(out, wall0, wall_published, time.perf_counter())
 
     # -- diagnostics -----------------------------------------------------------------------
+    def _emit(self, tick: NodeTick) -> None:
+        """The tick's messages to every sink, at the node clock's time of publishing."""
+        self._sinks.on_tick(tick, self.get_clock().now().nanoseconds)
+
     def diagnostic_status(self):
         """The node's ``DiagnosticStatus`` over the window since the last call (resets it)."""
         timing, self._timing = self._timing, _Timing()
@@ -533,7 +573,7 @@ class PonytailNode(Node):
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
-        self._diag_pub.publish(msg)
+        self._sinks.on_diagnostics(msg, self.get_clock().now().nanoseconds)
         if 'clocks differ' in msg.status[0].message:
             # Said on the terminal too, with the fix, not only inside /diagnostics.
             age = next((kv.value for kv in msg.status[0].values
@@ -553,7 +593,7 @@ class PonytailNode(Node):
         return super().destroy_node()
 
 
-def _help() -> str:
+def node_help() -> str:
     """``ponytail_node --help``: usage, topics and the global parameters with their meaning."""
     lines = [
         'usage: ponytail_node [-h] [--ros-args --params-file config/ponytail.yaml '
@@ -578,11 +618,8 @@ def _help() -> str:
     return '\n'.join(lines)
 
 
-def main(args=None):
-    """Entry point of ``ponytail_node``; returns the exit code."""
-    return run_node('ponytail_node', PonytailNode, args,
-                    bad_input=(ParameterError, ParameterException), help_text=_help())
-
-
-if __name__ == '__main__':
-    sys.exit(main())
+def main(args=None, node_class=PonytailNode):
+    """Run ``node_class`` as ``ponytail_node`` does; returns the exit code (``ponytail_node``
+    itself is ``ponytail_ros.node:main``, which passes the node with recording)."""
+    return run_node('ponytail_node', node_class, args,
+                    bad_input=(ParameterError, ParameterException), help_text=node_help())

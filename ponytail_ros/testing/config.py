@@ -1,5 +1,5 @@
 """A node configuration outside a node: a params file plus overrides, completed and validated
-exactly as ``PonytailNode`` declares them (``ponytail_ros.recording.params``). Does not import
+exactly as ``PonytailNode`` declares them (``ponytail_ros.app.param_values``). Does not import
 rclpy."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Union
 
 from ponytail_ros.core.scene import Scene
-from ponytail_ros.recording.params import (complete_values, scene_and_settings, unknown_names,
+from ponytail_ros.app.param_values import (complete_values, scene_and_settings, unknown_names,
                                            values_from_params_file)
-from ponytail_ros.ros.parameters import ParameterError, collider_names, frame_names, frame_topics
-from ponytail_ros.ros.runner import RunnerSettings
+from ponytail_ros.app.parameters import ParameterError, collider_names, frame_names, frame_topics
+from ponytail_ros.app.runner import RunnerSettings
 
 __all__ = ['Config', 'load_config', 'ParameterError']
 

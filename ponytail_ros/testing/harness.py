@@ -43,8 +43,8 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rosgraph_msgs.msg import Clock
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.ros.node import PonytailNode
-from ponytail_ros.ros.node_core import NodeTick, time_msg
+from ponytail_ros.node import PonytailNode
+from ponytail_ros.app.node_core import NodeTick, time_msg
 
 from .config import Config, load_config
 from .motion import HeadInput, PoseSample, head_samples, stamp_ns
@@ -120,7 +120,7 @@ def diagnostic_values(msg: DiagnosticArray) -> Dict[str, str]:
 def bag_samples(path: Union[str, Path], head_topic: Optional[str] = None) -> List[PoseSample]:
     """The head poses (``PoseStamped`` or ``TransformStamped``) of a rosbag2 MCAP file, by
     their ``header.stamp``, as ``PoseSample``s (a recorded take to feed :meth:`Harness.run`)."""
-    from ponytail_ros.recording.replay import ReplayInput
+    from ponytail_ros.recording.inputs import ReplayInput
     inp = ReplayInput(path, head_topic)
     out = []
     for _, type_name, msg, _ in inp.reader.messages([inp.head_topic]):

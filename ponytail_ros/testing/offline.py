@@ -21,7 +21,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Pose, PoseArray
 
-from ponytail_ros.ros.node_core import NodeCore, time_msg
+from ponytail_ros.app.node_core import NodeCore, time_msg
 
 from .config import Config, load_config
 from .motion import HeadInput, PoseSample, head_samples, stamp_ns

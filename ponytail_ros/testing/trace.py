@@ -18,7 +18,7 @@ from ponytail_ros.core.limits import joint_angles
 from ponytail_ros.core.model import Model
 from ponytail_ros.core.scene import Scene
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.ros.runner import ChainRunner, TickOutput
+from ponytail_ros.app.runner import ChainRunner, TickOutput
 
 from .config import Config
 

@@ -13,7 +13,7 @@ from ponytail_ros.core.head import HeadMotion, KinematicState
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
-from ..motions import crowd_motion
+from ponytail_ros.app.motions import crowd_motion
 from ..scenes import ponytail_chain
 from ..profiles import Profile
 from ..tables import Log, Meta, Row, print_table, write_table

@@ -15,7 +15,7 @@ from ponytail_ros.core.simulator import Simulator
 
 from .. import mujoco_chain as MJ
 from .. import plots
-from ..motions import reference_motion
+from ponytail_ros.app.motions import reference_motion
 from ..profiles import RATTLE, RK4, SE
 from ..scenes import make_scene, ponytail_chain
 from ..profiles import Profile

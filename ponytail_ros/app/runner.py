@@ -85,7 +85,6 @@ segments is resolved by the contact position stage, which pushes them out of it 
 """
 from collections import Counter, deque
 from dataclasses import dataclass, fields, replace
-import inspect
 import math
 
 import numpy as np
@@ -117,10 +116,6 @@ START_SAMPLES = 3
 HISTORY_RESETS = ('teleport', 'frame_changed')
 #: ``output_stamp`` values: what the stamp of the published state means.
 OUTPUT_STAMPS = ('tick', 'simulated')
-
-# ``advance_frame(..., head_prev=)`` (both ends of a frame's anchor track from one estimate)
-# where the core offers it.
-_HEAD_PREV = 'head_prev' in inspect.signature(Simulator.advance_frame).parameters
 
 
 @dataclass
@@ -596,10 +591,7 @@ class ChainRunner:
         estimate (``head_prev``: the bodies at the previous frame's time): the refit estimate
         disagrees slightly with the previous tick's, and bridging that within one frame would
         be an acceleration spike."""
-        if _HEAD_PREV:
-            report = self.sim.advance_frame(t_head, head, head_prev=head_prev)
-        else:
-            report = self.sim.advance_frame(t_head, head)
+        report = self.sim.advance_frame(t_head, head, head_prev=head_prev)
         self._t_frame = t_head
         return report
 

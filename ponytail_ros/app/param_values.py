@@ -18,7 +18,7 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 import yaml
 
-from ponytail_ros.ros.parameters import (
+from ponytail_ros.app.parameters import (
     CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
     build_runner_settings, chain_param_name, check_names, check_values, definition,
 )

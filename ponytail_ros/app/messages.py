@@ -26,10 +26,22 @@ from visualization_msgs.msg import Marker
 
 import numpy as np
 
-from ponytail_ros.core.rotations import quat_axis_x, quat_from_two_vectors, quat_multiply, quat_rotate
+from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
+                                         quat_rotate)
 
 __all__ = ['ChainMessages', 'ColliderMarkers', 'delete_all_marker', 'Q_Z_TO_X',
-           'COLLIDER_COLOR']
+           'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
+
+#: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
+TF_TOPIC = '/tf'
+#: tf2_ros's ``DynamicBroadcasterQoS``: reliable, volatile, keep last 100.
+TF_QOS_DEPTH = 100
+
+
+def segment_frame(prefix: str, chain: str, index: int) -> str:
+    """The TF frame of segment ``index`` (0 = root) of ``chain``: ``<prefix><chain>/<index>``
+    (one naming for the node's live ``/tf`` and the recorder's, ``recording/tf.py``)."""
+    return f'{prefix}{chain}/{index}'
 
 #: Colour of collider markers: translucent grey.
 COLLIDER_COLOR = (0.6, 0.6, 0.65, 0.35)

@@ -14,13 +14,20 @@ exactly at every integrator stage and any error measured is the chain solver's o
   ``mujoco_chain``).
 - ``SpinHead``: a head spinning at a constant rate about world Z (optionally spun up from
   rest with a smooth ramp).
+- ``ShakeNodHead``: sway along X, yaw and a nod (pitch), for contacts and joint limits.
+
+Every motion of the package lives in ``ponytail_ros.app``: these exact ones (benchmarks and
+tests) here, the scripted demo head in ``head_script.py``. Not in ``core``: a motion is an
+input the core is driven by, not part of its dynamics (``core.head`` keeps the ``HeadMotion``
+interface and its basic motions: still, sway and yaw).
 """
 import numpy as np
 
 from ponytail_ros.core.head import HeadMotion, KinematicState
+from ponytail_ros.core.rotations import quat_multiply
 
-__all__ = ['SinusoidHead', 'SpinHead', 'reference_motion', 'shake_motion', 'crowd_motion',
-           'SHAKE']
+__all__ = ['SinusoidHead', 'SpinHead', 'ShakeNodHead', 'reference_motion', 'shake_motion',
+           'crowd_motion', 'SHAKE']
 
 TWO_PI = 2.0 * np.pi
 
@@ -140,3 +147,38 @@ def crowd_motion(n, spacing=1.0):
     phase = np.zeros((n, 3))
     phase[:, 0] = TWO_PI * k / max(n, 1)
     return SinusoidHead(p0=p0, phase=phase, yaw_phase=TWO_PI * ((0.37 * k) % 1.0))
+
+
+class ShakeNodHead(HeadMotion):
+    """A violent head shake with exact derivatives: ±A along X at f Hz and ±Y rad of yaw at
+    f_y Hz about the head's vertical axis, plus a nod (pitch) of ±P rad at f_p Hz (one body;
+    the contact, limit and scene tests' motion: the nod swings the chain into colliders and
+    limits the sway-and-yaw motions above leave alone)."""
+
+    def __init__(self, p0=(0.0, 0.0, 1.6), amplitude=0.1, frequency=3.0, yaw=1.0,
+                 yaw_frequency=2.5, pitch=0.3, pitch_frequency=1.7):
+        self.p0 = np.asarray(p0, dtype=float)
+        self.A, self.w = amplitude, 2 * np.pi * frequency
+        self.Y, self.wy = yaw, 2 * np.pi * yaw_frequency
+        self.P, self.wp = pitch, 2 * np.pi * pitch_frequency
+
+    def state_at(self, t):
+        A, w, Y, wy, P, wp = self.A, self.w, self.Y, self.wy, self.P, self.wp
+        yaw, yd, ydd = Y * np.sin(wy * t), Y * wy * np.cos(wy * t), -Y * wy * wy * np.sin(wy * t)
+        pit, pd, pdd = P * np.sin(wp * t), P * wp * np.cos(wp * t), -P * wp * wp * np.sin(wp * t)
+        # R = Rz(yaw) Ry(pitch): ω = yaw' z + pitch' Rz(yaw) y; α = its derivative.
+        z = np.array([0.0, 0.0, 1.0])
+        y_axis = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+        y_axis_dot = yd * np.array([-np.cos(yaw), -np.sin(yaw), 0.0])
+        omega = yd * z + pd * y_axis
+        alpha = ydd * z + pdd * y_axis + pd * y_axis_dot
+        qz = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+        qy = np.array([0.0, np.sin(pit / 2), 0.0, np.cos(pit / 2)])
+        q = quat_multiply(qz, qy)
+        return KinematicState(
+            position=(self.p0 + [A * np.sin(w * t), 0.0, 0.0])[None],
+            orientation=q[None],
+            linear_velocity=np.array([[A * w * np.cos(w * t), 0.0, 0.0]]),
+            angular_velocity=omega[None],
+            linear_acceleration=np.array([[-A * w * w * np.sin(w * t), 0.0, 0.0]]),
+            angular_acceleration=alpha[None])

@@ -418,11 +418,6 @@ def _check_frame_topics(values, frames):
         seen[topic] = f'frame {f}'
 
 
-def check_chain_names(names):
-    """Check chain names alone (see :func:`check_names`)."""
-    check_names(names)
-
-
 def _check_value(name, pdef, value):
     """Type/shape/choice/range check of one value (rclpy checks only scalar ranges)."""
     if pdef.kind in ('double3', 'double4'):

@@ -1,0 +1,194 @@
+"""The input of ``ponytail_replay``: a recording opened, its head and frame topics resolved, and
+what the node recorded with it (layout, parameters, live changes, clock).
+
+``ReplayInput`` is shared by the offline replay (``offline.py``) and the live playback
+(``live.py``); ``ReplayError`` is every one-line refusal of bad input or options.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Tuple
+
+import numpy as np
+import yaml
+
+from ponytail_ros.app.parameters import frame_names
+
+from .bag import PARAMETERS_METADATA, BagError, BagReader
+from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, resolve_topic, stamp_ns
+
+__all__ = ['ReplayError', 'ReplayInput', 'head_pose', 'head_stamps', 'foreign_clock',
+           'recorded_value', 'used_frame_names', 'event_values', 'FOREIGN_CLOCK_S']
+
+
+class ReplayError(Exception):
+    """Bad input or options; the message is one line naming the file (and topic)."""
+
+
+class ReplayInput:
+    """An input recording: its topics, metadata, the head topic and what the node recorded.
+
+    Raises:
+        ReplayError: not readable, not MCAP, no head topic, or the head topic is not a pose.
+    """
+
+    def __init__(self, path, head_topic: Optional[str] = None):
+        self.path = Path(path)
+        try:
+            self.reader = BagReader(self.path)
+            self.topics = self.reader.topics()
+            self.metadata = self.reader.metadata()   # a full walk: finds a cut or damage
+        except BagError as exc:
+            raise ReplayError(str(exc)) from None
+        self.truncated = not self.reader.finished
+        #: "truncated at byte N of M: why" for a cut file, else None.
+        self.truncation = self.reader.truncation if self.truncated else None
+        self.layout = None
+        if RECORDING_METADATA in self.metadata:
+            try:
+                self.layout = RunLayout.from_metadata(self.metadata[RECORDING_METADATA])
+            except (KeyError, ValueError):
+                self.layout = None  # not ours after all: treat as a plain recording
+        #: Our recordings are replayed in the order the node handled the messages (file order,
+        #: see recorder.py); any other bag in log-time order, as rosbag2 plays it.
+        self.order = 'file' if self.layout is not None else 'log_time'
+        self.recorded_parameters = self.metadata.get(PARAMETERS_METADATA)
+        self.note = None
+        if head_topic is None:
+            head_topic = self.layout.head_topic if self.layout else '/head_pose'
+            if head_topic not in self.topics:
+                heads = sorted(t for t, ty in self.topics.items() if ty in HEAD_TYPES)
+                if len(heads) == 1:
+                    self.note = f'using {heads[0]}, the only head pose topic in {self.path}'
+                    head_topic = heads[0]
+        self.head_topic = head_topic
+        if head_topic not in self.topics:
+            recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
+            if self.truncated:
+                raise ReplayError(
+                    f'{self.path} is {self.truncation or "truncated (no footer)"}; the part '
+                    f'that can be read has no topic {head_topic} (recorded: {recorded or "none"})')
+            raise ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
+                              f'{recorded or "none"}); choose one with --head-topic')
+        self.head_type = self.topics[head_topic]
+        if self.head_type not in HEAD_TYPES:
+            raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a '
+                              f'head pose ({" or ".join(HEAD_TYPES)})')
+
+    def messages(self, topics):
+        """``BagReader.messages`` in this input's order (:attr:`order`)."""
+        return self.reader.messages(topics, order=self.order)
+
+    def truncated_warning(self) -> str:
+        return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '
+                f'can be read (ponytail_replay repair makes it a complete, indexed file)')
+
+    @property
+    def node(self) -> str:
+        return self.layout.node if self.layout else '/ponytail'
+
+    def frame_topic(self, frame: str, configured: str) -> str:
+        """Where frame ``frame``'s poses are: the recorded node's topic for it, else
+        ``configured`` (``<frame>.topic``) resolved in the node's namespace."""
+        if self.layout is not None and frame in self.layout.frames:
+            return self.layout.frame_topics[self.layout.frames.index(frame)]
+        return resolve_topic(self.node, configured)
+
+    def tick_topic(self) -> Optional[str]:
+        """The node's first ``segment_poses`` topic, if this is a node recording with ticks."""
+        if self.layout and self.layout.pose_topics[0] in self.topics:
+            return self.layout.pose_topics[0]
+        return None
+
+    def message_count(self, topic: str) -> int:
+        """Messages on ``topic`` by the final rosbag2 metadata (0 if unknown: truncated)."""
+        try:
+            bag = yaml.safe_load(self.metadata['rosbag2']['serialized_metadata'])
+            return next(t['message_count'] for t in bag['topics_with_message_count']
+                        if t['topic_metadata']['name'] == topic)
+        except (KeyError, TypeError, StopIteration, yaml.YAMLError):
+            return 0
+
+    def span_ns(self) -> Optional[Tuple[int, int]]:
+        """(first, last) log time of a finished file (summary statistics), else None."""
+        if self.truncated:
+            return None
+        from mcap.reader import make_reader
+        try:
+            with self.path.open('rb') as f:
+                stats = make_reader(f).get_summary().statistics
+            return stats.message_start_time, stats.message_end_time
+        except Exception:  # noqa: BLE001 - only the progress bar needs it
+            return None
+
+
+def head_pose(msg, head_type):
+    """(position, orientation) tuples of a PoseStamped or TransformStamped."""
+    if head_type == HEAD_TYPES[0]:
+        p, q = msg.pose.position, msg.pose.orientation
+    else:
+        p, q = msg.transform.translation, msg.transform.rotation
+    return (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)
+
+
+#: Head stamps further than this from their log times (median) are on another clock.
+FOREIGN_CLOCK_S = 5.0
+_STAMP_SAMPLE = 200
+
+
+def head_stamps(inp: ReplayInput):
+    """(header stamp, log time) ns of the first head poses."""
+    out = []
+    try:
+        for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
+            out.append((stamp_ns(msg.header.stamp), log_ns))
+            if len(out) >= _STAMP_SAMPLE:
+                break
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    return out
+
+
+def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[str]:
+    """A warning if the head stamps are on another clock than the log times (a bag stamped
+    by a simulator clock from 0, or from another epoch) and would be used (``stamp_source:
+    header``): the head motion would be estimated on one clock and simulated on the other."""
+    if stamp_source != 'header':
+        return None
+    pairs = [(s, l) for s, l in head_stamps if s]
+    if not pairs:
+        return None
+    offset = float(np.median([s - l for s, l in pairs])) * 1e-9
+    if abs(offset) <= FOREIGN_CLOCK_S:
+        return None
+    return (f'{inp.path}: the head pose stamps on {inp.head_topic} are {offset:+.6g} s off their '
+            f'log times (another clock: a simulator from 0, or another machine); the replay '
+            f'would be physically wrong. Use --stamp-source receive (stamp_source: receive in '
+            f'the params file) to time the poses by their log times')
+
+
+def recorded_value(recorded: Optional[Mapping[str, str]], name: str, default: Any) -> Any:
+    """A parameter's value in a recording's parameters metadata (JSON), else ``default``."""
+    try:
+        return json.loads(recorded[name])
+    except (KeyError, TypeError, ValueError):
+        return default
+
+
+def used_frame_names(values) -> set:
+    """The frames some chain hangs from or some collider is fixed in."""
+    frames = set(frame_names(values))
+    used = {values[f'{c}.anchor'] for c in values['chains']}
+    used |= {values[f'{c}.frame'] for c in values.get('colliders', ())}
+    return frames & used
+
+
+def event_values(event) -> Dict[str, Any]:
+    """The values a recorded ``ParameterEvent`` sets (new and changed), as plain Python."""
+    from rclpy.parameter import Parameter
+    changed = {}
+    for p in list(event.new_parameters) + list(event.changed_parameters):
+        value = Parameter.from_parameter_msg(p).value
+        changed[p.name] = value if isinstance(value, (str, bool, int, float)) else list(value)
+    return changed

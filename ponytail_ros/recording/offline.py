@@ -1,0 +1,515 @@
+"""The offline replay: a recording re-simulated as fast as the machine allows, its output
+written exactly as the node records a run (``ponytail_replay INPUT -o OUTPUT``; the options and
+what they mean: ``cli.py``).
+
+``replay()`` runs in named stages: the input and the options (``_open_input``), the parameters
+(``_resolve_parameters``), the tick source (``_tick_mode``), the recorded live changes
+(``_applies_events``), the extra frames' topics (``_frame_inputs``), the output
+(``_open_output``), the loop over the input's messages in file or log-time order
+(``_OfflineLoop``: look-ahead scheduling, nominal or recorded ticks) and the checks of what was
+simulated (``_finish``). ``ReplayNode`` (``replay_node.py``) is the node.
+"""
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values,
+                                           unknown_parameter_warnings, values_from_metadata,
+                                           values_from_params_file)
+from ponytail_ros.app.parameters import ParameterError, frame_names
+from ponytail_ros.app.parameters import frame_topics as topics_of
+
+from .bag import BagError
+from .inputs import (ReplayError, ReplayInput, event_values, foreign_clock, head_stamps,
+                     recorded_value, used_frame_names)
+from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns
+from .replay_node import ReplayNode
+
+__all__ = ['replay', 'ReplayResult', 'Progress', 'LOOK_AHEAD_SAMPLES', 'LOOK_AHEAD_SPAN_NS',
+           'LOOK_AHEAD_VALUES']
+
+#: Output chunks are cut by size only: the log-time/idle limit of BagWriter is set beyond any
+#: replay, so that no wall-time effect changes the bytes.
+_OUTPUT_CHUNK_DURATION_NS = 3600 * 1_000_000_000
+#: Look-ahead replay: a tick runs once this many head poses logged after it, spanning at least
+#: LOOK_AHEAD_SPAN_NS (the fit's window), have been pushed.
+LOOK_AHEAD_SAMPLES = 16
+LOOK_AHEAD_SPAN_NS = 60_000_000
+#: Look-ahead replay: parameters replaced (no delay; a centred interpolating fit; honest stamps).
+LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
+                     'output_stamp': 'simulated', 'head.degree': 9, 'head.min_samples': 10,
+                     'head.window': 0.05, 'head.max_samples': 512}
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did."""
+
+    output: Path
+    ticks: int = 0
+    head_samples: int = 0
+    #: Poses of the extra frames pushed (all frames).
+    frame_samples: int = 0
+    parameter_changes: int = 0
+    first_tick_ns: Optional[int] = None
+    last_tick_ns: Optional[int] = None
+    wall_seconds: float = 0.0
+    #: CPU time of this process (all threads) during the replay, s.
+    cpu_seconds: float = 0.0
+    tick_mode: str = ''
+    parameters_from: str = ''
+    truncated: bool = False
+
+    @property
+    def sim_seconds(self) -> float:
+        if self.first_tick_ns is None:
+            return 0.0
+        return (self.last_tick_ns - self.first_tick_ns) * 1e-9
+
+    def summary(self, input_path) -> str:
+        speed = self.sim_seconds / self.wall_seconds if self.wall_seconds > 0 else float('inf')
+        return (f'{input_path} -> {self.output}: {self.ticks} ticks ({self.tick_mode}), '
+                f'{self.head_samples} head poses, {self.sim_seconds:.2f} s simulated in '
+                f'{self.wall_seconds:.2f} s ({speed:.1f}x real time); parameters from '
+                f'{self.parameters_from}')
+
+
+class Progress:
+    """A progress bar with ETA on a terminal (stderr): tqdm when installed (the ``pypi`` extra),
+    else one line of text. Called as ``progress(done_s, total_s_or_None, final=False)``."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.wall0 = time.perf_counter()
+        self.last = 0.0
+        self.bar = None
+        self.done = 0.0
+        try:
+            import tqdm  # noqa: F401
+            self.tqdm = True
+        except ImportError:
+            self.tqdm = False
+
+    def __call__(self, done_s: float, total_s: Optional[float] = None,
+                 final: bool = False) -> None:
+        if self.tqdm:
+            self._tqdm(done_s, total_s, final)
+        else:
+            self._text(done_s, total_s, final)
+
+    def _tqdm(self, done_s, total_s, final):
+        from tqdm import tqdm
+        if self.bar is None:
+            self.bar = tqdm(total=round(total_s, 3) if total_s else None, file=self.stream,
+                            unit='s', unit_scale=False, desc='replay (simulated s)',
+                            dynamic_ncols=True, mininterval=0.1,
+                            bar_format='{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} '
+                                       '[{elapsed}<{remaining}, {rate_fmt}]' if total_s else None)
+        done_s = max(done_s, self.done)
+        if total_s:
+            done_s = min(done_s, self.bar.total)
+        self.bar.update(done_s - self.done)
+        self.done = done_s
+        if final:
+            self.bar.close()
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+    def _text(self, done_s, total_s, final):
+        now = time.perf_counter()
+        if not final and now - self.last < 0.1:
+            return
+        self.last = now
+        wall = max(now - self.wall0, 1e-9)
+        if total_s:
+            frac = min(max(done_s / total_s, 0.0), 1.0)
+            bar = '#' * int(30 * frac) + '-' * (30 - int(30 * frac))
+            eta = wall * (1 - frac) / frac if frac > 0 else float('nan')
+            text = f'[{bar}] {100 * frac:5.1f}% {done_s:7.1f}/{total_s:.1f} s, ETA {eta:.0f} s'
+        else:
+            text = f'{done_s:7.1f} s'
+        self.stream.write(f'\r{text}  {done_s / wall:6.1f}x real time')
+        if final:
+            self.stream.write('\n')
+        self.stream.flush()
+
+
+def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
+           ticks: str = 'auto', overwrite: bool = False, look_ahead: bool = False,
+           progress: Optional[Callable[..., None]] = None,
+           warn: Optional[Callable[[str], None]] = None,
+           stamp_source: Optional[str] = None, tf: bool = True,
+           tf_prefix: Optional[str] = None) -> ReplayResult:
+    """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
+
+    Args:
+        params_file: a node params file; None: the recorded parameters (or the package config).
+        head_topic: the head topic; None: the recorded node's, else ``/head_pose`` (or the only
+            head pose topic).
+        ticks: ``'auto'``, ``'recorded'`` or ``'nominal'``.
+        look_ahead: estimate the head from poses on both sides of each tick (module
+            docstring).
+        progress: called as ``progress(simulated_s_done, total_s_or_None, final=False)``
+            during the replay (often: throttle it).
+        warn: called with each warning (default: ignored).
+        stamp_source: ``'header'`` or ``'receive'`` over the parameters' ``stamp_source``
+            (head stamps on another clock than the log times need ``'receive'``).
+        tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
+            ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
+
+    Raises:
+        ReplayError: bad input or options (one-line message naming the file and topic), a
+            damaged input, or a run in which every head pose was dropped.
+    """
+    warn = warn or (lambda text: None)
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    inp, output_path = _open_input(input_path, output_path, head_topic, ticks, warn)
+    result = ReplayResult(output=output_path, truncated=inp.truncated)
+    values, result.parameters_from = _resolve_parameters(inp, params_file, stamp_source,
+                                                         look_ahead, warn)
+    stamps = head_stamps(inp)
+    clock_note = foreign_clock(inp, stamps, values['stamp_source'])
+    if clock_note:
+        warn(clock_note)
+    mode, tick_topic = _tick_mode(inp, ticks, values)
+    result.tick_mode = mode
+    events_topic = _events_topic(inp, params_file, warn)
+    frames, frame_topics, frame_types = _frame_inputs(inp, values, warn)
+    recorder = _open_output(
+        inp, output_path, values, frames, frame_topics, frame_types, overwrite=overwrite, tf=tf,
+        tf_prefix=tf_prefix,
+        info={'source': 'ponytail_replay', 'input': inp.path.name, 'ticks': mode,
+              'parameters_from': result.parameters_from,
+              'head_estimation': 'look-ahead' if look_ahead else 'live'})
+    node = ReplayNode(values, recorder, inp.head_type, frame_types,
+                      # A node recording replays as the node ran (a zero stamp: the receive
+                      # time); in another bag whose stamps are set, 0 is a stamp (sim clock).
+                      zero_stamp_valid=(inp.layout is None
+                                        and any(stamp for stamp, _ in stamps)))
+    loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
+                        events_topic=events_topic, frame_topics=frame_topics,
+                        frame_types=frame_types, look_ahead=look_ahead, progress=progress)
+    try:
+        loop.run()
+    except BagError as exc:
+        recorder.close()
+        output_path.unlink(missing_ok=True)
+        raise ReplayError(str(exc)) from None
+    finally:
+        recorder.close()
+    _finish(inp, node, recorder, result, output_path, clock_note, warn)
+    result.wall_seconds = time.perf_counter() - wall0
+    result.cpu_seconds = time.process_time() - cpu0
+    if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
+        progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
+    return result
+
+
+# -- the stages of replay() ----------------------------------------------------------------------
+
+
+def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[ReplayInput, Path]:
+    """The input opened and the options that need no parameters checked (what the input
+    itself says about it warned)."""
+    if ticks not in ('auto', 'recorded', 'nominal'):
+        raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
+    inp = ReplayInput(input_path, head_topic)
+    output_path = Path(output_path)
+    if output_path.exists() and output_path.resolve() == inp.path.resolve():
+        raise ReplayError(f'{output_path}: the output would overwrite the input')
+    if inp.note:
+        warn(inp.note)
+    if inp.truncated:
+        warn(inp.truncated_warning())
+    return inp, output_path
+
+
+def _given_values(inp: ReplayInput, params_file) -> Dict[str, Any]:
+    """The values the user or the recording gave (not completed with defaults): the names in
+    it are checked for typos."""
+    if params_file is not None:
+        try:
+            return values_from_params_file(params_file, inp.node)
+        except ParameterError:
+            return {}
+    if inp.recorded_parameters:
+        return values_from_metadata(inp.recorded_parameters)
+    return {}
+
+
+def _resolve_parameters(inp: ReplayInput, params_file, stamp_source, look_ahead,
+                        warn) -> Tuple[Dict[str, Any], str]:
+    """The full parameter set of the replay and where it came from (``ReplayResult``'s
+    ``parameters_from``): ``--params``, else the recorded parameters, else the package
+    config; ``--stamp-source`` and ``--look-ahead`` over it."""
+    try:
+        values, source = resolve_values(params_file, inp.recorded_parameters, inp.node)
+    except ParameterError as exc:
+        origin = params_file or (f'{inp.path} (recorded parameters)'
+                                 if inp.recorded_parameters else 'the default config')
+        raise ReplayError(f'{origin}: invalid parameters: {exc}') from None
+    for text in unknown_parameter_warnings(_given_values(inp, params_file)):
+        warn(f'{params_file or inp.path}: {text}')
+    if stamp_source is not None:
+        if stamp_source not in ('header', 'receive'):
+            raise ReplayError(f'--stamp-source must be header or receive, not {stamp_source!r}')
+        values['stamp_source'] = stamp_source
+    parameters_from = source if source == 'the recording' else Path(source).name
+    if look_ahead:
+        values = {**values, **LOOK_AHEAD_VALUES}
+    return values, parameters_from
+
+
+def _tick_mode(inp: ReplayInput, ticks: str, values) -> Tuple[str, Optional[str]]:
+    """``'recorded'`` (the node's own tick times, on the returned topic) or ``'nominal'``."""
+    tick_topic = inp.tick_topic()
+    recorded_rate = None
+    if inp.recorded_parameters and 'rate' in inp.recorded_parameters:
+        try:
+            recorded_rate = float(json.loads(inp.recorded_parameters['rate']))
+        except (TypeError, ValueError):
+            recorded_rate = None
+    if ticks == 'recorded':
+        if tick_topic is None:
+            raise ReplayError(f'{inp.path}: --ticks recorded needs a ponytail_node recording '
+                              f'(with its segment_poses); this one has none')
+        return 'recorded', tick_topic
+    if ticks == 'auto' and tick_topic is not None and recorded_rate == values['rate']:
+        return 'recorded', tick_topic
+    return 'nominal', tick_topic
+
+
+def _events_topic(inp: ReplayInput, params_file, warn) -> Optional[str]:
+    """The topic of the recorded live parameter changes to apply, or None: none recorded, or
+    ``--params`` given (then they are not applied, with a warning if there are any)."""
+    if inp.layout is None or (inp.topics.get(inp.layout.parameter_events_topic)
+                              != 'rcl_interfaces/msg/ParameterEvent'):
+        return None
+    if params_file is not None:
+        changes = inp.message_count(inp.layout.parameter_events_topic)
+        if changes:
+            warn(f'{inp.path}: its {changes} live parameter change(s) are not applied over '
+                 f'--params')
+        return None
+    return inp.layout.parameter_events_topic
+
+
+def _frame_inputs(inp: ReplayInput, values, warn) -> Tuple[tuple, tuple, List[str]]:
+    """The extra frames, their topics (the recorded node's, else as configured) and types; a
+    frame the scene uses must have its topic in the input."""
+    frames = tuple(frame_names(values))
+    frame_topics = tuple(inp.frame_topic(f, t) for f, t in zip(frames, topics_of(values)))
+    used = used_frame_names(values)
+    for f, topic in zip(frames, frame_topics):
+        if topic not in inp.topics:
+            if f in used:
+                raise ReplayError(f'{inp.path} has no topic {topic} (the poses of frame {f}, '
+                                  f'which the scene uses)')
+            warn(f'{inp.path} has no topic {topic}: frame {f} gets no poses')
+        elif inp.topics[topic] not in HEAD_TYPES:
+            raise ReplayError(f'{inp.path}: topic {topic} (frame {f}) holds {inp.topics[topic]}, '
+                              f'not a pose ({" or ".join(HEAD_TYPES)})')
+    return frames, frame_topics, [inp.topics.get(topic, HEAD_TYPES[0]) for topic in frame_topics]
+
+
+def _output_layout(inp: ReplayInput, values, frames, frame_topics) -> RunLayout:
+    """The output's node name and topics: the recorded ones when the chains are the same."""
+    chains = tuple(values['chains'])
+    if inp.layout is not None and inp.layout.chains == chains:
+        return RunLayout(node=inp.layout.node, chains=chains, head_topic=inp.head_topic,
+                         pose_topics=inp.layout.pose_topics,
+                         marker_topic=inp.layout.marker_topic,
+                         diagnostics_topic=inp.layout.diagnostics_topic,
+                         parameter_events_topic=inp.layout.parameter_events_topic,
+                         frames=frames, frame_topics=frame_topics)
+    return RunLayout.for_node(inp.node, chains, head_topic=inp.head_topic,
+                              frames=frames, frame_topics=frame_topics)
+
+
+def _open_output(inp: ReplayInput, output_path: Path, values, frames, frame_topics,
+                 frame_types, *, overwrite, tf, tf_prefix, info) -> RunRecorder:
+    """The output recording, laid out as the node records a run."""
+    layout = _output_layout(inp, values, frames, frame_topics)
+    recorded_all = values_from_metadata(inp.recorded_parameters or {})
+    # The node's other parameters (use_sim_time, ...) as recorded; ours as replayed.
+    parameters = {**{k: v for k, v in recorded_all.items() if k in IGNORED_NAMES}, **values,
+                  'record_path': str(output_path)}
+    try:
+        return RunRecorder(
+            output_path, layout, parameters, head_type=inp.head_type, frame_types=frame_types,
+            overwrite=overwrite,
+            chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, tf=tf,
+            tf_prefix=(tf_prefix if tf_prefix is not None
+                       else inp.metadata.get(RECORDING_METADATA, {}).get('tf_prefix', '')),
+            info=info)
+    except BagError as exc:
+        text = str(exc)
+        if 'already exists' in text:
+            text = f'{output_path} already exists (use --overwrite to replace it)'
+        raise ReplayError(text) from None
+
+
+class _OfflineLoop:
+    """The input's messages, in its order, into the ``ReplayNode``: head and frame poses at
+    their log times, the recorded live changes, and the ticks (the node's recorded ones, or
+    every ``1/rate`` s from the first input pose). With look-ahead, ticks and parameter
+    changes wait until ``LOOK_AHEAD_SAMPLES`` head poses logged after them are in; without
+    it they run at once. Counts into ``result``."""
+
+    def __init__(self, inp: ReplayInput, node: ReplayNode, result: ReplayResult, values, *,
+                 mode: str, tick_topic: Optional[str], events_topic: Optional[str],
+                 frame_topics, frame_types, look_ahead: bool,
+                 progress: Optional[Callable[..., None]]):
+        self.inp, self.node, self.result = inp, node, result
+        self.mode, self.events_topic = mode, events_topic
+        self.look_ahead, self.progress = look_ahead, progress
+        span = inp.span_ns() if progress is not None else None
+        self.t_start = span[0] if span else None
+        self.total_s = (span[1] - span[0]) * 1e-9 if span else None
+        self.wanted = {inp.head_topic: inp.head_type}
+        #: topic -> the frames (indices) whose poses it carries
+        self.frame_index: Dict[str, List[int]] = {}
+        for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types)):
+            if topic in inp.topics and topic != inp.head_topic:
+                self.wanted[topic] = type_name
+                self.frame_index.setdefault(topic, []).append(i)
+        if mode == 'recorded':
+            self.wanted[tick_topic] = 'geometry_msgs/msg/PoseArray'
+        if events_topic is not None:
+            self.wanted[events_topic] = 'rcl_interfaces/msg/ParameterEvent'
+        self.pending: List[Tuple[int, Callable, tuple]] = []
+        self.recent_heads: Any = deque(maxlen=LOOK_AHEAD_SAMPLES)
+        self.newest_head: Optional[int] = None
+        # Ticks of a node recording are its poses' log times when their stamps are not tick
+        # times.
+        self.recorded_stamp = recorded_value(inp.recorded_parameters, 'output_stamp', 'tick')
+        self.period_ns = int(round(1e9 / values['rate']))
+        self.next_tick: Optional[int] = None
+        self.last_log: Optional[int] = None
+
+    def run(self) -> None:
+        for topic, _, msg, log_ns in self.inp.messages(self.wanted):
+            if self.mode == 'nominal' and self.next_tick is not None:
+                while self.next_tick < log_ns:
+                    self._schedule_tick(self.next_tick)
+                    self.next_tick += self.period_ns
+            if topic == self.inp.head_topic:
+                self._head(msg, log_ns)
+            elif topic in self.frame_index:
+                self._frame(topic, msg, log_ns)
+            elif topic == self.events_topic:
+                self._event(msg, log_ns)
+            else:
+                self._schedule_tick(log_ns if self.recorded_stamp == 'simulated'
+                                    else stamp_ns(msg.header.stamp))
+        if self.mode == 'nominal' and self.next_tick is not None and self.last_log is not None:
+            while self.next_tick <= self.last_log:
+                self._schedule_tick(self.next_tick)
+                self.next_tick += self.period_ns
+        self._run_due(flush=True)
+        if self.result.last_tick_ns is not None:
+            self.node.final_diagnostics(self.result.last_tick_ns)
+
+    # -- the messages ----------------------------------------------------------------------
+    def _head(self, msg, log_ns: int) -> None:
+        self.node.head(msg, log_ns)
+        self.recent_heads.append(log_ns)
+        self.newest_head = log_ns if self.newest_head is None else max(self.newest_head, log_ns)
+        self._run_due()
+        self.result.head_samples += 1
+        self._input_seen(log_ns)
+
+    def _frame(self, topic: str, msg, log_ns: int) -> None:
+        for i in self.frame_index[topic]:
+            self.node.frame(i, msg, log_ns)
+        self.result.frame_samples += 1
+        self._input_seen(log_ns)
+
+    def _input_seen(self, log_ns: int) -> None:
+        """An input pose at ``log_ns``: the nominal ticks start one period after the first."""
+        self.last_log = log_ns if self.last_log is None else max(self.last_log, log_ns)
+        if self.next_tick is None:
+            self.next_tick = log_ns + self.period_ns
+        if self.t_start is None:
+            self.t_start = log_ns
+
+    def _event(self, msg, log_ns: int) -> None:
+        if msg.node != self.inp.layout.node:
+            return
+        changed = event_values(msg)
+        if not changed:
+            return
+        self._schedule(log_ns, self.node.set_parameters, changed, log_ns)
+        self.result.parameter_changes += 1
+        if 'rate' in changed:
+            # (look-ahead: the change is still pending; its value as given)
+            self.period_ns = int(round(1e9 / float(
+                changed['rate'] if self.look_ahead else self.node.values['rate'])))
+
+    # -- ticks and look-ahead --------------------------------------------------------------
+    def _schedule_tick(self, t_ns: int) -> None:
+        self._schedule(t_ns, self._tick, t_ns)
+
+    def _tick(self, t_ns: int) -> None:
+        out = self.node.tick(t_ns)
+        result = self.result
+        if out is not None:
+            result.ticks += 1
+            if result.first_tick_ns is None:
+                result.first_tick_ns = t_ns
+            result.last_tick_ns = t_ns
+        self.node.maybe_diagnostics(t_ns)
+        if self.progress is not None and self.t_start is not None:
+            self.progress((t_ns - self.t_start) * 1e-9, self.total_s)
+
+    def _schedule(self, t_ns: int, fn: Callable, *args) -> None:
+        if self.look_ahead:
+            self.pending.append((t_ns, fn, args))
+        else:
+            fn(*args)
+
+    def _run_due(self, flush: bool = False) -> None:
+        full = len(self.recent_heads) == LOOK_AHEAD_SAMPLES
+        pending = self.pending
+        while pending and (flush or (full and pending[0][0] < self.recent_heads[0]
+                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS
+                                     <= self.newest_head)):
+            _, fn, args = pending.pop(0)
+            fn(*args)
+
+
+def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,
+            output_path: Path, clock_note: Optional[str], warn) -> None:
+    """What was simulated checked (nothing: an error, the output removed) and said."""
+    if recorder.error is not None:
+        raise ReplayError(f'writing {output_path} failed: {recorder.error}')
+    if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
+        output_path.unlink(missing_ok=True)
+        raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
+    dropped = {k: v for k, v in node.runner.dropped.items() if v}
+    reasons = ', '.join(f'{v} {k}' for k, v in sorted(dropped.items()))
+    if result.ticks == 0:
+        output_path.unlink(missing_ok=True)
+        why = (f'all {result.head_samples} head poses were dropped ({reasons})' if dropped
+               else f'no tick had the inputs it needs ({", ".join(node.runner.missing_inputs())}'
+                    f' missing)')
+        raise ReplayError(f'{inp.path}: nothing simulated: {why}'
+                          + (f'; {clock_note}' if clock_note else ''))
+    if dropped:
+        warn(f'{inp.path}: {sum(dropped.values())} of {result.head_samples + result.frame_samples}'
+             f' input poses dropped ({reasons})')
+    if inp.reader.out_of_order and inp.order == 'log_time':
+        warn(f'{inp.path}: {inp.reader.out_of_order} messages are stored out of log-time order; '
+             f'replayed in log-time order, as ros2 bag play does')
+    if inp.truncated and inp.reader.truncation:
+        inp.truncation = inp.reader.truncation
+    if inp.truncated:
+        warn(f'{inp.path}: replayed {result.head_samples} head poses and {result.ticks} ticks '
+             f'(all that could be read)')
