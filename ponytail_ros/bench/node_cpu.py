@@ -30,7 +30,7 @@ def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0):
     head = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.head_demo import main; '
                              'main()', '--ros-args', '-p', f'rate:={head_rate}'],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    node = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.node import main; '
+    node = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.node import main; '
                              'main()', '--ros-args', '--params-file', str(params), *extra],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

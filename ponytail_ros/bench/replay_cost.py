@@ -22,7 +22,7 @@ def measure(params, seconds):
         make_head_recording(head, seconds)
         out = Path(tmp) / 'out.mcap'
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, '-c', 'import sys; from ponytail_ros.recording.replay '
+        subprocess.run([sys.executable, '-c', 'import sys; from ponytail_ros.recording.cli '
                         'import main; sys.exit(main())', str(head), '-o', str(out),
                         '--params', str(params), '--quiet'], check=True)
         wall = time.perf_counter() - t0

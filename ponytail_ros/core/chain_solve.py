@@ -19,7 +19,6 @@ definite (Sylvester's criterion on P_i): A is then not positive definite, which 
 never produces (a blow-up does).
 """
 import numba as nb
-import numpy as np
 
 from .kernel_cache import ensure_fresh
 

@@ -32,7 +32,8 @@ import numpy as np
 from . import contact_kernels
 from .chain_solve import factor, solve
 
-__all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4', 'SYMPLECTIC_EULER', 'RATTLE',
+__all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
+           'SYMPLECTIC_EULER', 'RATTLE',
            'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'advance_unilateral',
            'substeps']
 
@@ -220,7 +221,6 @@ def _factor_joints(M, hv, Iinv, D, L, C, Lo):
             a12 = h2 * X[i, 0, 2] - h0 * X[i, 2, 2]
             a20 = -h1 * X[i, 0, 0] + h0 * X[i, 1, 0]
             a21 = -h1 * X[i, 0, 1] + h0 * X[i, 1, 1]
-            a22 = -h1 * X[i, 0, 2] + h0 * X[i, 1, 2]
             g00 = a01 * h2 - a02 * h1
             g01 = -a00 * h2 + a02 * h0
             g02 = a00 * h1 - a01 * h0
