@@ -99,6 +99,8 @@ def _common_options(suppress: bool = False) -> argparse.ArgumentParser:
     common.add_argument('--repeats', type=int, default=d(None), help='timing repeats (median)')
     common.add_argument('--no-mujoco', action='store_true', default=d(False),
                         help='skip MuJoCo even if installed')
+    common.add_argument('--quiet', action='store_true', default=d(False),
+                        help='no progress bar (there is none when stderr is not a terminal)')
     common.add_argument('--scenes', default=d(None),
                         help='comma-separated scenes for trade (default: the profile\'s; '
                              f'any of {", ".join(SCENES + EXTRA_SCENES)})')
@@ -138,14 +140,45 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.no_mujoco:
         MJ.mujoco = None
     try:
-        _run_commands(todo, profile, prof, out, command)
+        _run_commands(todo, profile, prof, out, command, progress=not args.quiet)
     finally:
         MJ.mujoco = saved_mujoco
     return 0
 
 
+class _Progress:
+    """A tqdm bar over the commands, weighted by their wall times in the last run
+    (``summary.json``) so that its ETA means something; silent when stderr is not a terminal,
+    with ``--quiet`` or without tqdm."""
+
+    def __init__(self, todo: tuple[str, ...], summary: dict[str, Any], enabled: bool):
+        last = summary.get('wall_s', {})
+        self.weights = {name: float(last.get(name, 30.0)) for name in todo}
+        self.bar: Any = None
+        if enabled and sys.stderr.isatty():
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                return
+            self.bar = tqdm(total=sum(self.weights.values()), unit='s', desc='ponytail_bench',
+                            bar_format='{desc}: {percentage:3.0f}%|{bar}| {postfix} '
+                                       '[{elapsed}<{remaining}]', file=sys.stderr)
+
+    def start(self, name: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(name)
+
+    def done(self, name: str) -> None:
+        if self.bar is not None:
+            self.bar.update(self.weights[name])
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _run_commands(todo: tuple[str, ...], profile: str, prof: dict[str, Any], out: str,
-                  command: str) -> int:
+                  command: str, progress: bool = True) -> int:
     walls: dict[str, float] = {}
     t_all = time.perf_counter()
     summary_path = os.path.join(out, 'summary.json')
@@ -158,15 +191,19 @@ def _run_commands(todo: tuple[str, ...], profile: str, prof: dict[str, Any], out
             summary = {}
     print(f'ponytail_bench {command} --{profile} -> {out} '
           f'(BLAS threads pinned: {blas_threads.PINNED})')
+    bar = _Progress(todo, summary, progress)
     for name in todo:
         t0 = time.perf_counter()
         print(f'\n== {name} ==', flush=True)
+        bar.start(name)
         meta = make_meta(profile, name)
         res = COMMANDS[name].run(prof, out, meta, log=lambda *a: print(*a, flush=True))
         walls[name] = time.perf_counter() - t0
+        bar.done(name)
         print(f'[{name}: {walls[name]:.1f} s wall]', flush=True)
         if name == 'trade':
             summary['recommendation'] = jsonable(res[2])
+    bar.close()
     wall = time.perf_counter() - t_all
     if command == 'all':
         summary.update(dict(meta=make_meta(profile, command), wall_s=dict(walls, total=wall)))
