@@ -31,9 +31,8 @@ Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input p
 the input period is the median interval of the stored head samples (the longest of the head's
 and those of the frames the scene uses, when there are frames): a delay of a period or two
 puts samples on both sides of the evaluation time, which is what makes the velocity and
-acceleration estimates smooth (measured by ``ponytail_ros/bench/node_bench.py``, trade part: at
-60 Hz the anchor acceleration error falls from ~50 % at delay 0 to ~25 % at one period and ~9 %
-at two); the default, 2 periods, is 2 ms at 1 kHz, 17 ms at 120 Hz, 67 ms at 30 Hz.
+acceleration estimates smooth (``ponytail_ros/bench/node_bench.py``, trade part, measures the
+trade); the default, 2 periods, is 2 ms at 1 kHz, 17 ms at 120 Hz, 67 ms at 30 Hz.
 
 Decisions (documented for the node):
 

@@ -13,26 +13,21 @@ Quaternions are renormalised. ``system`` provides:
 
 - ``rk4``: classical Runge–Kutta, 4th order, four solves per step (``accel`` only). Inside the
   step the angular velocity is carried in each segment's body frame (ω_b = Rᵀ ω, ω̇_b = Rᵀ α,
-  q̇ = ½ q ⊗ (ω_b, 0)): body-frame rates vary more slowly along a swinging chain. Measured on
-  the chaotic reference release (10 segments, 1/8000 s) this cuts the error 27× against
-  world-frame ω, and ~15 % on the moving-head reference at 1/1000 s. Joints are put back by
+  q̇ = ½ q ⊗ (ω_b, 0)): body-frame rates vary more slowly along a swinging chain, so the
+  error against the references is smaller than with world-frame ω. Joints are put back by
   ``stabilization`` after the step.
 - ``symplectic_euler``: 1st order, a constrained symplectic Euler step (SHAKE/RATTLE type):
   kick, drift, joint impulses from the joint gaps the drift would open, velocities projected
   onto the joints at the step's end. One factorisation of A per step (reused by the next step)
   and two triangular solves. Its energy error is a bounded first-order oscillation on a still
-  undamped chain (±1.4 % of the releasable energy at 1/240 s for the 10-segment ponytail,
-  halving with the step; the unconstrained v += h a, ω += h α it replaces gained +24 % in 5 s
-  and kept growing), a thin segment's spin about its own axis costs it nothing (any rate; see
-  ``rotation_kick``), and on the moving-head references it is 7-20× more accurate than that
-  one at the same step. Beyond its reach (dt·ω ≳ 2) it mostly dissipates rather than blowing
-  up. Details in ``symplectic_euler``.
+  undamped chain, halving with the step (the unconstrained v += h a, ω += h α it replaces
+  gains energy without bound), a thin segment's spin about its own axis costs it nothing (any
+  rate; see ``rotation_kick``). Beyond its reach (dt·ω ≳ 2) it mostly dissipates rather than
+  blowing up. Details in ``symplectic_euler``; figures in ``docs/bench``.
 - ``rattle``: 2nd order, the same step as a symmetric kick–drift–kick (Störmer–Verlet with
   RATTLE's joint impulses) around each segment's exact torque-free rotation: same two solves
   and one factorisation per step, the applied forces twice. Its energy error is bounded and
-  ∝ dt² (0.28 % of the releasable energy at 1/240 s on the 45° release above; it never rose
-  above its start on the spinning thin chain), axial spin of any rate is exact. Details in
-  ``rattle``.
+  ∝ dt², axial spin of any rate is exact. Details in ``rattle``.
 """
 import numpy as np
 
@@ -160,8 +155,7 @@ def symplectic_euler(system, t, h, x, q, v, w):
        along J at the start, the positions constrained at the end): the left-rectangle
        variational integrator of the constrained system, whose energy error stays bounded,
        where the acceleration-level form (C̈ = 0, then v += h a) gained energy steadily on
-       multi-segment chains. The gaps left are O(h³) (at 1/240 s, measured ≤ 2e-5 m on the
-       ponytail's 45° release, ≤ 1e-3 m in the moving-head ponytail's 200 rad/s whip);
+       multi-segment chains. The gaps left are O(h³) (the simulator's projection closes them);
     3. drift at u⁺ (``drift``);
     4. RATTLE-type projection: A(q⁺) μ = Ċ(u⁺) at t + h, u⁺ ← u⁺ + M⁻¹ J(q⁺)ᵀ μ, so the
        velocities leave the step tangent to the joints. M-orthogonal: it never adds kinetic
@@ -269,10 +263,8 @@ def rattle(system, t, h, x, q, v, w):
        the multipliers μ of RATTLE's second half.
 
     The kicks are linear in u, so kick and impulses commute and the step is symmetric: 2nd
-    order (measured 4.0x per halving of the step, with axial spin and a turning head too). On a
-    still undamped chain its energy error is bounded and ∝ h² (the 10-segment ponytail
-    released at 45°: 0.28 % of the releasable energy at 1/240 s against symplectic Euler's
-    1.4 %; ``test_core_integrators``). Extra cost over ``symplectic_euler``: the applied forces
+    order (with axial spin and a turning head too; ``test_core_integrators`` measures it). On
+    a still undamped chain its energy error is bounded and ∝ h². Extra cost over ``symplectic_euler``: the applied forces
     once more. Needs ``projection`` (step 3 is RATTLE's own). Segments with a custom
     non-axisymmetric inertia drift with ω held: first order in their gyroscopic term.
 

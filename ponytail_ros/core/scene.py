@@ -333,10 +333,7 @@ class SolverSpec:
             linear limit) but only ~1 for the gyroscopic precession of a segment spinning
             about its own axis, so that rate is held to a 2.5× smaller angle; symplectic Euler
             follows a spin about a segment's own axis exactly (left out of its check) and a
-            swing to dt·ω < 2. Largest angles measured where the run stayed clean: 1.89 (an
-            hour of the moving-head ponytail, RK4 at 1/240 s, in a whip; 99.99 % of calls
-            below 1.08; its largest precession 0.44), 1.78 (a head shaken at 1e3 m/s², RK4 at
-            1/960 s), 1.67 (the ponytail whipping at 200 rad/s, RK4 at 1/120 s).
+            swing to dt·ω < 2. The largest angles seen in clean runs are in ``docs/bench``.
     """
 
     integrator: str = 'rk4'
