@@ -4,10 +4,13 @@ Test modules import these instead of importing each other: a test module is coll
 run and its fixtures and module-level state belong to it. Fixtures shared by several modules
 are in ``conftest.py``.
 """
-from ponytail_ros.core import ChainSpec, Scene, Simulator, SolverSpec
+import numpy as np
+
+from ponytail_ros.core import ChainSpec, KinematicState, Scene, Simulator, SolverSpec
+from ponytail_ros.core.head import HeadMotion
 
 __all__ = ['total_energy', 'reference_ponytail', 'chain_sim', 'PENETRATION_TOLERANCE',
-           'ANGLE_TOLERANCE']
+           'ANGLE_TOLERANCE', 'TwoBodies']
 
 #: m: the stated bound on how deep a segment's capsule may sink into a collider (the contact
 #: solver stops at 1e-5 m).
@@ -37,3 +40,18 @@ def total_energy(sim) -> float:
     """Kinetic plus potential energy of every segment of ``sim`` (J)."""
     ke, pe = sim.energy()
     return float(ke.sum() + pe.sum())
+
+
+class TwoBodies(HeadMotion):
+    """Body 0: a still ceiling anchor; body 1: a 'shoulder' sliding back and forth under it."""
+
+    def state_at(self, t):
+        w = 2 * np.pi * 1.2
+        p = np.array([[0.0, 0.0, 1.0], [0.15 * np.sin(w * t), 0.0, 0.7]])
+        v = np.array([[0.0, 0.0, 0.0], [0.15 * w * np.cos(w * t), 0.0, 0.0]])
+        a = np.array([[0.0, 0.0, 0.0], [-0.15 * w * w * np.sin(w * t), 0.0, 0.0]])
+        yaw = 0.4 * np.sin(w * t)
+        q = np.array([[0, 0, 0, 1.0], [0, 0, np.sin(yaw / 2), np.cos(yaw / 2)]])
+        om = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.4 * w * np.cos(w * t)]])
+        al = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.4 * w * w * np.sin(w * t)]])
+        return KinematicState(p, q, v, om, a, al)

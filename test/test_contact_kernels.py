@@ -20,7 +20,8 @@ from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.state import half_vectors
 
-from test_core_collision import ShakeMotion, _TwoBodies
+from helpers import TwoBodies
+from ponytail_ros.app.motions import ShakeNodHead as ShakeMotion
 
 DT = 1.0 / 240.0
 AGREE = 1e-11   # relative; most scenes agree to ~1e-13. Friction on a nearly stuck contact
@@ -104,7 +105,7 @@ def _moving_shoulder():
     return Scene(chains=(chain,), n_kinematic_bodies=2, colliders=(shoulder,))
 
 
-SCENES['capsule on a moving body'] = (_moving_shoulder, _TwoBodies, 1.5)
+SCENES['capsule on a moving body'] = (_moving_shoulder, TwoBodies, 1.5)
 
 
 def _per_step(sim):

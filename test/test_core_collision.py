@@ -9,12 +9,11 @@ import pytest
 from ponytail_ros.core import ChainSpec, KinematicState, Scene, SceneError, Simulator, StillMotion
 from ponytail_ros.core import collision, limits
 from ponytail_ros.app.motions import ShakeNodHead
-from ponytail_ros.core.head import HeadMotion
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from helpers import PENETRATION_TOLERANCE, total_energy
+from helpers import PENETRATION_TOLERANCE, TwoBodies, total_energy
 
 DT = 1.0 / 240.0
 TOLERANCE = PENETRATION_TOLERANCE
@@ -281,21 +280,6 @@ def test_contacts_never_add_energy_on_a_still_head():
 
 
 # -- colliders on a second, moving body; frames only ---------------------------------------------
-class _TwoBodies(HeadMotion):
-    """Body 0: a still ceiling anchor; body 1: a 'shoulder' sliding back and forth under it."""
-
-    def state_at(self, t):
-        w = 2 * np.pi * 1.2
-        p = np.array([[0.0, 0.0, 1.0], [0.15 * np.sin(w * t), 0.0, 0.7]])
-        v = np.array([[0.0, 0.0, 0.0], [0.15 * w * np.cos(w * t), 0.0, 0.0]])
-        a = np.array([[0.0, 0.0, 0.0], [-0.15 * w * w * np.sin(w * t), 0.0, 0.0]])
-        yaw = 0.4 * np.sin(w * t)
-        q = np.array([[0, 0, 0, 1.0], [0, 0, np.sin(yaw / 2), np.cos(yaw / 2)]])
-        om = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.4 * w * np.cos(w * t)]])
-        al = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.4 * w * w * np.sin(w * t)]])
-        return KinematicState(p, q, v, om, a, al)
-
-
 @pytest.mark.parametrize('frames', [None, 60])
 def test_a_collider_fixed_in_a_second_moving_body(frames):
     """A capsule 'shoulder' on kinematic body 1 sweeps under a rope hung from body 0; driven
@@ -305,7 +289,7 @@ def test_a_collider_fixed_in_a_second_moving_body(frames):
     shoulder = ColliderSpec.capsule(center=(0, 0, 0), axis=(0, 1, 0), half_length=0.15,
                                     radius=0.04, body=1)
     scene = Scene(chains=(chain,), n_kinematic_bodies=2, colliders=(shoulder,))
-    motion = _TwoBodies()
+    motion = TwoBodies()
     sim = Simulator(scene, motion)
     worst, hits = -1.0, 0
     for k in range(1, int(round(3.0 / DT)) + 1):

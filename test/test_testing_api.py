@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import ponytail_ros
-from ponytail_ros.ros.runner import START_SAMPLES
+from ponytail_ros.app.runner import START_SAMPLES
 from ponytail_ros.testing.motion import stamp_ns
 from ponytail_ros.testing import (CheckFailed, PoseSample, assert_energy_does_not_grow,
                                   assert_joints_closed, assert_no_penetration, assert_no_resets,

@@ -208,8 +208,9 @@ GLOBAL_PARAMS = (
              choices=INTEGRATORS, rebuild=True),
     ParamDef('solver.dt', _SOLVER.dt, 'double', 'Fixed internal step, s.', 1e-6, 0.1,
              rebuild=True),
-    ParamDef('solver.max_steps_per_call', 60, 'int', 'Most internal steps per tick (bounded '
-             'work); time beyond is dropped and reported. Must cover one tick: '
+    ParamDef('solver.max_steps_per_call', _SOLVER.max_steps_per_call, 'int',
+             'Most internal steps per tick (bounded work); time beyond is dropped and '
+             'reported. Must cover one tick: '
              'max_steps_per_call * dt >= 1/rate.', 1, 1000000, rebuild=True),
     ParamDef('solver.linear_solver', _SOLVER.linear_solver, 'string', 'Joint force solve: '
              'banded O(n) or dense O(n^3).', choices=LINEAR_SOLVERS, rebuild=True),
