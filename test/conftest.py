@@ -27,7 +27,7 @@ def pytest_configure(config):
     """Compile the simulation step once, in the main process, before any xdist worker starts:
     the workers then load it from numba's cache instead of each paying the cold compile."""
     if not hasattr(config, 'workerinput'):
-        from ponytail_ros.core.step import report_compile
+        from ponytail_ros.core.compile import report_compile
         report_compile()
 
 

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from ponytail_ros.core import step as compiled
+from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.head import stack_anchors
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
@@ -79,7 +80,7 @@ def main(argv=None):
     p.add_argument('--crowds', default='10,100,1000', help='chains of 16 segments per scene')
     p.add_argument('--json', help='write the rows to this file')
     args = p.parse_args(argv)
-    compiled.report_compile()
+    report_compile()
     rows = []
     print(f'{"case":>22} {"ours kernel µs":>15} {"ours sim µs":>12} {"MuJoCo µs":>10} '
           f'{"kernel/MuJoCo":>14}')

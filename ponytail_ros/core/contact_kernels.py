@@ -30,7 +30,7 @@ from numba import njit
 from .chain_solve import factor as _chain_factor
 from .chain_solve import solve as _chain_solve
 from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
-                            qfrom_rotvec, qmul, qnormalize, qrotate, scale, sub, v3)
+                            qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
 
 POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
 POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
@@ -100,17 +100,8 @@ def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
 def general_terms(qi, hi, inv_inertia, i, inv_I, G):
     """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
     G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column."""
-    x, y, z, w = qi
     R = np.empty((3, 3))
-    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    R[0, 1] = 2.0 * (x * y - w * z)
-    R[0, 2] = 2.0 * (x * z + w * y)
-    R[1, 0] = 2.0 * (x * y + w * z)
-    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    R[1, 2] = 2.0 * (y * z - w * x)
-    R[2, 0] = 2.0 * (x * z - w * y)
-    R[2, 1] = 2.0 * (y * z + w * x)
-    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    qmatrix(qi, R)
     for a in range(3):
         for b in range(3):
             s = 0.0

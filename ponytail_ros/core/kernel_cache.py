@@ -6,7 +6,7 @@ upgrade that installs a new ``chain_solve.py`` beside an unchanged ``step.py``, 
 timestamp is kept) the cached ``step.advance`` would still run the old solve. So the cache of
 all kernel modules is keyed on one digest of their sources: when it differs from the digest
 stored beside the cache, their cache files are deleted (numba then compiles once, and
-``step.report_compile`` says so).
+``compile.report_compile`` says so).
 
 Handled: the cache in ``__pycache__`` beside the sources (the default) and under
 ``NUMBA_CACHE_DIR``. numba's user-wide fallback directory (used when the install directory is

@@ -93,6 +93,21 @@ def qaxis_x(q):
 
 
 @njit(cache=True)
+def qmatrix(q, R):
+    """The rotation matrix of the unit quaternion ``q`` (x, y, z, w) into the 3×3 ``R``."""
+    x, y, z, w = q
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@njit(cache=True)
 def qfrom_rotvec(phi):
     """Unit quaternion of the rotation vector ``phi`` (axis × angle, rad)."""
     angle = norm(phi)

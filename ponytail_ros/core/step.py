@@ -31,6 +31,7 @@ import numpy as np
 
 from . import contact_kernels
 from .chain_solve import factor, solve
+from .limit_kernels import qmatrix
 
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
            'SYMPLECTIC_EULER', 'RATTLE',
@@ -140,21 +141,6 @@ def _normalize(q, i):
     q[i, 3] *= r
 
 
-@_inline
-def _rot_matrix(q, i, R):
-    """R(q_i) into the 3×3 ``R``."""
-    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    R[0, 1] = 2.0 * (x * y - w * z)
-    R[0, 2] = 2.0 * (x * z + w * y)
-    R[1, 0] = 2.0 * (x * y + w * z)
-    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    R[1, 2] = 2.0 * (y * z - w * x)
-    R[2, 0] = 2.0 * (x * z - w * y)
-    R[2, 1] = 2.0 * (y * z + w * x)
-    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-
-
 # -- mass properties and the joint system ------------------------------------------------------
 @_inline
 def _inertia_terms(M, q, e, hv, Iinv):
@@ -173,7 +159,7 @@ def _inertia_terms(M, q, e, hv, Iinv):
                     Iinv[i, a, b] = k * e[i, a] * e[i, b]
                 Iinv[i, a, a] += ip
         else:
-            _rot_matrix(q, i, R)
+            qmatrix((q[i, 0], q[i, 1], q[i, 2], q[i, 3]), R)
             for a in range(3):
                 e[i, a] = R[a, 0]
                 for b in range(3):
@@ -843,7 +829,7 @@ def _implicit_damping(M, A, row, q, v, w, h):
                   (k * e1 * e0, Ip + k * e1 * e1, k * e1 * e2),
                   (k * e2 * e0, k * e2 * e1, Ip + k * e2 * e2))
         else:
-            _rot_matrix(q, i, R)
+            qmatrix((q[i, 0], q[i, 1], q[i, 2], q[i, 3]), R)
             r0 = (R[0, 0] * M.inertia[i, 0], R[0, 1] * M.inertia[i, 1], R[0, 2] * M.inertia[i, 2])
             r1 = (R[1, 0] * M.inertia[i, 0], R[1, 1] * M.inertia[i, 1], R[1, 2] * M.inertia[i, 2])
             r2 = (R[2, 0] * M.inertia[i, 0], R[2, 1] * M.inertia[i, 1], R[2, 2] * M.inertia[i, 2])
@@ -1112,37 +1098,3 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         v[:] = v1
         w[:] = w1
     return OK, n_steps
-
-
-# -- compilation -------------------------------------------------------------------------------
-def compile_kernels():
-    """Compile the step (or load it from numba's on-disk cache) by running two steps of a
-    two-segment chain; returns ``(seconds, compiled)``, ``compiled`` True when numba had to
-    compile (the first start after an install or an upgrade) rather than load its cache.
-
-    The cache sits in ``__pycache__`` beside this file, or, where that is not writable (a
-    system install), in numba's user-wide cache directory; ``NUMBA_CACHE_DIR`` overrides both.
-    """
-    import time
-    from .head import KinematicState
-    from .scene import ChainSpec, Scene, SolverSpec
-    from .simulator import Simulator
-    t0 = time.perf_counter()
-    before = sum(advance.stats.cache_misses.values())
-    sim = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
-                          solver=SolverSpec(integrator='rk4', dt=0.01)))
-    sim.advance_frame(0.02, KinematicState.still())
-    compiled = sum(advance.stats.cache_misses.values()) > before
-    return time.perf_counter() - t0, compiled
-
-
-def report_compile(log=None):
-    """``compile_kernels``, saying so in one line (``log``: a callable, default stderr) when it
-    compiled: the first start after an install pays it once."""
-    import sys
-    seconds, compiled = compile_kernels()
-    if compiled:
-        msg = (f'ponytail_ros: compiled the simulation step in {seconds:.1f} s (once after '
-               'install; later starts load it from the cache)')
-        (log or (lambda m: print(m, file=sys.stderr, flush=True)))(msg)
-    return seconds, compiled

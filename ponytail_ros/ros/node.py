@@ -64,6 +64,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
+from ponytail_ros.core.compile import report_compile
 from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
 from ponytail_ros.app.node_core import NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
@@ -211,6 +212,8 @@ class PonytailNode(Node):
         values = {name: self._value(name) for name in self._param_names}
         #: What the node does, without rclpy (shared with ``ponytail_replay``).
         self.core = NodeCore(values)
+        # Compile (or load) the step now, saying so, rather than stalling the first tick.
+        report_compile(self.get_logger().info)
         self.core.runner.on_drop = self._on_drop
         self._check_input_topics()
         #: Warnings said at start-up about the parameters given (unknown names; tf).
