@@ -316,3 +316,21 @@ def test_frames_closer_than_one_step_stay_stable():
         t += (1 / 240 + 1e-6) if k % 2 == 0 else 1e-6
         assert sim.advance_frame(t, motion.state_at(t)).reset_reason is None
     assert sim.state.is_finite() and np.abs(sim.state.v).max() < 2.0
+
+
+def test_anchor_track_at_is_its_table():
+    """``AnchorTrack.at`` (the Python side, scalar) and ``AnchorTrack.table`` (the compiled
+    step's anchors) are two codings of one track: equal bit for bit before, inside and past
+    the frame interval."""
+    from ponytail_ros.core.head import AnchorTrack, SwayYawMotion
+    motion = SwayYawMotion()
+    attach = np.array([[-0.1, 0.0, 0.05]])
+    a0, a1 = (motion.state_at(t).point_kinematics(np.array([0]), attach)
+              for t in (0.3, 0.3 + 1 / 60))
+    track = AnchorTrack(0.3, a0, 0.3 + 1 / 60, a1)
+    times = np.array([0.3 - 1e-3, 0.3, 0.305, 0.31, 0.3 + 1 / 60, 0.3 + 1 / 60 + 2e-3])
+    table = track.table(times)
+    for k, t in enumerate(times):
+        one = track.at(t)
+        for field in ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity'):
+            assert np.array_equal(getattr(one, field), getattr(table, field)[k]), (field, t)
