@@ -204,6 +204,7 @@ def test_harness_is_driven_by_sim_time_and_publishes_what_the_offline_path_compu
 
 PARALLEL = '''
 import json, sys, time
+import numpy as np
 sys.path.insert(0, {examples!r})
 from walk_cycle import walk
 from ponytail_ros.testing import Harness, run_offline
@@ -224,7 +225,7 @@ with Harness({params!r}, discovery=sys.argv[2], domain_id=42) as h:
         roots = [[m.poses[0].position.x, m.poses[0].position.y, m.poses[0].position.z]
                  for m in run.poses['segment_poses']]
         result = dict(n=len(roots), roots=roots, anchors=run.anchors[:, 0].tolist(),
-                      same_as_offline=bool((run.origins == offline.origins).all()),
+                      same_as_offline=bool(np.array_equal(run.origins, offline.origins)),  # shapes too
                       resets=[r.reason for r in run.resets])
     else:
         result = dict(error=error)
