@@ -225,7 +225,8 @@ with Harness({params!r}, discovery=sys.argv[2], domain_id=42) as h:
         roots = [[m.poses[0].position.x, m.poses[0].position.y, m.poses[0].position.z]
                  for m in run.poses['segment_poses']]
         result = dict(n=len(roots), roots=roots, anchors=run.anchors[:, 0].tolist(),
-                      same_as_offline=bool(np.array_equal(run.origins, offline.origins)),  # shapes too
+                      same_as_offline=bool(np.array_equal(run.origins,  # shapes too
+                                                          offline.origins)),
                       resets=[r.reason for r in run.resets])
     else:
         result = dict(error=error)

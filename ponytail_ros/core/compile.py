@@ -5,8 +5,8 @@ numba compiles a kernel at its first call, or loads it from its on-disk cache
 after an install) would stall a node's first tick, or a replay's, without a word. The entry
 points (node, replay, demo, bench, the test suite) call ``report_compile`` at start instead:
 it runs a small scene through every kernel of the step -- the free step, the step with
-contacts and limits, the depth and joint-angle queries -- and says in one line when that
-compiled rather than loaded.
+contacts and limits, the depth and joint-angle queries, the head's pose fit -- and says in one
+line when that compiled rather than loaded.
 """
 import sys
 import time
@@ -17,8 +17,9 @@ _result = None
 
 
 def _warm_up():
-    from . import step
+    from . import head_kernels, step
     from .head import KinematicState
+    from .head_estimation import HeadEstimator
     from .scene import ChainSpec, ColliderSpec, Scene, SolverSpec
     from .simulator import Simulator
     free = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
@@ -32,8 +33,12 @@ def _warm_up():
     bounded.advance_frame(0.02, KinematicState.still())
     bounded.contact_depths()
     bounded.joint_angles()
-    return sum(sum(k.stats.cache_misses.values()) for k in (step.advance,
-                                                            step.advance_unilateral))
+    head = HeadEstimator()
+    for t in (0.0, 0.01, 0.02):
+        head.add(t, (t, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    head.state_at(0.015)
+    return sum(sum(k.stats.cache_misses.values()) for k in (
+        step.advance, step.advance_unilateral, head_kernels.loess_fit, head_kernels.track_table))
 
 
 def compile_kernels():

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotations import cross, quat_rotate, quat_slerp
+from .head_kernels import track_table
+from .rotations import cross, quat_rotate
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
@@ -209,52 +210,31 @@ class AnchorTrack:
         self.t0 = float(t0)
         self.h = max(float(t1) - float(t0), 1e-12)
         self.a0, self.a1 = a0, a1
-        self.c = _quintic_coefficients(self.h, a0.position, a0.velocity, a0.acceleration,
-                                       a1.position, a1.velocity, a1.acceleration)
+        ends = (a0, a1)
+        self._args = (self.t0, self.h,
+                      np.ascontiguousarray(_quintic_coefficients(
+                          self.h, a0.position, a0.velocity, a0.acceleration, a1.position,
+                          a1.velocity, a1.acceleration), dtype=float),
+                      *(np.ascontiguousarray([getattr(e, f) for e in ends], dtype=float) for f in (
+                          'position', 'velocity', 'acceleration', 'orientation',
+                          'angular_velocity')))
+        self._C = np.shape(a0.position)[0]
 
     def table(self, times):
         """The anchors at all ``times`` ``(S,)`` at once, as the rows of an
-        ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` (the compiled step's anchor table)."""
-        t = np.asarray(times, dtype=float)
-        s = (t - self.t0) / self.h
-        ss = s[:, None, None]
-        c0, c1, c2, c3, c4, c5 = self.c
-        p = c0 + ss * (c1 + ss * (c2 + ss * (c3 + ss * (c4 + ss * c5))))
-        dp = (c1 + ss * (2.0 * c2 + ss * (3.0 * c3 + ss * (4.0 * c4 + ss * 5.0 * c5)))) / self.h
-        ddp = (2.0 * c2 + ss * (6.0 * c3 + ss * (12.0 * c4 + ss * 20.0 * c5))) / (self.h * self.h)
-        for outside, end, t_end in ((s < 0.0, self.a0, self.t0), (s > 1.0, self.a1,
-                                                                   self.t0 + self.h)):
-            if np.any(outside):
-                tau = (t[outside] - t_end)[:, None, None]
-                p[outside] = end.position + tau * (end.velocity + 0.5 * tau * end.acceleration)
-                dp[outside] = end.velocity + tau * end.acceleration
-                ddp[outside] = end.acceleration
-        sc = np.clip(s, 0.0, 1.0)
-        scc = sc[:, None, None]
-        return AnchorKinematics(
-            position=p, velocity=dp, acceleration=ddp,
-            orientation=quat_slerp(self.a0.orientation, self.a1.orientation, sc[:, None]),
-            angular_velocity=(1.0 - scc) * self.a0.angular_velocity
-            + scc * self.a1.angular_velocity)
+        ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` (the compiled step's anchor table;
+        evaluated by ``head_kernels.track_table``)."""
+        t = np.ascontiguousarray(times, dtype=float).reshape(-1)
+        S, C = t.shape[0], self._C
+        out = AnchorKinematics(np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 3)),
+                               np.empty((S, C, 4)), np.empty((S, C, 3)))
+        track_table(t, *self._args, out.position, out.velocity, out.acceleration,
+                    out.orientation, out.angular_velocity)
+        return out
 
     def at(self, t):
-        # ``table`` at one time, written for a scalar: 3-4x cheaper per call, and it is called
-        # several times per tick on the Python side.
-        s = (t - self.t0) / self.h
-        if 0.0 <= s <= 1.0:
-            c0, c1, c2, c3, c4, c5 = self.c
-            p = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
-            dp = (c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))) / self.h
-            ddp = (2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))) / (self.h * self.h)
-        else:
-            end = self.a0 if s < 0.0 else self.a1
-            tau = t - (self.t0 if s < 0.0 else self.t0 + self.h)
-            p = end.position + tau * (end.velocity + 0.5 * tau * end.acceleration)
-            dp = end.velocity + tau * end.acceleration
-            ddp = end.acceleration
-        sc = min(max(s, 0.0), 1.0)
-        return AnchorKinematics(
-            position=p, velocity=dp, acceleration=ddp,
-            orientation=quat_slerp(self.a0.orientation, self.a1.orientation, sc),
-            angular_velocity=(1.0 - sc) * self.a0.angular_velocity + sc * self.a1.angular_velocity,
-        )
+        """The anchors at one time ``t`` (s): ``AnchorKinematics`` of ``(C, 3|4)`` arrays, row 0
+        of ``table`` (one evaluation of the track for both)."""
+        row = self.table(np.array([float(t)]))
+        return AnchorKinematics(row.position[0], row.velocity[0], row.acceleration[0],
+                                row.orientation[0], row.angular_velocity[0])

@@ -70,7 +70,7 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec
+from .head_kernels import FIT_SIZE, loess_fit
 
 __all__ = ['HeadEstimator', 'REJECT_REASONS']
 
@@ -83,54 +83,6 @@ REJECT_REASONS = (
     'stamp_backwards',      # older than the newest accepted sample
     'stamp_repeated',       # within ``min_interval`` of the newest accepted sample
 )
-
-
-def _cross(a, b):
-    """``a × b`` of 3-tuples of floats (``np.cross`` costs ~30 µs a call on (3,) arrays)."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _left_jacobian_rates(phi, phid, phidd):
-    """World angular velocity and acceleration of ``q(t) = exp(φ(t)) ⊗ q_ref``.
-
-    ``ω = J_l(φ) φ̇`` and ``α = J_l(φ) φ̈ + J̇_l φ̇``, with the left Jacobian of SO(3)
-    ``J_l = I + a [φ]× + b [φ]×²``, ``a = (1 - cos θ)/θ²``, ``b = (θ - sin θ)/θ³``, ``θ = |φ|``;
-    applied to ``φ̇`` its time derivative is (``[φ̇]× φ̇ = 0`` drops one term)
-
-        J̇_l φ̇ = (a'/θ)(φ·φ̇) φ×φ̇ + (b'/θ)(φ·φ̇) φ×(φ×φ̇) + b φ̇×(φ×φ̇).
-
-    Exact for any ``θ`` (Taylor series below θ = 0.1 avoid the cancellations). Arguments are
-    3-sequences of floats; returns two ``(3,)`` arrays.
-    """
-    phi, phid, phidd = tuple(phi), tuple(phid), tuple(phidd)
-    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    th = math.sqrt(th2)
-    if th < 0.1:
-        a = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
-        b = 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0
-        da = -1.0 / 12.0 + th2 / 180.0 - th2 * th2 / 6720.0       # a'(θ)/θ
-        db = -1.0 / 60.0 + th2 / 1260.0 - th2 * th2 / 60480.0     # b'(θ)/θ
-    else:
-        s, c = math.sin(th), math.cos(th)
-        a = (1.0 - c) / th2
-        b = (th - s) / (th2 * th)
-        da = (th * s - 2.0 * (1.0 - c)) / (th2 * th2)
-        db = ((1.0 - c) / (th2 * th) - 3.0 * (th - s) / (th2 * th2)) / th
-
-    def jl(v):
-        pxv = _cross(phi, v)
-        ppxv = _cross(phi, pxv)
-        return [v[i] + a * pxv[i] + b * ppxv[i] for i in range(3)]
-
-    pxd = _cross(phi, phid)
-    ppxd = _cross(phi, pxd)
-    dxpxd = _cross(phid, pxd)
-    pd = phi[0] * phid[0] + phi[1] * phid[1] + phi[2] * phid[2]
-    omega = jl(phid)
-    alpha = jl(phidd)
-    for i in range(3):
-        alpha[i] += da * pd * pxd[i] + db * pd * ppxd[i] + b * dxpxd[i]
-    return np.array(omega), np.array(alpha)
 
 
 def _brake_warp(x):
@@ -355,55 +307,14 @@ class HeadEstimator:
                     s, rate = 0.0, 0.0
             te = t_last + s
         te = max(te, self._t[0])
-
-        ts = self._t[:n]
-        dt = ts - te
-        adt = np.abs(dt)
-        # Bandwidth H: the window, widened to the (m+1)-th nearest sample so that at least m
-        # samples have positive weight. H is continuous in t (an order statistic) and tricube
-        # weights vanish at H, so samples enter and leave the fit with zero weight.
-        m = min(self.min_samples, n)
-        if n > m:
-            H = max(self.window, float(np.partition(adt, m)[m]))
-        else:
-            H = 1.1 * float(adt.max())
-        H = max(H, 1e-9)
-        sel = adt < H
-        dt, adt = dt[sel], adt[sel]
-        ps, qs = self._p[:n][sel], self._q[:n][sel]
-        k = len(dt)
-        deg = min(self.degree, k - 1)
-
-        # Reference orientation: the selected sample nearest te; φ_i = log(q_i ⊗ q_ref⁻¹).
-        q_ref = qs[np.argmin(adt)]
-        phis = quat_to_rotvec(quat_multiply(qs, quat_conjugate(q_ref)))
-
-        h = H
-        tau = dt / h
-        u = adt / h
-        w = np.sqrt((1.0 - u * u * u) ** 3)                  # sqrt of tricube weights
-        V = tau[:, None] ** np.arange(deg + 1)                # (k, deg+1)
-        p_mean = ps.mean(axis=0)                              # centred: metres far from 0
-        Y = np.concatenate([ps - p_mean, phis], axis=1)       # (k, 6)
-        c, *_ = np.linalg.lstsq(V * w[:, None], Y * w[:, None], rcond=None)
-        val = c[0].copy()
-        val[:3] += p_mean
-        vel = c[1] / h if deg >= 1 else np.zeros(6)
-        acc = 2.0 * c[2] / (h * h) if deg >= 2 else np.zeros(6)
-
-        # Chain rule through the time warp (identity unless braking).
-        acc = acc * (rate * rate) + vel * rate_d
-        vel = vel * rate
-
-        phi = val[3:]
-        omega, alpha = _left_jacobian_rates(phi.tolist(), vel[3:].tolist(), acc[3:].tolist())
-        q = quat_multiply(quat_from_rotvec(phi), q_ref)
-        q /= np.linalg.norm(q)
+        out = np.empty(FIT_SIZE)
+        loess_fit(self._t, self._p, self._q, n, te, self.window, self.degree, self.min_samples,
+                  rate, rate_d, out)
         return KinematicState(
-            position=val[None, :3],
-            orientation=q[None],
-            linear_velocity=vel[None, :3],
-            angular_velocity=omega[None],
-            linear_acceleration=acc[None, :3],
-            angular_acceleration=alpha[None],
+            position=out[None, 0:3],
+            orientation=out[None, 3:7],
+            linear_velocity=out[None, 7:10],
+            angular_velocity=out[None, 10:13],
+            linear_acceleration=out[None, 13:16],
+            angular_acceleration=out[None, 16:19],
         )

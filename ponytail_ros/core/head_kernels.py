@@ -1,0 +1,220 @@
+"""Compiled head kinematics (numba, nopython, no fastmath): the pose fit and the anchor track.
+
+Two per-tick computations of the head side, written per sample and per chain so that a tick
+costs microseconds instead of hundreds of NumPy calls:
+
+* ``loess_fit``: ``HeadEstimator``'s local weighted least-squares polynomial fit of the pose
+  samples around one instant (the equations and the bandwidth rule are in
+  ``head_estimation``'s docstrings), solved as NumPy's ``lstsq`` does (LAPACK's SVD solve);
+* ``track_table``: ``AnchorTrack``'s quintic Hermite of each attachment point between two
+  frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
+  stage times of a call (the compiled step's anchor table).
+
+Units and frames: s, m, rad; world frame; quaternions scalar-last ``(x, y, z, w)`` body to
+world (as ``rotations``).
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from .limit_kernels import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, scale
+
+__all__ = ['loess_fit', 'track_table', 'FIT_SIZE']
+
+#: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
+FIT_SIZE = 19
+
+
+@njit(cache=True)
+def _to_rotvec(q):
+    """Rotation vector (angle in [0, π]) of a unit quaternion."""
+    x, y, z, w = q
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-8:
+        f = 2.0 / max(w, 1e-300)
+    else:
+        f = 2.0 * math.atan2(s, w) / s
+    return (x * f, y * f, z * f)
+
+
+@njit(cache=True)
+def _left_jacobian_rates(phi, phid, phidd):
+    """World angular velocity and acceleration of ``q(t) = exp(φ(t)) ⊗ q_ref``.
+
+    ``ω = J_l(φ) φ̇`` and ``α = J_l(φ) φ̈ + J̇_l φ̇``, with the left Jacobian of SO(3)
+    ``J_l = I + a [φ]× + b [φ]×²``, ``a = (1 - cos θ)/θ²``, ``b = (θ - sin θ)/θ³``, ``θ = |φ|``;
+    applied to ``φ̇`` its time derivative is (``[φ̇]× φ̇ = 0`` drops one term)
+
+        J̇_l φ̇ = (a'/θ)(φ·φ̇) φ×φ̇ + (b'/θ)(φ·φ̇) φ×(φ×φ̇) + b φ̇×(φ×φ̇).
+
+    Exact for any ``θ`` (Taylor series below θ = 0.1 avoid the cancellations).
+    """
+    th2 = dot(phi, phi)
+    th = math.sqrt(th2)
+    if th < 0.1:
+        a = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+        b = 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0
+        da = -1.0 / 12.0 + th2 / 180.0 - th2 * th2 / 6720.0
+        db = -1.0 / 60.0 + th2 / 1260.0 - th2 * th2 / 60480.0
+    else:
+        s, c = math.sin(th), math.cos(th)
+        a = (1.0 - c) / th2
+        b = (th - s) / (th2 * th)
+        da = (th * s - 2.0 * (1.0 - c)) / (th2 * th2)
+        db = ((1.0 - c) / (th2 * th) - 3.0 * (th - s) / (th2 * th2)) / th
+    pxd = cross(phi, phid)
+    ppxd = cross(phi, pxd)
+    omega = add(add(phid, scale(a, pxd)), scale(b, ppxd))
+    pxdd = cross(phi, phidd)
+    alpha = add(add(phidd, scale(a, pxdd)), scale(b, cross(phi, pxdd)))
+    pd = dot(phi, phid)
+    alpha = add(alpha, add(add(scale(da * pd, pxd), scale(db * pd, ppxd)),
+                           scale(b, cross(phid, pxd))))
+    return omega, alpha
+
+
+@njit(cache=True)
+def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out):
+    """The body's state at ``te`` from the first ``n`` samples (``ts`` s, ``ps`` m, ``qs``
+    unit quaternions, sign-continuous), into ``out`` ``(FIT_SIZE,)``.
+
+    Tricube-weighted degree-``degree`` fit in ``τ = (t - te)/H`` of the positions and of the
+    rotation vectors ``φ_i = log(q_i ⊗ q_ref⁻¹)`` (``q_ref`` the sample nearest ``te``);
+    ``H`` is ``window`` widened to the ``(min_samples + 1)``-th nearest sample (past any
+    sample tied with the ``min_samples``-th, so that at least ``min_samples`` weigh). ``rate`` and
+    ``rate_d`` are the time warp's ``dt_warped/dt`` and its derivative (1, 0 unless the
+    stream is stale and braking), applied by the chain rule. ``n ≥ 2``.
+    """
+    adt = np.empty(n)
+    for i in range(n):
+        adt[i] = abs(ts[i] - te)
+    m = min(min_samples, n)
+    H = 1.1 * adt.max()
+    if n > m:
+        # The (m+1)-th nearest sample bounds the bandwidth; one tied with the m-th (a tick on
+        # a sample of a regular stream) would drop both, so the bound moves past the tie.
+        srt = np.sort(adt)
+        j = m
+        while j < n and srt[j] <= srt[m - 1]:
+            j += 1
+        if j < n:
+            H = srt[j]
+        H = max(window, H)
+    H = max(H, 1e-9)
+    k = 0
+    nearest = -1
+    for i in range(n):
+        if adt[i] < H:
+            k += 1
+            if nearest < 0 or adt[i] < adt[nearest]:
+                nearest = i
+    deg = min(degree, k - 1)
+    npar = deg + 1
+    q_ref = qconj((qs[nearest, 0], qs[nearest, 1], qs[nearest, 2], qs[nearest, 3]))
+    sel = np.empty(k, dtype=np.int64)
+    j = 0
+    mean = np.zeros(3)
+    for i in range(n):
+        if adt[i] < H:
+            sel[j] = i
+            j += 1
+            for a in range(3):
+                mean[a] += ps[i, a]
+    for a in range(3):
+        mean[a] /= k
+    V = np.empty((k, npar))
+    Y = np.empty((k, 6))
+    for r in range(k):
+        i = sel[r]
+        tau = (ts[i] - te) / H
+        u = adt[i] / H
+        wt = math.sqrt((1.0 - u * u * u) ** 3)
+        x = wt
+        for c in range(npar):
+            V[r, c] = x
+            x *= tau
+        phi = _to_rotvec(qmul((qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]), q_ref))
+        for a in range(3):
+            Y[r, a] = (ps[i, a] - mean[a]) * wt
+            Y[r, 3 + a] = phi[a] * wt
+    # LAPACK's SVD solve (gelsd) with NumPy's default cutoff: a sample at the bandwidth's edge
+    # enters with a weight ~1e-22, and truncating that singular value keeps the fit the
+    # lower-degree one of the others (a QR solve would fit the tenth coefficient to it).
+    c = np.linalg.lstsq(V, Y, rcond=np.finfo(np.float64).eps * max(k, npar))[0]
+    val = np.zeros(6)
+    vel = np.zeros(6)
+    acc = np.zeros(6)
+    for a in range(6):
+        val[a] = c[0, a]
+        if deg >= 1:
+            vel[a] = c[1, a] / H
+        if deg >= 2:
+            acc[a] = 2.0 * c[2, a] / (H * H)
+        acc[a] = acc[a] * (rate * rate) + vel[a] * rate_d
+        vel[a] = vel[a] * rate
+    phi = (val[3], val[4], val[5])
+    omega, alpha = _left_jacobian_rates(phi, (vel[3], vel[4], vel[5]), (acc[3], acc[4], acc[5]))
+    q = qnormalize(qmul(qfrom_rotvec(phi), qconj(q_ref)))
+    for a in range(3):
+        out[a] = val[a] + mean[a]
+        out[7 + a] = vel[a]
+        out[10 + a] = omega[a]
+        out[13 + a] = acc[a]
+        out[16 + a] = alpha[a]
+    for a in range(4):
+        out[3 + a] = q[a]
+
+
+@njit(cache=True)
+def _slerp(q0, q1, s):
+    """Spherical linear interpolation of unit quaternions (``rotations.quat_slerp``)."""
+    if dot((q0[0], q0[1], q0[2]), (q1[0], q1[1], q1[2])) + q0[3] * q1[3] < 0.0:
+        q1 = (-q1[0], -q1[1], -q1[2], -q1[3])
+    phi = _to_rotvec(qmul(q1, qconj(q0)))
+    return qmul(qfrom_rotvec(scale(s, phi)), q0)
+
+
+@njit(cache=True)
+def track_table(times, t0, h, coef, end_p, end_v, end_a, q_ends, w_ends,
+                position, velocity, acceleration, orientation, angular_velocity):
+    """``AnchorTrack`` at every time of ``times`` ``(S,)``, into the ``(S, C, 3|4)`` outputs.
+
+    ``coef`` ``(6, C, 3)``: the quintic's monomial coefficients in ``s = (t - t0)/h``;
+    ``end_p/v/a`` ``(2, C, 3)``: the attachment points' kinematics at both frames (the 2nd-order
+    Taylor expansion from the nearer one outside ``[t0, t0 + h]``); ``q_ends`` ``(2, C, 4)`` and
+    ``w_ends`` ``(2, C, 3)``: the anchor bodies' orientation (slerped) and angular velocity
+    (linear) at both frames, held outside.
+    """
+    C = coef.shape[1]
+    for r in range(times.shape[0]):
+        t = times[r]
+        s = (t - t0) / h
+        sc = min(max(s, 0.0), 1.0)
+        for c in range(C):
+            if 0.0 <= s <= 1.0:
+                for a in range(3):
+                    c0, c1, c2 = coef[0, c, a], coef[1, c, a], coef[2, c, a]
+                    c3, c4, c5 = coef[3, c, a], coef[4, c, a], coef[5, c, a]
+                    position[r, c, a] = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
+                    velocity[r, c, a] = (c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (
+                        4.0 * c4 + s * 5.0 * c5)))) / h
+                    acceleration[r, c, a] = (2.0 * c2 + s * (6.0 * c3 + s * (
+                        12.0 * c4 + s * 20.0 * c5))) / (h * h)
+            else:
+                e = 0 if s < 0.0 else 1
+                tau = t - (t0 if s < 0.0 else t0 + h)
+                for a in range(3):
+                    p, v, acc = end_p[e, c, a], end_v[e, c, a], end_a[e, c, a]
+                    position[r, c, a] = p + tau * (v + 0.5 * tau * acc)
+                    velocity[r, c, a] = v + tau * acc
+                    acceleration[r, c, a] = acc
+            q = _slerp((q_ends[0, c, 0], q_ends[0, c, 1], q_ends[0, c, 2], q_ends[0, c, 3]),
+                       (q_ends[1, c, 0], q_ends[1, c, 1], q_ends[1, c, 2], q_ends[1, c, 3]), sc)
+            for a in range(4):
+                orientation[r, c, a] = q[a]
+            for a in range(3):
+                angular_velocity[r, c, a] = (1.0 - sc) * w_ends[0, c, a] + sc * w_ends[1, c, a]
+
