@@ -239,7 +239,7 @@ def run(profile='quick', out=None, log=print, meta=None):
                 log(f'{mode:>10} {rate:6.0f} {jitter:6.1f} {rms:10.2e} {mx:10.2e} '
                     f'{time.perf_counter() - w0:7.1f}')
     if out is not None:
-        from ponytail_ros.bench.cli import make_meta, write_table
+        from ponytail_ros.bench.tables import make_meta, write_table
         os.makedirs(out, exist_ok=True)
         meta = meta or make_meta(profile, 'pose')
         write_table(out, 'pose_estimation', est_rows, meta)
@@ -422,7 +422,7 @@ def main(argv=None):
     if args.reference:
         rows = reference_figures(log)
         if args.out:
-            from ponytail_ros.bench.cli import make_meta, write_table
+            from ponytail_ros.bench.tables import make_meta, write_table
             os.makedirs(args.out, exist_ok=True)
             write_table(args.out, 'pose_reference', rows, make_meta('reference', 'pose'))
         return
