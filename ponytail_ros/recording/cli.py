@@ -47,10 +47,10 @@ and the output is written exactly as the node records a run (same topics, types,
   below ~100 Hz, and near the ends of the history) a global degree-11 interpolating spline
   through all the stored poses (``LOOK_AHEAD_SPLINE_DEGREE``, ``core/head_spline.py``), else
   the estimator settings of ``LOOK_AHEAD_VALUES`` (degree 9 over ±0.05 s, at least the 10
-  nearest poses: it smooths float rounding at high rates); for animation, noisy tracker data
-  wants the default replay; and ``output_stamp: simulated``. The output's parameters record them. Input resets
-  (a teleport, a frame change) then take effect up to that look-ahead early. Not bit-exact
-  with the live run, by design: the default replay is.
+  nearest poses: it smooths float rounding at high rates; for animation, noisy tracker data
+  wants the default replay) and ``output_stamp: simulated``. The output's parameters record
+  them. Input resets (a teleport, a frame change) then take effect up to that look-ahead
+  early. Not bit-exact with the live run, by design: the default replay is.
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 
