@@ -421,6 +421,13 @@ def test_a_recording_with_a_frame_replays_bit_for_bit(frames_harness, tmp_path):
     first = out.read_bytes()
     replay(path, out, overwrite=True)
     assert out.read_bytes() == first
+    # Look-ahead (head and frame estimators replaced by SplineHeadEstimator) runs too.
+    ahead = replay(path, tmp_path / 'ahead.mcap', look_ahead=True)
+    assert ahead.frame_samples == len(arm_in) and ahead.ticks >= 20
+    assert all(math.isfinite(v) for m, _ in pose_messages(tmp_path / 'ahead.mcap',
+                                                          '/segment_poses')
+               for pose in m.poses for v in (pose.position.x, pose.position.y,
+                                             pose.position.z))
 
     # A scene that uses a frame the recording does not have cannot be replayed from it.
     params = tmp_path / 'elbow.yaml'

@@ -158,11 +158,11 @@ def _pairwise(replays, mode, t_end=3.0):
 
 
 def test_look_ahead_replay_is_frame_rate_independent(replays):
-    """30, 60, 120 and 1000 Hz bags of one motion: tip tracks within 1 mm RMS of each other
-    over 3 s (the whip near 2.8 s amplifies the remaining differences: the max is larger,
-    see the README)."""
-    rms, _ = _pairwise(replays, 'look_ahead')
-    assert rms <= 1e-3
+    """30, 60, 120 and 1000 Hz bags of one motion: tip tracks within 1 mm of each other at
+    every output over 3 s (the largest distance of any two rates; the whip near 2.8 s
+    amplifies early differences ~1000x, so this bounds the estimate at the first poses too)."""
+    _, worst = _pairwise(replays, 'look_ahead')
+    assert worst <= 1e-3
 
 
 def test_live_replay_frame_rate_dependence_is_bounded(replays):

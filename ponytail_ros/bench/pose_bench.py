@@ -22,8 +22,9 @@ stamps are exact but irregular; each pose is the head at its stamp).
    * ``live_interp``: the same, but the cubic interpolates the 4 nearest poses
      (``LIVE_INTERP``: for exact animation poses; it amplifies noise);
    * ``look_ahead``: as ``ponytail_replay --look-ahead``: every pose known, the estimator
-     of ``LOOK_AHEAD_VALUES`` (degree 9 over ±0.05 s, at least the 10 nearest poses) at
-     the tick itself.
+     of ``LOOK_AHEAD_VALUES`` (degree 9 over ±0.05 s, at least the 10 nearest poses; where
+     at most 10 poses are within ±0.05 s, the degree-11 global spline of
+     ``core/head_spline.py``) at the tick itself.
 
 2. Tip error (``pose_tip.csv/json``): the reference's 10-segment chain (0.4 m, 0.1 kg, no
    damping) on that head for 3 s, replayed by ``ponytail_replay`` from a ``PoseStamped`` bag
@@ -74,9 +75,12 @@ KEYS = (('p', 'position'), ('v', 'linear_velocity'), ('a', 'linear_acceleration'
 
 
 def _look_ahead_estimator():
+    from ponytail_ros.core.head_spline import SplineHeadEstimator
+    from ponytail_ros.recording.offline import LOOK_AHEAD_SPLINE_DEGREE
     from ponytail_ros.recording.offline import LOOK_AHEAD_VALUES as L
-    return HeadEstimator(degree=L['head.degree'], min_samples=L['head.min_samples'],
-                         window=L['head.window'], max_samples=100000)
+    return SplineHeadEstimator(spline_degree=LOOK_AHEAD_SPLINE_DEGREE,
+                               degree=L['head.degree'], min_samples=L['head.min_samples'],
+                               window=L['head.window'], max_samples=100000)
 
 
 def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, motion=None):
@@ -235,7 +239,7 @@ def run(profile='quick', out=None, log=print, meta=None):
                 log(f'{mode:>10} {rate:6.0f} {jitter:6.1f} {rms:10.2e} {mx:10.2e} '
                     f'{time.perf_counter() - w0:7.1f}')
     if out is not None:
-        from ponytail_ros.bench.cli import make_meta, write_table
+        from ponytail_ros.bench.tables import make_meta, write_table
         os.makedirs(out, exist_ok=True)
         meta = meta or make_meta(profile, 'pose')
         write_table(out, 'pose_estimation', est_rows, meta)
@@ -418,7 +422,7 @@ def main(argv=None):
     if args.reference:
         rows = reference_figures(log)
         if args.out:
-            from ponytail_ros.bench.cli import make_meta, write_table
+            from ponytail_ros.bench.tables import make_meta, write_table
             os.makedirs(args.out, exist_ok=True)
             write_table(args.out, 'pose_reference', rows, make_meta('reference', 'pose'))
         return

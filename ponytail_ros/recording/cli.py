@@ -43,12 +43,14 @@ and the output is written exactly as the node records a run (same topics, types,
   only once ``LOOK_AHEAD_SAMPLES`` head poses logged after it, and ``LOOK_AHEAD_SPAN_NS`` of
   them, have been pushed (the frames' poses and the parameter changes in between are applied
   in file order), and the head is estimated at the tick time itself (no delay) by a centred
-  fit through the poses on both sides: the estimator settings of ``LOOK_AHEAD_VALUES``
-  (degree 9 over ±0.05 s, at least the 10 nearest poses: it interpolates at low rates and
-  smooths float rounding at high ones; for animation, noisy tracker data wants the default
-  replay) and ``output_stamp: simulated``. The output's parameters record them. Input resets
-  (a teleport, a frame change) then take effect up to that look-ahead early. Not bit-exact
-  with the live run, by design: the default replay is.
+  fit through the poses on both sides: where poses are sparse (at most 10 within ±0.05 s:
+  below ~100 Hz, and near the ends of the history) a global degree-11 interpolating spline
+  through all the stored poses (``LOOK_AHEAD_SPLINE_DEGREE``, ``core/head_spline.py``), else
+  the estimator settings of ``LOOK_AHEAD_VALUES`` (degree 9 over ±0.05 s, at least the 10
+  nearest poses: it smooths float rounding at high rates; for animation, noisy tracker data
+  wants the default replay) and ``output_stamp: simulated``. The output's parameters record
+  them. Input resets (a teleport, a frame change) then take effect up to that look-ahead
+  early. Not bit-exact with the live run, by design: the default replay is.
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 

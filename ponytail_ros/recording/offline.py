@@ -31,7 +31,7 @@ from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, st
 from .replay_node import ReplayNode
 
 __all__ = ['replay', 'ReplayResult', 'Progress', 'LOOK_AHEAD_SAMPLES', 'LOOK_AHEAD_SPAN_NS',
-           'LOOK_AHEAD_VALUES']
+           'LOOK_AHEAD_VALUES', 'LOOK_AHEAD_SPLINE_DEGREE']
 
 #: Output chunks are cut by size only: the log-time/idle limit of BagWriter is set beyond any
 #: replay, so that no wall-time effect changes the bytes.
@@ -44,6 +44,10 @@ LOOK_AHEAD_SPAN_NS = 60_000_000
 LOOK_AHEAD_VALUES = {'interpolation_delay': 0.0, 'interpolation_delay_periods': 0.0,
                      'output_stamp': 'simulated', 'head.degree': 9, 'head.min_samples': 10,
                      'head.window': 0.05, 'head.max_samples': 512}
+#: Look-ahead replay: the head (and every frame) is estimated within its history by a global
+#: interpolating spline of this (odd) degree through all the stored poses
+#: (``core/head_spline.py``); the fit above only extrapolates past the newest pose.
+LOOK_AHEAD_SPLINE_DEGREE = 11
 
 
 @dataclass
@@ -193,6 +197,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                       # time); in another bag whose stamps are set, 0 is a stamp (sim clock).
                       zero_stamp_valid=(inp.layout is None
                                         and any(stamp for stamp, _ in stamps)))
+    if look_ahead:
+        _use_spline_estimators(node.runner)
     loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
                         events_topic=events_topic, frame_topics=frame_topics,
                         frame_types=frame_types, look_ahead=look_ahead, progress=progress)
@@ -210,6 +216,21 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
         progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
     return result
+
+
+def _use_spline_estimators(runner) -> None:
+    """Look-ahead: the runner's head and frame estimators replaced by
+    ``SplineHeadEstimator``s with the same settings (before any pose is pushed)."""
+    from ponytail_ros.core.head_spline import SplineHeadEstimator
+
+    def spline(e):
+        return SplineHeadEstimator(
+            window=e.window, degree=e.degree, max_extrapolation=e.max_extrapolation,
+            min_samples=e.min_samples, max_samples=e.max_samples, max_gap=e.max_gap,
+            quat_tolerance=e.quat_tolerance, min_interval=e.min_interval,
+            spline_degree=LOOK_AHEAD_SPLINE_DEGREE)
+    runner.estimator = spline(runner.estimator)
+    runner.frame_estimators = [spline(e) for e in runner.frame_estimators]
 
 
 # -- the stages of replay() ----------------------------------------------------------------------
