@@ -24,14 +24,18 @@ def _cpu_seconds(pid):
     return (int(fields[11]) + int(fields[12])) / _TICK       # utime + stime
 
 
-def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0):
+def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=False):
+    """The node's share of one core (``floor``: of ``rclpy_floor`` instead, ``params``
+    unused)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     head = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.head_demo import main; '
                              'main()', '--ros-args', '-p', f'rate:={head_rate}'],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    node = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.node import main; '
-                             'main()', '--ros-args', '--params-file', str(params), *extra],
+    cmd = (['-m', 'ponytail_ros.bench.rclpy_floor'] if floor else
+           ['-c', 'from ponytail_ros.node import main; main()', '--ros-args', '--params-file',
+            str(params), *extra])
+    node = subprocess.Popen([sys.executable, *cmd],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         time.sleep(warmup)
@@ -58,8 +62,14 @@ def main(argv=None):
     p.add_argument('--seconds', type=float, default=15.0, help='measured wall time (s)')
     p.add_argument('--warmup', type=float, default=8.0, help='start-up left out (s)')
     p.add_argument('--json', help='write the results to this file')
+    p.add_argument('--floor', action='store_true',
+                   help='also measure rclpy_floor: the same ROS traffic with no simulation')
     args = p.parse_args(argv)
     rows = []
+    if args.floor:
+        share = measure(None, args.seconds, args.warmup, floor=True)
+        rows.append(dict(params='rclpy_floor', cpu_share=share, seconds=args.seconds))
+        print(f'rclpy_floor (no simulation): {100 * share:.1f} % of one core (same measurement)')
     for params in args.params:
         share = measure(params, args.seconds, args.warmup)
         rows.append(dict(params=params, cpu_share=share, seconds=args.seconds))
