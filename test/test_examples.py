@@ -66,8 +66,15 @@ def test_the_example_fails_readably_when_the_skull_grows_into_the_root(examples)
     assert out.returncode == 1, out.stdout + out.stderr
     assert '1 failed' in out.stdout
     # The deepest penetration of the run, named: how deep, the bound, which segment of which
-    # chain in which collider, when (the root alone is 0.12 + 0.02 - 0.11 = 0.03 m inside).
-    assert re.search(r"CheckFailed: penetration depth 0\.0[23]\d+ m > max_depth 0\.001 m: chain "
-                     r"'ponytail' segment \d+ inside collider 'skull' at t = \d+\.\d{3} s "
-                     r"\(tick \d+ of 179\)", out.stdout), out.stdout
+    # chain in which collider, when. The root alone is 0.12 + 0.02 - 0.11 = 0.03 m inside (its
+    # segment is tested on its outer half: 0.0299 m measured); the chain hanging from it can
+    # only be deeper, and never deeper than the sphere's radius plus its own, 0.14 m. (Which
+    # segment is deepest, and how deep, depends on how the chain falls around the root: it
+    # moved from segment 1 at 0.0299 m to segment 8 at 0.03-0.04 m with rounding-level changes
+    # of the step or the head fit.)
+    found = re.search(r"CheckFailed: penetration depth (0\.\d+) m > max_depth 0\.001 m: chain "
+                      r"'ponytail' segment \d+ inside collider 'skull' at t = \d+\.\d{3} s "
+                      r"\(tick \d+ of 179\)", out.stdout)
+    assert found, out.stdout
+    assert 0.0295 <= float(found.group(1)) <= 0.14
     assert 'test_ponytail_stays_out_of_the_skull_while_walking' in out.stdout

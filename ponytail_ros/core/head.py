@@ -18,8 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .head_kernels import track_table
-from .rotations import cross, quat_rotate
+from .head_kernels import point_kinematics, track_table
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
@@ -81,20 +80,16 @@ class KinematicState:
     def point_kinematics(self, body, r_local):
         """Eq. 1–3 for points fixed in bodies: ``body`` ``(C,)`` indices, ``r_local`` ``(C, 3)``.
 
-        Returns ``AnchorKinematics`` of the ``C`` points.
+        Returns ``AnchorKinematics`` of the ``C`` points (``head_kernels.point_kinematics``).
         """
-        q = self.orientation[body]
-        w = self.angular_velocity[body]
-        al = self.angular_acceleration[body]
-        r = quat_rotate(q, r_local)
-        w_x_r = cross(w, r)
-        return AnchorKinematics(
-            position=self.position[body] + r,
-            velocity=self.linear_velocity[body] + w_x_r,
-            acceleration=self.linear_acceleration[body] + cross(al, r) + cross(w, w_x_r),
-            orientation=q,
-            angular_velocity=w,
-        )
+        body = np.ascontiguousarray(body, dtype=np.int64).reshape(-1)
+        C = body.shape[0]
+        out = AnchorKinematics(np.empty((C, 3)), np.empty((C, 3)), np.empty((C, 3)),
+                               np.empty((C, 4)), np.empty((C, 3)))
+        point_kinematics(*(np.ascontiguousarray(getattr(self, f), dtype=float) for f in _FIELDS),
+                         body, np.ascontiguousarray(r_local, dtype=float), out.position,
+                         out.velocity, out.acceleration, out.orientation, out.angular_velocity)
+        return out
 
 
 @dataclass
@@ -176,21 +171,6 @@ class SwayYawMotion(HeadMotion):
         )
 
 
-def _quintic_coefficients(h, p0, v0, a0, p1, v1, a1):
-    """Monomial coefficients (in s = (t - t0)/h) of the quintic Hermite through both ends."""
-    dp = p1 - p0
-    hv0, hv1 = h * v0, h * v1
-    ha0, ha1 = h * h * a0, h * h * a1
-    return (
-        p0,
-        hv0,
-        0.5 * ha0,
-        10.0 * dp - 6.0 * hv0 - 4.0 * hv1 - 1.5 * ha0 + 0.5 * ha1,
-        -15.0 * dp + 8.0 * hv0 + 7.0 * hv1 + 1.5 * ha0 - ha1,
-        6.0 * dp - 3.0 * hv0 - 3.0 * hv1 - 0.5 * ha0 + 0.5 * ha1,
-    )
-
-
 class AnchorTrack:
     """Anchor kinematics between two frames, for stepping at times the animation never gave.
 
@@ -210,15 +190,10 @@ class AnchorTrack:
         self.t0 = float(t0)
         self.h = max(float(t1) - float(t0), 1e-12)
         self.a0, self.a1 = a0, a1
-        ends = (a0, a1)
-        self._args = (self.t0, self.h,
-                      np.ascontiguousarray(_quintic_coefficients(
-                          self.h, a0.position, a0.velocity, a0.acceleration, a1.position,
-                          a1.velocity, a1.acceleration), dtype=float),
-                      *(np.ascontiguousarray([getattr(e, f) for e in ends], dtype=float) for f in (
-                          'position', 'velocity', 'acceleration', 'orientation',
-                          'angular_velocity')))
-        self._C = np.shape(a0.position)[0]
+        self._ends = tuple(np.ascontiguousarray([getattr(a0, f), getattr(a1, f)], dtype=float)
+                           for f in ('position', 'velocity', 'acceleration', 'orientation',
+                                     'angular_velocity'))
+        self._C = self._ends[0].shape[1]
 
     def table(self, times):
         """The anchors at all ``times`` ``(S,)`` at once, as the rows of an
@@ -228,7 +203,7 @@ class AnchorTrack:
         S, C = t.shape[0], self._C
         out = AnchorKinematics(np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 3)),
                                np.empty((S, C, 4)), np.empty((S, C, 3)))
-        track_table(t, *self._args, out.position, out.velocity, out.acceleration,
+        track_table(t, self.t0, self.h, *self._ends, out.position, out.velocity, out.acceleration,
                     out.orientation, out.angular_velocity)
         return out
 

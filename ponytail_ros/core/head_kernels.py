@@ -8,7 +8,8 @@ costs microseconds instead of hundreds of NumPy calls:
   ``head_estimation``'s docstrings), solved as NumPy's ``lstsq`` does (LAPACK's SVD solve);
 * ``track_table``: ``AnchorTrack``'s quintic Hermite of each attachment point between two
   frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
-  stage times of a call (the compiled step's anchor table).
+  stage times of a call (the compiled step's anchor table);
+* ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``).
 
 Units and frames: s, m, rad; world frame; quaternions scalar-last ``(x, y, z, w)`` body to
 world (as ``rotations``).
@@ -18,9 +19,9 @@ import math
 import numpy as np
 from numba import njit
 
-from .limit_kernels import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, scale
+from .limit_kernels import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, scale
 
-__all__ = ['loess_fit', 'track_table', 'FIT_SIZE']
+__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -178,17 +179,31 @@ def _slerp(q0, q1, s):
 
 
 @njit(cache=True)
-def track_table(times, t0, h, coef, end_p, end_v, end_a, q_ends, w_ends,
+def track_table(times, t0, h, end_p, end_v, end_a, q_ends, w_ends,
                 position, velocity, acceleration, orientation, angular_velocity):
     """``AnchorTrack`` at every time of ``times`` ``(S,)``, into the ``(S, C, 3|4)`` outputs.
 
-    ``coef`` ``(6, C, 3)``: the quintic's monomial coefficients in ``s = (t - t0)/h``;
-    ``end_p/v/a`` ``(2, C, 3)``: the attachment points' kinematics at both frames (the 2nd-order
-    Taylor expansion from the nearer one outside ``[t0, t0 + h]``); ``q_ends`` ``(2, C, 4)`` and
-    ``w_ends`` ``(2, C, 3)``: the anchor bodies' orientation (slerped) and angular velocity
-    (linear) at both frames, held outside.
+    ``end_p/v/a`` ``(2, C, 3)``: the attachment points' kinematics at both frames, ``t0`` and
+    ``t0 + h``: inside, the quintic Hermite through both ends' p, ṗ, p̈ (its monomial
+    coefficients in ``s = (t - t0)/h``), outside the 2nd-order Taylor
+    expansion from the nearer end; ``q_ends`` ``(2, C, 4)`` and ``w_ends`` ``(2, C, 3)``: the
+    anchor bodies' orientation (slerped) and angular velocity (linear) at both frames, held
+    outside.
     """
-    C = coef.shape[1]
+    C = end_p.shape[1]
+    coef = np.empty((6, C, 3))
+    for c in range(C):
+        for a in range(3):
+            p0, p1 = end_p[0, c, a], end_p[1, c, a]
+            hv0, hv1 = h * end_v[0, c, a], h * end_v[1, c, a]
+            ha0, ha1 = h * h * end_a[0, c, a], h * h * end_a[1, c, a]
+            dp = p1 - p0
+            coef[0, c, a] = p0
+            coef[1, c, a] = hv0
+            coef[2, c, a] = 0.5 * ha0
+            coef[3, c, a] = 10.0 * dp - 6.0 * hv0 - 4.0 * hv1 - 1.5 * ha0 + 0.5 * ha1
+            coef[4, c, a] = -15.0 * dp + 8.0 * hv0 + 7.0 * hv1 + 1.5 * ha0 - ha1
+            coef[5, c, a] = 6.0 * dp - 3.0 * hv0 - 3.0 * hv1 - 0.5 * ha0 + 0.5 * ha1
     for r in range(times.shape[0]):
         t = times[r]
         s = (t - t0) / h
@@ -218,3 +233,29 @@ def track_table(times, t0, h, coef, end_p, end_v, end_a, q_ends, w_ends,
             for a in range(3):
                 angular_velocity[r, c, a] = (1.0 - sc) * w_ends[0, c, a] + sc * w_ends[1, c, a]
 
+
+@njit(cache=True)
+def point_kinematics(position, orientation, linear_velocity, angular_velocity,
+                     linear_acceleration, angular_acceleration, body, r_local,
+                     out_p, out_v, out_a, out_q, out_w):
+    """Eq. 1–3 of ``head`` for ``C`` points fixed in kinematic bodies (``body`` ``(C,)``,
+    ``r_local`` ``(C, 3)`` m in the body frame), into the ``(C, 3|4)`` outputs:
+    ``p = R + r``, ``ṗ = Ṙ + ω × r``, ``p̈ = R̈ + α × r + ω × (ω × r)``, ``r = R_body r_local``,
+    and the bodies' orientation and ω."""
+    for c in range(body.shape[0]):
+        k = body[c]
+        q = (orientation[k, 0], orientation[k, 1], orientation[k, 2], orientation[k, 3])
+        w = (angular_velocity[k, 0], angular_velocity[k, 1], angular_velocity[k, 2])
+        al = (angular_acceleration[k, 0], angular_acceleration[k, 1], angular_acceleration[k, 2])
+        r = qrotate(q, (r_local[c, 0], r_local[c, 1], r_local[c, 2]))
+        wxr = cross(w, r)
+        axr = cross(al, r)
+        wxwxr = cross(w, wxr)
+        for a in range(3):
+            out_p[c, a] = position[k, a] + r[a]
+            out_v[c, a] = linear_velocity[k, a] + wxr[a]
+            # (p̈ + α × r) + ω × (ω × r): the order of head.py's NumPy form, bit for bit
+            out_a[c, a] = (linear_acceleration[k, a] + axr[a]) + wxwxr[a]
+            out_w[c, a] = w[a]
+        for a in range(4):
+            out_q[c, a] = q[a]

@@ -34,13 +34,14 @@ from .head import AnchorTrack, HeadMotion, KinematicState, stack_anchors
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
-from .rotations import (cross, quat_axis_x, quat_conjugate, quat_from_two_vectors,
+from .rotations import (cross, quat_conjugate, quat_from_two_vectors,
                         quat_integrate, quat_multiply, quat_normalize, quat_rotate,
                         quat_to_matrix)
 from .scene import SceneError, _check_range, _check_vector
 from .solver import Dynamics
 from .stabilization import project_positions, project_velocities
 from .state import ChainState, half_vectors, joint_points
+from . import state_kernels
 
 __all__ = ['Simulator', 'StepReport', 'TUNABLE_PARAMETERS']
 
@@ -389,8 +390,9 @@ class Simulator:
         self.state = ChainState(x, q, v, w)
         anchor = anchor_at(self.t)
         self._last_anchor = (self.t, anchor)
-        report.max_gap = float(np.max(self.joint_gaps(anchor))) if self.state.is_finite() else np.inf
-        reason = self._guard(report.max_gap, anchor, failure)
+        g = self._measures(anchor)
+        report.max_gap = float(g[1]) if g[0] else np.inf
+        reason = self._guard(g, failure)
         if reason is not None:
             self.total_resets += 1
             report.reset_reason = reason
@@ -508,35 +510,47 @@ class Simulator:
         angular velocities ``w_rel`` ``(n, 3)`` (rad/s) at its start (1 for other scenes)."""
         if self.unilateral is None:
             return 1
-        rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
+        return self._substeps_at(float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel)))))
+
+    def _substeps_at(self, rate):
+        """Sub-steps of a step whose fastest joint turns at ``rate`` rad/s (1 without
+        colliders or limits)."""
+        if self.unilateral is None:
+            return 1
         return min(MAX_SUBSTEPS, max(1, int(np.ceil(rate * self.dt / SUBSTEP_ANGLE))))
 
-    def _guard(self, max_gap, anchor=None, failure=None):
-        """Why the state after a call is a blow-up (a reset reason), or None."""
-        s, m, st = self.scene.solver, self.model, self.state
+    def _measures(self, anchor):
+        """``state_kernels.guard_measures`` of the state with ``anchor`` (its ``MEASURES``)."""
+        m, st = self.model, self.state
+        out = np.empty(len(state_kernels.MEASURES))
+        swing_only = not self._explicit_gyroscopic and self.dynamics.axisymmetric
+        state_kernels.guard_measures(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
+                                     _c(st.q), _c(st.v), _c(st.w), _c(anchor.position),
+                                     _c(anchor.angular_velocity), swing_only, out)
+        return out
+
+    def _guard(self, g, failure=None):
+        """Why the state after a call is a blow-up (a reset reason), or None; ``g``: its
+        ``_measures``."""
+        s = self.scene.solver
         if failure is not None:
             return f'solver failure: {failure}'
-        if not st.is_finite():
+        if not g[0]:
             return 'non-finite state'
-        speed = float(np.max(np.linalg.norm(st.v, axis=1)))
+        _, max_gap, speed, rate, checked, precession = (float(a) for a in g)
         if speed > s.guard_max_speed:
             return f'speed {speed:.3g} m/s > guard_max_speed {s.guard_max_speed:g}'
         # Rotations faster than the integrator follows within one (sub-)step: a spin-up the
         # speed check misses when the segment is short (a thin segment's spurious spin).
-        anchor = self._last_anchor[1] if anchor is None else anchor
-        w_rel = st.w - m.parent_side(anchor.angular_velocity, st.w)
-        h = self.dt / self._substeps(w_rel)
-        if not self._explicit_gyroscopic and self.dynamics.axisymmetric:
-            # Symplectic Euler and RATTLE turn a segment about its own axis exactly, at any
-            # rate: only the rates that swing the axes count (twist about the child's axis out).
-            e = quat_axis_x(st.q)
-            w_rel = w_rel - np.einsum('ij,ij->i', w_rel, e)[:, None] * e
-        rate = float(np.sqrt(np.max(np.einsum('ij,ij->i', w_rel, w_rel))))
-        if h * rate > s.guard_max_step_angle:
-            return (f'joint angular speed {rate:.3g} rad/s: {h * rate:.3g} rad per step > '
+        # Symplectic Euler and RATTLE turn a segment about its own axis exactly, at any rate:
+        # for them only the rates that swing the axes count (``checked``).
+        h = self.dt / self._substeps_at(rate)
+        if h * checked > s.guard_max_step_angle:
+            return (f'joint angular speed {checked:.3g} rad/s: {h * checked:.3g} rad per step > '
                     f'guard_max_step_angle {s.guard_max_step_angle:g}')
         if self._explicit_gyroscopic:
-            gyro = float(np.max(self.dynamics.gyroscopic_rates(st.q, st.w)))
+            gyro = precession if self.dynamics.axisymmetric else float(
+                np.max(self.dynamics.gyroscopic_rates(self.state.q, self.state.w)))
             limit = s.guard_max_step_angle / GYROSCOPIC_REACH_RATIO
             if h * gyro > limit:
                 return (f'gyroscopic precession at {gyro:.3g} rad/s (a segment spinning about its '
@@ -606,10 +620,16 @@ class Simulator:
         return joint_points(self.model, self.state if t is None else self.state_at(t))
 
     def segment_poses(self, t=None):
-        """Per segment: origin at the proximal joint and orientation (+X along the segment)."""
-        state = self.state if t is None else self.state_at(t)
-        prox, _ = joint_points(self.model, state)
-        return prox, state.q.copy()
+        """Per segment: origin at the proximal joint and orientation (+X along the segment),
+        ``(n, 3)`` m and ``(n, 4)``; ``t``: of the chain at that time, as ``state_at`` reports
+        it (``state_kernels.segment_poses``)."""
+        m, st = self.model, self.state
+        tau = 0.0 if t is None else float(t) - self.t
+        anchor = self._anchor_at(float(t)).position if tau > 0.0 else self._zeros[:0]
+        origins, quats = np.empty((m.n, 3)), np.empty((m.n, 4))
+        state_kernels.segment_poses(m.length, m.is_first, m.chain_of, _c(st.x), _c(st.q),
+                                    _c(st.w), tau, _c(anchor), origins, quats)
+        return origins, quats
 
     def energy(self):
         """Kinetic and gravitational potential energy of every chain, ``(C,)`` each, J."""
@@ -683,6 +703,10 @@ def _body_kinematics(head):
     """``AnchorKinematics`` of the origins of all kinematic bodies of a ``KinematicState``."""
     k = head.n_bodies
     return head.point_kinematics(np.arange(k), np.zeros((k, 3)))
+
+
+def _c(a):
+    return np.ascontiguousarray(a, dtype=float)
 
 
 def _check_head(head):
