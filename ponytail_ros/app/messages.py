@@ -1,7 +1,10 @@
 """Segment poses to ROS messages: ``geometry_msgs/PoseArray`` and ``visualization_msgs`` markers.
 
-One ``ChainMessages`` per chain keeps its message objects and refills them each tick (building
-rclpy messages is the expensive part of publishing: allocation plus per-field type checks).
+A chain's poses of a tick are a ``SegmentPoses``: the CDR bytes of its ``PoseArray``, encoded
+once from the pose arrays (``wire.py``), which the node publishes and the recorder writes as
+they are; the ``PoseArray`` object (and the ``/tf`` bytes) only when asked for. One
+``ChainMessages`` per chain keeps its marker objects and refills them each tick (building rclpy
+messages is the expensive part of publishing: allocation plus per-field type checks).
 
 Conventions: a segment's pose has its origin at the proximal joint (towards the head) and its
 local +X along the segment, so the distal joint is ``origin + R · (length, 0, 0)``. Markers:
@@ -19,7 +22,9 @@ namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as 
 a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
+from typing import Dict, Optional, Sequence
 
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
@@ -29,8 +34,10 @@ import numpy as np
 from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
                                          quat_rotate)
 
-__all__ = ['ChainMessages', 'ColliderMarkers', 'delete_all_marker', 'Q_Z_TO_X',
-           'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
+from .wire import pose_array_layout, pose_block, tf_layout
+
+__all__ = ['SegmentPoses', 'tf_cdr', 'ChainMessages', 'ColliderMarkers', 'delete_all_marker',
+           'Q_Z_TO_X', 'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
 
 #: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
 TF_TOPIC = '/tf'
@@ -66,27 +73,103 @@ def _set_pose(pose, p, q):
     ori.x, ori.y, ori.z, ori.w = q
 
 
+class SegmentPoses:
+    """One chain's segment poses of one tick, held as the CDR of its ``geometry_msgs/PoseArray``
+    (encoded once, ``wire.py``): what is published and recorded. Immutable: the arrays are
+    read-only views of the bytes.
+
+    Args:
+        chain: the chain's name (its TF frames are ``<prefix><chain>/<i>``).
+        origins, quats: ``(n, 3)`` and ``(n, 4)`` (x, y, z, w), root first.
+        frame_id: the ``header.frame_id``.
+        stamp_ns: the ``header.stamp``, integer ns.
+    """
+
+    __slots__ = ('chain', 'frame_id', 'stamp_ns', 'cdr', '_layout', '_message', '_tf')
+
+    def __init__(self, chain: str, origins, quats, frame_id: str, stamp_ns: int):
+        self.chain = chain
+        self.frame_id = frame_id
+        self.stamp_ns = int(stamp_ns)
+        self._layout = pose_array_layout(frame_id, len(origins))
+        sec, nanosec = self.stamp
+        #: The ``PoseArray``'s CDR (encapsulation header included, padding zeroed).
+        self.cdr: bytes = self._layout.encode(sec, nanosec, pose_block(origins, quats))
+        self._message: Optional[PoseArray] = None
+        self._tf: Dict[str, bytes] = {}
+
+    @property
+    def n(self) -> int:
+        return self._layout.n
+
+    @property
+    def stamp(self):
+        """``(sec, nanosec)`` of the stamp (as ``builtin_interfaces/Time`` splits it)."""
+        return self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(n, 7)``: position x, y, z, orientation x, y, z, w per segment (read-only)."""
+        return self._layout.poses(self.cdr)
+
+    @property
+    def origins(self) -> np.ndarray:
+        return self.poses[:, :3]
+
+    @property
+    def orientations(self) -> np.ndarray:
+        return self.poses[:, 3:]
+
+    def message(self) -> PoseArray:
+        """The ``PoseArray`` (built on the first call; the same object after)."""
+        if self._message is None:
+            msg = PoseArray()
+            msg.header.frame_id = self.frame_id
+            sec, nanosec = self.stamp
+            msg.header.stamp = Time(sec=sec, nanosec=nanosec)
+            poses = []
+            for row in self.poses.tolist():
+                pose = Pose()
+                _set_pose(pose, row[:3], row[3:])
+                poses.append(pose)
+            msg.poses = poses
+            self._message = msg
+        return self._message
+
+    def tf_cdr(self, prefix: str = '') -> bytes:
+        """CDR of the ``tf2_msgs/TFMessage`` of the segments: segment ``i`` as the frame
+        ``segment_frame(prefix, chain, i)``, child of ``frame_id``, at the stamp."""
+        data = self._tf.get(prefix)
+        if data is None:
+            data = self._tf[prefix] = tf_cdr((self,), prefix)
+        return data
+
+
+def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
+    """CDR of one ``tf2_msgs/TFMessage`` holding the segments of every chain in ``segments``
+    (one tick's, so one frame and one stamp), chain after chain, root first."""
+    first = segments[0]
+    children = tuple(segment_frame(prefix, s.chain, i) for s in segments for i in range(s.n))
+    block = first.poses if len(segments) == 1 else np.concatenate([s.poses for s in segments])
+    sec, nanosec = first.stamp
+    return tf_layout(first.frame_id, children).encode(sec, nanosec, block)
+
+
 class ChainMessages:
-    """Reusable messages of one chain (``name``, segment ``lengths`` ``(n,)``, ``radius`` m)."""
+    """Reusable marker messages of one chain (``name``, segment ``lengths`` ``(n,)``,
+    ``radius`` m)."""
 
     def __init__(self, name, lengths, radius):
         self.name = name
         self.lengths = np.asarray(lengths, dtype=float)
         self.radius = float(radius)
         self.n = len(self.lengths)
-        self.pose_array = PoseArray()
-        self.pose_array.poses = [Pose() for _ in range(self.n)]
         self._style = None
         self._markers = []
 
-    def fill_poses(self, origins, quats, frame_id, stamp):
-        """Fill and return the ``PoseArray`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
-        msg = self.pose_array
-        msg.header.frame_id = frame_id
-        msg.header.stamp = stamp
-        for pose, p, q in zip(msg.poses, origins.tolist(), quats.tolist()):
-            _set_pose(pose, p, q)
-        return msg
+    def segment_poses(self, origins, quats, frame_id, stamp_ns) -> SegmentPoses:
+        """The tick's ``SegmentPoses`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
+        return SegmentPoses(self.name, origins, quats, frame_id, stamp_ns)
 
     def _build_markers(self, style, color):
         r = self.radius

@@ -16,7 +16,7 @@ from visualization_msgs.msg import MarkerArray
 
 import numpy as np
 
-from .messages import ChainMessages, ColliderMarkers, delete_all_marker
+from .messages import ChainMessages, ColliderMarkers, SegmentPoses, delete_all_marker
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
@@ -40,13 +40,20 @@ def time_msg(t_ns: int) -> Time:
 
 @dataclass
 class NodeTick:
-    """The messages of one tick: ``poses[i]`` is chain ``i``'s ``PoseArray``; ``markers`` a
-    ``MarkerArray`` when markers are due (``markers.rate``), else None."""
+    """The messages of one tick: ``segments[i]`` is chain ``i``'s ``SegmentPoses`` (its
+    ``PoseArray`` as CDR bytes, ``.cdr``); ``markers`` a ``MarkerArray`` when markers are due
+    (``markers.rate``), else None."""
 
     output: TickOutput
     frame_id: str
-    poses: List[Any]
+    segments: List[SegmentPoses]
     markers: Optional[Any]
+
+    @property
+    def poses(self) -> List[Any]:
+        """The ``PoseArray`` message per chain (built when first asked for: the node and the
+        recorder use the bytes)."""
+        return [s.message() for s in self.segments]
 
 
 @dataclass
@@ -134,10 +141,10 @@ class NodeCore:
             self._chain_msgs = self._make_chain_messages(scene)
         # No frame set and no head pose seen (chains hanging from the world only): 'world'.
         frame = self.values['frame_id'] or out.frame_id or 'world'
-        stamp = time_msg(self.stamp_ns(t_ns, out))
+        stamp_ns = self.stamp_ns(t_ns, out)
         model = self.runner.sim.model
-        poses = [cm.fill_poses(out.origins[model.chain_slice(c)],
-                               out.orientations[model.chain_slice(c)], frame, stamp)
+        poses = [cm.segment_poses(out.origins[model.chain_slice(c)],
+                                  out.orientations[model.chain_slice(c)], frame, stamp_ns)
                  for c, cm in enumerate(self._chain_msgs)]
         self.published += 1
         win, rep = self.window, out.report
@@ -148,7 +155,7 @@ class NodeCore:
         win.dropped_time += rep.dropped_time
         if out.reset_reason == 'guard':
             win.guard_resets += 1
-        return NodeTick(out, frame, poses, self._markers(out, frame, stamp))
+        return NodeTick(out, frame, poses, self._markers(out, frame, stamp_ns))
 
     def stamp_ns(self, t_ns: int, out: TickOutput) -> int:
         """The outputs' stamp (ns) of the tick at ``t_ns``: the tick time (``output_stamp:
@@ -158,12 +165,13 @@ class NodeCore:
             return t_ns
         return t_ns - int(round((out.t - out.t_state) * 1e9))
 
-    def _markers(self, out, frame, stamp):
+    def _markers(self, out, frame, stamp_ns):
         style = self.values['markers.style']
         period = 1.0 / self.values['markers.rate']
         if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
                 and out.t >= self._last_marker_t:
             return None
+        stamp = time_msg(stamp_ns)
         self._last_marker_t = out.t
         model = self.runner.sim.model
         delete = False

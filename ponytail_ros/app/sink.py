@@ -30,7 +30,8 @@ class TickSink(Protocol):
         """An input pose as received: ``source`` is ``HEAD`` (None) or the frame's index."""
 
     def on_tick(self, tick: NodeTick, log_time_ns: int) -> None:
-        """One tick's messages (``tick.poses`` per chain, ``tick.markers`` or None)."""
+        """One tick's messages (``tick.segments`` per chain: its ``PoseArray`` as CDR bytes,
+        ``.cdr``; ``tick.markers`` or None)."""
 
     def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
         """A ``diagnostic_msgs/DiagnosticArray``."""

@@ -198,7 +198,8 @@ class RunRecorder:
         canonical: write canonical CDR (``cdr.zero_padding``: alignment gaps zeroed, the
             slack rclpy leaves after the data cut): equal messages are equal bytes and readers
             that check the length (rosbags) accept every type. On by default; off writes
-            ``serialize_message``'s bytes as they are.
+            ``serialize_message``'s bytes as they are (the segment poses of a tick come as
+            canonical CDR already, ``app/wire.py``, and are written as they come either way).
         overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
         tf: also record every chain's segments on ``/tf`` (``tf2_msgs/msg/TFMessage``, one
             message per chain per tick, written with its ``PoseArray``; see ``tf.py``).
@@ -275,12 +276,23 @@ class RunRecorder:
         """The I/O error that stopped recording, or None."""
         return self._writer.error
 
-    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
-        """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+    def _writable(self) -> bool:
         if self._closed:
-            return  # a callback after destroy_node: nothing to record any more
+            return False  # a callback after destroy_node: nothing to record any more
         if self._writer.error is not None:
             self._report_error()
+            return False
+        return True
+
+    def _failed(self, exc: BagError) -> None:
+        # A negative time, or closed by another thread meanwhile: never the node's problem;
+        # reported once like an I/O error.
+        if not self._closed:
+            self._report_error(str(exc))
+
+    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
+        """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+        if not self._writable():
             return
         try:
             if self._canonical:
@@ -294,10 +306,23 @@ class RunRecorder:
                                                                            self._tf_prefix),
                                               log_time_ns, _publish_time(msg, log_time_ns))
         except BagError as exc:
-            # A negative time, or closed by another thread meanwhile: never the node's
-            # problem; reported once like an I/O error.
-            if not self._closed:
-                self._report_error(str(exc))
+            self._failed(exc)
+
+    def segment_poses(self, chain_index: int, poses: Any, log_time_ns: int) -> None:
+        """Chain ``chain_index``'s ``SegmentPoses`` (``app/messages.py``): its ``PoseArray``
+        bytes as they are (already canonical CDR), then its ``/tf``, without a message object
+        or a second serialisation. Publish time = the stamp (the log time if negative)."""
+        if not self._writable():
+            return
+        topic = self.layout.pose_topics[chain_index]
+        publish_ns = poses.stamp_ns if poses.stamp_ns >= 0 else log_time_ns
+        try:
+            self._writer.write_serialized(topic, poses.cdr, log_time_ns, publish_ns)
+            if topic in self._tf_chains:
+                self._writer.write_serialized(TF_TOPIC, poses.tf_cdr(self._tf_prefix),
+                                              log_time_ns, publish_ns)
+        except BagError as exc:
+            self._failed(exc)
 
     def head(self, msg: Any, log_time_ns: int) -> None:
         """A head pose as received, at its receive time."""
@@ -336,8 +361,8 @@ class RunRecorder:
 
     def on_tick(self, tick: Any, log_time_ns: int) -> None:
         """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""
-        for c, msg in enumerate(tick.poses):
-            self.poses(c, msg, log_time_ns)
+        for c, poses in enumerate(tick.segments):
+            self.segment_poses(c, poses, log_time_ns)
         if tick.markers is not None:
             self.markers(tick.markers, log_time_ns)
 

@@ -65,7 +65,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import report_compile
-from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, tf_cdr
 from ponytail_ros.app.node_core import NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
@@ -175,11 +175,12 @@ class _Publishers:
         pass
 
     def on_tick(self, tick, log_time_ns):
-        for pub, msg in zip(self.poses, tick.poses):
-            pub.publish(msg)
+        # The poses as encoded by the core (CDR bytes): rclpy publishes them raw.
+        for pub, poses in zip(self.poses, tick.segments):
+            pub.publish(poses.cdr)
         self.poses_published_at = time.perf_counter()
         if self.tf is not None:
-            self._node._publish_tf(tick.poses)
+            self.tf.publish(tf_cdr(tick.segments, self._node._tf_prefix))
         if tick.markers is not None:
             self.markers.publish(tick.markers)
 
@@ -305,23 +306,7 @@ class PonytailNode(Node):
                     'not ship it): the segments are not published on /tf. Source a ROS 2 '
                     'workspace that has tf2_msgs; recordings (record_path) hold /tf regardless')
             return None
-        self._tf_message = TFMessage
         return self.create_publisher(TFMessage, TF_TOPIC, QoSProfile(depth=TF_QOS_DEPTH))
-
-    def _publish_tf(self, poses):
-        from geometry_msgs.msg import TransformStamped
-        msg = self._tf_message()
-        for chain, array in zip(self._chains, poses):
-            for i, pose in enumerate(array.poses):
-                t = TransformStamped()
-                t.header = array.header
-                t.child_frame_id = segment_frame(self._tf_prefix, chain, i)
-                t.transform.translation.x = pose.position.x
-                t.transform.translation.y = pose.position.y
-                t.transform.translation.z = pose.position.z
-                t.transform.rotation = pose.orientation
-                msg.transforms.append(t)
-        self._tf_pub.publish(msg)
 
     def _startup_warning(self, text):
         self.startup_warnings.append(text)

@@ -19,7 +19,6 @@ from typing import Any, Dict, List, Mapping, Optional, Union
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Pose, PoseArray
 
 from ponytail_ros.app.node_core import NodeCore, time_msg
 
@@ -44,21 +43,6 @@ def n_ticks(duration: float, rate: float) -> int:
 def stamp_msg(t: float) -> Time:
     """``builtin_interfaces/Time`` of ``t`` s (rounded to the ns)."""
     return time_msg(stamp_ns(t))
-
-
-def _copy_pose_array(msg: PoseArray) -> PoseArray:
-    out = PoseArray()
-    out.header.frame_id = msg.header.frame_id
-    out.header.stamp = Time(sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec)
-    poses = []
-    for p in msg.poses:
-        c = Pose()
-        c.position.x, c.position.y, c.position.z = p.position.x, p.position.y, p.position.z
-        o = p.orientation
-        c.orientation.x, c.orientation.y, c.orientation.z, c.orientation.w = o.x, o.y, o.z, o.w
-        poses.append(c)
-    out.poses = poses
-    return out
 
 
 def _frame_samples(config: Config, frames: Optional[Mapping[str, HeadInput]],
@@ -137,9 +121,9 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         last_ns = t_ns
         if tick is not None:
             builder.record(core.runner, tick.output, tick.frame_id)
-            # (copies: the core refills the same message objects every tick)
+            # (each tick's messages are its own: built from its bytes when asked for)
             for tp, msg in zip(topics, tick.poses):
-                poses[tp].append(_copy_pose_array(msg))
+                poses[tp].append(msg)
             if keep_markers and tick.markers is not None:
                 markers.append(copy.deepcopy(tick.markers))
         if t_ns >= next_diag:

@@ -1,0 +1,164 @@
+"""The tick's segment poses as CDR bytes, laid out with NumPy: ``geometry_msgs/msg/PoseArray``
+and ``tf2_msgs/msg/TFMessage``, straight from the pose arrays (no message objects).
+
+What the node publishes (``Publisher.publish(bytes)``, rclpy's ``publish_raw``) and what the
+recorder writes are these bytes: one encoding per tick, vectorised over the segments. They are
+the bytes ``rclpy.serialization.serialize_message`` gives for the equivalent message with its
+alignment gaps zeroed (``recording/cdr.py``'s canonical CDR; a test checks it byte for byte).
+
+Layout (plain CDR, XCDR1, little endian, as ROS 2 uses it): a 4-byte encapsulation header
+``00 01 00 00``, then the fields in order, each primitive aligned to its size relative to the
+end of that header; a string is a ``uint32`` length counting its terminating NUL, the bytes,
+the NUL; a sequence a ``uint32`` count, then its elements. Padding bytes are zero; the data
+ends padded to a multiple of 4 bytes.
+
+* ``PoseArray``: ``header.stamp`` (``int32`` sec, ``uint32`` nanosec), ``header.frame_id``,
+  the count, then (aligned to 8) one block of 7 ``float64`` per pose: position x, y, z,
+  orientation x, y, z, w;
+* ``TFMessage``: the count, then per ``TransformStamped`` (aligned to 4) its stamp, the
+  parent's ``frame_id``, the ``child_frame_id``, then (aligned to 8) translation x, y, z and
+  rotation x, y, z, w.
+
+Nothing here imports ROS: the layouts depend on the frame names and the segment count only,
+so each is computed once (cached) and a tick fills in the stamp and the numbers.
+"""
+from __future__ import annotations
+
+import struct
+from functools import lru_cache
+from typing import Sequence, Tuple
+
+import numpy as np
+
+__all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'pose_array_layout',
+           'tf_layout', 'pose_array_cdr', 'pose_block']
+
+#: CDR little endian, options 0.
+ENCAPSULATION = b'\x00\x01\x00\x00'
+#: float64 numbers per pose: position x, y, z, orientation x, y, z, w.
+POSE_FLOATS = 7
+
+_U32 = struct.Struct('<I')
+_TIME = struct.Struct('<iI')
+_F8 = np.dtype('<f8')
+
+
+def _string(body: bytearray, text: str) -> None:
+    """Append a CDR string at the end of ``body`` (its offsets relative to the CDR origin)."""
+    data = text.encode('utf-8') + b'\x00'
+    body += bytes(-len(body) % 4)
+    body += _U32.pack(len(data)) + data
+
+
+def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """The ``(n, 7)`` little-endian float64 block of ``origins`` ``(n, 3)`` and ``quats``
+    ``(n, 4)`` (x, y, z, w), a pose per row as CDR lays poses out."""
+    n = len(origins)
+    block = np.empty((n, POSE_FLOATS), dtype=_F8)
+    block[:, :3] = origins
+    block[:, 3:] = quats
+    return block
+
+
+class PoseArrayLayout:
+    """The CDR layout of a ``PoseArray`` of ``n`` poses in frame ``frame_id``.
+
+    Attributes:
+        n: the number of poses.
+        frame_id: the header's frame.
+        data_offset: byte offset of the first pose's block in the data (from its first byte,
+            the encapsulation header's).
+        size: length of the data, bytes.
+    """
+
+    def __init__(self, frame_id: str, n: int):
+        self.frame_id = frame_id
+        self.n = int(n)
+        body = bytearray(8)                    # the stamp, filled in per message
+        _string(body, frame_id)
+        body += bytes(-len(body) % 4)
+        body += _U32.pack(self.n)
+        if self.n:
+            body += bytes(-len(body) % 8)
+        #: what follows the stamp up to the first pose (the frame, the count, padding)
+        self._middle = bytes(body[8:])
+        self.data_offset = len(ENCAPSULATION) + len(body)
+        self.size = self.data_offset + 8 * POSE_FLOATS * self.n   # (a multiple of 4)
+
+    def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
+        """The CDR of the message stamped ``(sec, nanosec)`` with poses ``block`` ``(n, 7)``
+        (:func:`pose_block`; any float array of that shape, converted to little-endian
+        float64)."""
+        block = np.ascontiguousarray(block, dtype=_F8)
+        if block.shape != (self.n, POSE_FLOATS):
+            raise ValueError(f'expected poses of shape ({self.n}, {POSE_FLOATS}), '
+                             f'got {block.shape}')
+        return b''.join((ENCAPSULATION, _TIME.pack(sec, nanosec), self._middle,
+                         block.tobytes()))
+
+    def poses(self, data: bytes) -> np.ndarray:
+        """The ``(n, 7)`` poses of ``data`` (this layout's CDR) as a read-only view."""
+        return np.frombuffer(data, dtype=_F8, count=POSE_FLOATS * self.n,
+                             offset=self.data_offset).reshape(self.n, POSE_FLOATS)
+
+
+@lru_cache(maxsize=256)
+def pose_array_layout(frame_id: str, n: int) -> PoseArrayLayout:
+    """The (cached) :class:`PoseArrayLayout` of ``n`` poses in ``frame_id``."""
+    return PoseArrayLayout(frame_id, n)
+
+
+def pose_array_cdr(origins: np.ndarray, quats: np.ndarray, sec: int, nanosec: int,
+                   frame_id: str) -> bytes:
+    """CDR of the ``PoseArray`` with poses ``origins`` ``(n, 3)``, ``quats`` ``(n, 4)`` (x, y,
+    z, w), stamped ``(sec, nanosec)``, in ``frame_id``."""
+    return pose_array_layout(frame_id, len(origins)).encode(sec, nanosec,
+                                                             pose_block(origins, quats))
+
+
+class TFLayout:
+    """The CDR layout of a ``TFMessage`` of one transform per child frame in ``children``, all
+    children of ``parent`` with one stamp (a chain's segments as TF frames)."""
+
+    def __init__(self, parent: str, children: Sequence[str]):
+        self.parent = parent
+        self.children = tuple(children)
+        self.n = len(self.children)
+        body = bytearray(_U32.pack(self.n))
+        stamps, poses = [], []
+        for child in self.children:
+            body += bytes(-len(body) % 4)
+            stamps.append(len(body))
+            body += bytes(8)
+            _string(body, parent)
+            _string(body, child)
+            body += bytes(-len(body) % 8)
+            poses.append(len(body))
+            body += bytes(8 * POSE_FLOATS)
+        body += bytes(-len(body) % 4)
+        self._template = np.frombuffer(ENCAPSULATION + bytes(body), dtype=np.uint8)
+        h = len(ENCAPSULATION)
+        #: byte indices of each transform's stamp ``(n, 8)`` and numbers ``(n, 56)``
+        self._stamp_at = (h + np.array(stamps, dtype=np.intp))[:, None] + np.arange(8)
+        self._pose_at = (h + np.array(poses, dtype=np.intp))[:, None] + np.arange(
+            8 * POSE_FLOATS)
+        self.size = len(self._template)
+
+    def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
+        """The CDR of the message stamped ``(sec, nanosec)``; transform ``i`` is row ``i`` of
+        ``block`` ``(n, 7)`` (translation, rotation x, y, z, w)."""
+        block = np.ascontiguousarray(block, dtype=_F8)
+        if block.shape != (self.n, POSE_FLOATS):
+            raise ValueError(f'expected poses of shape ({self.n}, {POSE_FLOATS}), '
+                             f'got {block.shape}')
+        data = self._template.copy()
+        if self.n:
+            data[self._stamp_at] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
+            data[self._pose_at] = block.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
+        return data.tobytes()
+
+
+@lru_cache(maxsize=256)
+def tf_layout(parent: str, children: Tuple[str, ...]) -> TFLayout:
+    """The (cached) :class:`TFLayout` of ``children`` (a tuple) under ``parent``."""
+    return TFLayout(parent, children)
