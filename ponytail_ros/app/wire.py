@@ -138,10 +138,11 @@ class TFLayout:
         body += bytes(-len(body) % 4)
         self._template = np.frombuffer(ENCAPSULATION + bytes(body), dtype=np.uint8)
         h = len(ENCAPSULATION)
-        #: byte indices of each transform's stamp ``(n, 8)`` and numbers ``(n, 56)``
-        self._stamp_at = (h + np.array(stamps, dtype=np.intp))[:, None] + np.arange(8)
-        self._pose_at = (h + np.array(poses, dtype=np.intp))[:, None] + np.arange(
-            8 * POSE_FLOATS)
+        #: byte indices ``(n, 64)`` of each transform's stamp (8 bytes) and numbers (56)
+        self._at = np.concatenate([
+            (h + np.array(stamps, dtype=np.intp)).reshape(-1, 1) + np.arange(8),
+            (h + np.array(poses, dtype=np.intp)).reshape(-1, 1) + np.arange(8 * POSE_FLOATS)],
+            axis=1)
         self.size = len(self._template)
 
     def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
@@ -153,8 +154,10 @@ class TFLayout:
                              f'got {block.shape}')
         data = self._template.copy()
         if self.n:
-            data[self._stamp_at] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
-            data[self._pose_at] = block.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
+            values = np.empty((self.n, 8 + 8 * POSE_FLOATS), dtype=np.uint8)
+            values[:, :8] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
+            values[:, 8:] = block.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
+            data[self._at] = values                 # one scatter: stamps and numbers
         return data.tobytes()
 
 
