@@ -160,3 +160,67 @@ def test_tf_of_several_chains_is_one_message_chain_after_chain():
                                                   for c, r in zip(names, rows))
     assert a.tf_cdr('p/') == tf_message_cdr((0, 7, 'head', c, r[:3], r[3:])
                                             for c, r in zip(names[:3], rows[:3]))
+
+
+# -- MarkerArray -------------------------------------------------------------------------------
+def marker_ticks(params, overrides, changes=()):
+    """Every tick with markers of a 1.2 s run of ``NodeCore`` (markers at every tick) under a
+    moving head; ``changes``: ``(tick, {name: value})`` live changes."""
+    from ponytail_ros.app.node_core import NodeCore
+    from ponytail_ros.testing.config import load_config
+    from ponytail_ros.testing.offline import stamp_msg
+    core = NodeCore(load_config(params, {'markers.rate': 1000.0, **overrides}).values)
+    changes = dict(changes)
+    out = []
+    for k in range(1, 145):
+        t = k / 120
+        if k in changes:
+            core.check_change(changes[k])
+            core.apply_change(changes[k])
+        core.push_head(stamp_msg(t), int(t * 1e9),
+                       (0.1 * math.sin(3 * t), 0.05 * t, 1.6),
+                       (0.0, 0.0, math.sin(0.4 * t), math.cos(0.4 * t)), 'world')
+        tick = core.tick(round(k * 1e9 / 120))
+        if tick is not None and tick.segment_markers is not None:
+            out.append(tick)
+    return out
+
+
+FLOOR = {'colliders': ['skull', 'floor'], 'floor.kind': 'plane', 'floor.frame': 'world',
+         'floor.center': [0.0, 0.0, 0.2], 'floor.axis': [0.0, 0.3, 1.0]}
+
+
+@pytest.mark.parametrize('params, overrides, changes', [
+    ('config/ponytail.yaml', {}, ()),                                       # capsules, sphere
+    ('config/ponytail.yaml', {'markers.style': 'line'}, ()),
+    ('config/ponytail.yaml', FLOOR, ()),                                    # a plane
+    ('config/sword.yaml', {}, ()),                                          # a capsule
+    ('config/pigtails.yaml', {}, ()),                                       # two chains
+    ('config/ponytail.yaml', {}, [(40, {'markers.style': 'line'}),          # DELETEALLs
+                                  (60, {'markers.style': 'off'}),
+                                  (80, {'markers.style': 'capsules'}),
+                                  (90, {'ponytail.color': [0.1, 0.2, 0.3, 0.4]}),
+                                  (100, {'ponytail.n_segments': 5})]),
+], ids=['capsules', 'line', 'plane', 'sword', 'pigtails', 'live_changes'])
+def test_marker_array_is_serialize_messages_bytes(params, overrides, changes):
+    ticks = marker_ticks(params, overrides, changes)
+    assert len(ticks) >= 100
+    kinds = set()
+    for tick in ticks:
+        msg, data = tick.markers, tick.segment_markers.cdr
+        assert tick.markers is msg                                  # built once
+        kinds |= {(m.type, m.action) for m in msg.markers}
+        assert data == serialize_canonical(msg)
+        raw = serialize_message(msg)
+        wire = tick.segment_markers.wire
+        assert len(wire) == len(raw) and data[:len(wire)] == wire
+        # (decoded, the colours are float32's: compared as bytes again)
+        assert serialize_canonical(deserialize_message(wire, type(msg))) == data
+    if changes:
+        from visualization_msgs.msg import Marker
+        assert (Marker.ARROW, Marker.DELETEALL) in kinds
+        assert (Marker.LINE_STRIP, Marker.ADD) in kinds and (Marker.CYLINDER, Marker.ADD) in kinds
+        colors = {tuple(round(c, 6) for c in (m.color.r, m.color.g, m.color.b, m.color.a))
+                  for m in ticks[-1].markers.markers if m.ns == 'ponytail'}
+        assert colors == {(0.1, 0.2, 0.3, 0.4)}
+        assert len(ticks[-1].markers.markers[0].points) == 6

@@ -26,17 +26,17 @@ from typing import Dict, Optional, Sequence
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray
-from std_msgs.msg import ColorRGBA
-from visualization_msgs.msg import Marker
+from visualization_msgs.msg import Marker, MarkerArray
 
 import numpy as np
 
 from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
                                          quat_rotate)
 
-from .wire import pose_array_layout, pose_block, tf_layout
+from .wire import MarkerArrayLayout, MarkerSpec, pose_array_layout, pose_block, tf_layout
 
-__all__ = ['SegmentPoses', 'tf_cdr', 'ChainMessages', 'ColliderMarkers', 'delete_all_marker',
+__all__ = ['SegmentPoses', 'SegmentMarkers', 'tf_cdr', 'ChainMessages', 'ColliderMarkers',
+           'DELETE_ALL', 'IDENTITY_POSE',
            'Q_Z_TO_X', 'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
 
 #: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
@@ -57,14 +57,6 @@ PLANE_SIZE = 2.0
 
 #: Rotation by +90° about Y: takes a cylinder's axis (local Z) to local X.
 Q_Z_TO_X = np.array([0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)])
-
-
-def delete_all_marker(frame_id, stamp):
-    m = Marker()
-    m.header.frame_id = frame_id
-    m.header.stamp = stamp
-    m.action = Marker.DELETEALL
-    return m
 
 
 def _set_pose(pose, p, q):
@@ -155,9 +147,78 @@ def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
     return tf_layout(first.frame_id, children).encode(sec, nanosec, block)
 
 
+class SegmentMarkers:
+    """One tick's ``visualization_msgs/MarkerArray`` held as its CDR (encoded once from the
+    markers' specs and numbers, ``wire.MarkerArrayLayout``): what is published and recorded.
+
+    Args:
+        layout: the ``MarkerArrayLayout`` (frame and marker specs).
+        stamp_ns: every marker's ``header.stamp``, integer ns.
+        poses: ``(n, 7)``, a pose per marker; points: ``(p, 3)``, the markers' points in order.
+    """
+
+    __slots__ = ('layout', 'stamp_ns', 'poses', 'points', 'cdr', '_message')
+
+    def __init__(self, layout: MarkerArrayLayout, stamp_ns: int, poses: np.ndarray,
+                 points: np.ndarray):
+        self.layout = layout
+        self.stamp_ns = int(stamp_ns)
+        self.poses = poses
+        self.points = points
+        sec, nanosec = self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
+        #: The ``MarkerArray``'s CDR (encapsulation header included, padding zeroed).
+        self.cdr: bytes = layout.encode(sec, nanosec, poses, points)
+        self._message: Optional[MarkerArray] = None
+
+    @property
+    def wire(self) -> bytes:
+        """The CDR as rmw serialises the message (what the node publishes): ``cdr`` without
+        the zeros that pad it to a multiple of 4 bytes (a ``Marker`` ends with a bool)."""
+        return self.cdr[:self.layout.unpadded_size]
+
+    def message(self) -> MarkerArray:
+        """The ``MarkerArray`` (built on the first call; the same object after)."""
+        if self._message is None:
+            stamp = Time(sec=self.stamp_ns // 1_000_000_000,
+                         nanosec=self.stamp_ns % 1_000_000_000)
+            markers, k = [], 0
+            points = self.points.tolist()
+            for spec, row in zip(self.layout.specs, self.poses.tolist()):
+                m = Marker()
+                m.header.frame_id = self.layout.frame_id
+                m.header.stamp = stamp
+                m.ns, m.id, m.type, m.action = spec.ns, spec.id, spec.type, spec.action
+                _set_pose(m.pose, row[:3], row[3:])
+                m.scale.x, m.scale.y, m.scale.z = spec.scale
+                c = m.color
+                c.r, c.g, c.b, c.a = spec.color
+                if spec.n_points:
+                    pts = []
+                    for xyz in points[k:k + spec.n_points]:
+                        pt = Point()
+                        pt.x, pt.y, pt.z = xyz
+                        pts.append(pt)
+                    m.points = pts
+                    k += spec.n_points
+                markers.append(m)
+            self._message = MarkerArray(markers=markers)
+        return self._message
+
+
+#: The pose of a marker drawn by its points (and of the DELETEALL): the identity.
+IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+#: ``Marker.DELETEALL`` (namespace '', id 0).
+DELETE_ALL = MarkerSpec('', 0, Marker.ARROW, Marker.DELETEALL)
+_NO_POINTS = np.zeros((0, 3))
+
+
+def _rgba(color) -> tuple:
+    return (float(color[0]), float(color[1]), float(color[2]), float(color[3]))
+
+
 class ChainMessages:
-    """Reusable marker messages of one chain (``name``, segment ``lengths`` ``(n,)``,
-    ``radius`` m)."""
+    """The marker specs of one chain (``name``, segment ``lengths`` ``(n,)``, ``radius`` m)
+    and the tick's ``SegmentPoses``."""
 
     def __init__(self, name, lengths, radius):
         self.name = name
@@ -165,80 +226,56 @@ class ChainMessages:
         self.radius = float(radius)
         self.n = len(self.lengths)
         self._style = None
-        self._markers = []
+        self._color = None
+        self._specs: tuple = ()
 
     def segment_poses(self, origins, quats, frame_id, stamp_ns) -> SegmentPoses:
         """The tick's ``SegmentPoses`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
         return SegmentPoses(self.name, origins, quats, frame_id, stamp_ns)
 
-    def _build_markers(self, style, color):
-        r = self.radius
-        spheres = Marker()
-        spheres.ns = self.name
-        spheres.id = 0
-        spheres.type = Marker.SPHERE_LIST
-        spheres.action = Marker.ADD
-        spheres.pose.orientation.w = 1.0
-        spheres.scale.x = spheres.scale.y = spheres.scale.z = 2.0 * r
-        spheres.points = [Point() for _ in range(self.n + 1)]
-        markers = [spheres]
+    def _build_specs(self, style, color):
+        r, rgba = self.radius, _rgba(color)
+        specs = [MarkerSpec(self.name, 0, Marker.SPHERE_LIST, Marker.ADD, (2.0 * r,) * 3,
+                            rgba, self.n + 1)]
         if style == 'capsules':
-            for i in range(self.n):
-                c = Marker()
-                c.ns = self.name
-                c.id = i + 1
-                c.type = Marker.CYLINDER
-                c.action = Marker.ADD
-                c.scale.x = c.scale.y = 2.0 * r
-                c.scale.z = float(self.lengths[i])
-                markers.append(c)
+            specs += [MarkerSpec(self.name, i + 1, Marker.CYLINDER, Marker.ADD,
+                                 (2.0 * r, 2.0 * r, float(self.lengths[i])), rgba)
+                      for i in range(self.n)]
         elif style == 'line':
-            line = Marker()
-            line.ns = self.name
-            line.id = 1
-            line.type = Marker.LINE_STRIP
-            line.action = Marker.ADD
-            line.pose.orientation.w = 1.0
-            line.scale.x = r
-            line.points = [Point() for _ in range(self.n + 1)]
-            markers.append(line)
-        self._markers = markers
+            specs.append(MarkerSpec(self.name, 1, Marker.LINE_STRIP, Marker.ADD, (r, 0.0, 0.0),
+                                    rgba, self.n + 1))
+        self._specs = tuple(specs)
         self._style = style
-        self.set_color(color)
+        self._color = color
 
     def set_color(self, color):
-        rgba = ColorRGBA(r=float(color[0]), g=float(color[1]), b=float(color[2]),
-                         a=float(color[3]))
-        for m in self._markers:
-            m.color = rgba
+        """The chain's colour (``(r, g, b, a)``) from now on."""
+        if self._style not in (None, 'off'):
+            self._build_specs(self._style, color)
+        self._color = color
 
-    def markers(self, origins, quats, style, color, frame_id, stamp):
-        """Markers of the chain (a list; empty for style 'off'), and whether the set of marker
-        ids changed since the last call (then send a DELETEALL first)."""
+    def markers(self, origins, quats, style, color):
+        """Markers of the chain: their specs (a tuple, the same object while nothing changes;
+        empty for style 'off'), poses ``(k, 7)``, points ``(p, 3)``, and whether the set of
+        marker ids changed since the last call (then send a DELETEALL first)."""
         if style == 'off':
             changed = self._style not in (None, 'off')
             self._style = 'off'
-            self._markers = []
-            return [], changed
+            self._specs = ()
+            return (), np.zeros((0, 7)), _NO_POINTS, changed
         changed = style != self._style
-        if changed:
-            self._build_markers(style, color)
+        if changed or color != self._color:
+            self._build_specs(style, color)
         axes = quat_axis_x(quats) * self.lengths[:, None]
-        joints = np.concatenate([origins, origins[-1:] + axes[-1:]]).tolist()
-        for m in self._markers:
-            m.header.frame_id = frame_id
-            m.header.stamp = stamp
-        for pt, j in zip(self._markers[0].points, joints):
-            pt.x, pt.y, pt.z = j
+        joints = np.concatenate([origins, origins[-1:] + axes[-1:]])
         if style == 'capsules':
-            centres = (origins + 0.5 * axes).tolist()
-            q_cyl = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape)).tolist()
-            for m, p, q in zip(self._markers[1:], centres, q_cyl):
-                _set_pose(m.pose, p, q)
-        else:
-            for pt, j in zip(self._markers[1].points, joints):
-                pt.x, pt.y, pt.z = j
-        return self._markers, changed
+            poses = np.empty((self.n + 1, 7))
+            poses[0] = IDENTITY_POSE
+            poses[1:, :3] = origins + 0.5 * axes
+            poses[1:, 3:] = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape))
+            return self._specs, poses, joints, changed
+        return (self._specs, np.stack([IDENTITY_POSE, IDENTITY_POSE]),
+                np.concatenate([joints, joints]), changed)
 
 
 class ColliderMarkers:
@@ -247,53 +284,41 @@ class ColliderMarkers:
 
     def __init__(self):
         self._key = None
-        self._markers = []
+        self._specs: tuple = ()
 
     def _build(self, colliders):
-        color = ColorRGBA(r=COLLIDER_COLOR[0], g=COLLIDER_COLOR[1], b=COLLIDER_COLOR[2],
-                          a=COLLIDER_COLOR[3])
-        markers = []
+        color = COLLIDER_COLOR
+        specs = []
         for k, c in enumerate(colliders):
-            m = Marker()
-            m.ns = 'colliders'
-            m.action = Marker.ADD
-            m.color = color
             if c.kind == 'sphere':
-                m.id, m.type = k, Marker.SPHERE
-                m.scale.x = m.scale.y = m.scale.z = 2.0 * c.radius
-                markers.append(m)
+                specs.append(MarkerSpec('colliders', k, Marker.SPHERE, Marker.ADD,
+                                        (2.0 * c.radius,) * 3, color))
             elif c.kind == 'capsule':
-                m.id, m.type = 2 * k + 1000, Marker.CYLINDER
-                m.scale.x = m.scale.y = 2.0 * c.radius
-                m.scale.z = max(2.0 * c.half_length, 1e-6)
-                caps = Marker()
-                caps.ns, caps.id, caps.type = 'colliders', 2 * k + 1001, Marker.SPHERE_LIST
-                caps.action, caps.color = Marker.ADD, color
-                caps.pose.orientation.w = 1.0
-                caps.scale.x = caps.scale.y = caps.scale.z = 2.0 * c.radius
-                caps.points = [Point(), Point()]
-                markers += [m, caps]
+                specs += [MarkerSpec('colliders', 2 * k + 1000, Marker.CYLINDER, Marker.ADD,
+                                     (2.0 * c.radius, 2.0 * c.radius,
+                                      max(2.0 * c.half_length, 1e-6)), color),
+                          MarkerSpec('colliders', 2 * k + 1001, Marker.SPHERE_LIST, Marker.ADD,
+                                     (2.0 * c.radius,) * 3, color, 2)]
             else:
-                m.id, m.type = k, Marker.CUBE
-                m.scale.x = m.scale.y = PLANE_SIZE
-                m.scale.z = 1e-3
-                markers.append(m)
-        self._markers = markers
+                specs.append(MarkerSpec('colliders', k, Marker.CUBE, Marker.ADD,
+                                        (PLANE_SIZE, PLANE_SIZE, 1e-3), color))
+        self._specs = tuple(specs)
 
-    def markers(self, colliders, bodies, style, frame_id, stamp):
+    def markers(self, colliders, bodies, style):
         """Markers of ``colliders`` (``ColliderSpec``s) with the kinematic bodies ``bodies``
-        (``KinematicState``; a collider with ``body None`` is static), and whether the set of
-        marker ids changed since the last call."""
+        (``KinematicState``; a collider with ``body None`` is static): specs, poses, points
+        (as ``ChainMessages.markers``), and whether the set of marker ids changed since the
+        last call."""
         key = None if style == 'off' or not colliders else tuple(colliders)
         changed = key != self._key and self._key is not None
         if key != self._key:
             self._key = key
-            self._markers = []
+            self._specs = ()
             if key is not None:
                 self._build(colliders)
         if key is None:
-            return [], changed
-        markers = iter(self._markers)
+            return (), np.zeros((0, 7)), _NO_POINTS, changed
+        poses, points = [], []
         z = np.array([0.0, 0.0, 1.0])
         for c in colliders:
             centre, axis = np.asarray(c.center, float), np.asarray(c.axis, float)
@@ -303,15 +328,8 @@ class ColliderMarkers:
                 centre = bodies.position[c.body] + quat_rotate(qb, centre)
                 axis = quat_rotate(qb, axis)
             q = quat_from_two_vectors(z, axis)        # marker Z along the axis / normal
-            m = next(markers)
-            m.header.frame_id = frame_id
-            m.header.stamp = stamp
-            _set_pose(m.pose, centre.tolist(), q.tolist())
+            poses.append(np.concatenate([centre, q]))
             if c.kind == 'capsule':
-                caps = next(markers)
-                caps.header.frame_id = frame_id
-                caps.header.stamp = stamp
-                for pt, end in zip(caps.points, (centre - c.half_length * axis,
-                                                 centre + c.half_length * axis)):
-                    pt.x, pt.y, pt.z = end.tolist()
-        return self._markers, changed
+                poses.append(IDENTITY_POSE)
+                points += [centre - c.half_length * axis, centre + c.half_length * axis]
+        return (self._specs, np.array(poses), np.array(points).reshape(-1, 3), changed)

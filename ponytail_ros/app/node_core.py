@@ -12,11 +12,12 @@ from typing import Any, List, Mapping, Optional
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from visualization_msgs.msg import MarkerArray
 
 import numpy as np
 
-from .messages import ChainMessages, ColliderMarkers, SegmentPoses, delete_all_marker
+from .messages import (DELETE_ALL, IDENTITY_POSE, ChainMessages, ColliderMarkers, SegmentMarkers,
+                       SegmentPoses)
+from .wire import MarkerArrayLayout
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
@@ -41,19 +42,25 @@ def time_msg(t_ns: int) -> Time:
 @dataclass
 class NodeTick:
     """The messages of one tick: ``segments[i]`` is chain ``i``'s ``SegmentPoses`` (its
-    ``PoseArray`` as CDR bytes, ``.cdr``); ``markers`` a ``MarkerArray`` when markers are due
-    (``markers.rate``), else None."""
+    ``PoseArray`` as CDR bytes, ``.cdr``); ``segment_markers`` the ``SegmentMarkers`` (the
+    ``MarkerArray`` as CDR) when markers are due (``markers.rate``), else None. The node and
+    the recorder use the bytes; the message objects (``poses``, ``markers``) are built when
+    first asked for."""
 
     output: TickOutput
     frame_id: str
     segments: List[SegmentPoses]
-    markers: Optional[Any]
+    segment_markers: Optional[SegmentMarkers]
 
     @property
     def poses(self) -> List[Any]:
-        """The ``PoseArray`` message per chain (built when first asked for: the node and the
-        recorder use the bytes)."""
+        """The ``PoseArray`` message per chain."""
         return [s.message() for s in self.segments]
+
+    @property
+    def markers(self) -> Optional[Any]:
+        """The ``MarkerArray`` message, or None (no markers this tick)."""
+        return None if self.segment_markers is None else self.segment_markers.message()
 
 
 @dataclass
@@ -90,6 +97,8 @@ class NodeCore:
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._collider_markers = ColliderMarkers()
+        self._marker_key: Any = None
+        self._marker_layout: Optional[MarkerArrayLayout] = None
         self._last_marker_t = None
         self.published = 0
         self.window = _Window()
@@ -171,29 +180,33 @@ class NodeCore:
         if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
                 and out.t >= self._last_marker_t:
             return None
-        stamp = time_msg(stamp_ns)
         self._last_marker_t = out.t
         model = self.runner.sim.model
         delete = False
-        markers = []
+        parts = []
         for c, cm in enumerate(self._chain_msgs):
             sl = model.chain_slice(c)
             color = self.values[chain_param_name(self.chains[c], 'color')]
-            ms, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color,
-                                     frame, stamp)
+            *part, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color)
             delete = delete or changed
-            markers.extend(ms)
-        ms, changed = self._collider_markers.markers(
+            parts.append(part)
+        *part, changed = self._collider_markers.markers(
             self.runner.scene.colliders,
             self.runner.bodies_at(out.t_state if self.values['output_stamp'] == 'simulated'
-                                  else out.t), style, frame, stamp)
+                                  else out.t), style)
         delete = delete or changed
-        markers.extend(ms)
+        parts.append(part)
         if delete:
-            markers.insert(0, delete_all_marker(frame, stamp))
-        if not markers:
+            parts.insert(0, [(DELETE_ALL,), IDENTITY_POSE[None], np.zeros((0, 3))])
+        specs = tuple(p[0] for p in parts)     # (the same tuples while nothing changes)
+        if not any(specs):
             return None
-        return MarkerArray(markers=markers)
+        if (frame, specs) != self._marker_key:
+            self._marker_key = (frame, specs)
+            self._marker_layout = MarkerArrayLayout(frame, [s for ss in specs for s in ss])
+        return SegmentMarkers(self._marker_layout, stamp_ns,
+                              np.concatenate([p[1] for p in parts]),
+                              np.concatenate([p[2] for p in parts]))
 
     # -- parameters ----------------------------------------------------------------------------
     def ours(self, changed: Mapping[str, Any]) -> dict:

@@ -1,5 +1,6 @@
-"""The tick's segment poses as CDR bytes, laid out with NumPy: ``geometry_msgs/msg/PoseArray``
-and ``tf2_msgs/msg/TFMessage``, straight from the pose arrays (no message objects).
+"""The tick's output as CDR bytes, laid out with NumPy: ``geometry_msgs/msg/PoseArray``,
+``tf2_msgs/msg/TFMessage`` and ``visualization_msgs/msg/MarkerArray``, straight from the pose
+arrays (no message objects).
 
 What the node publishes (``Publisher.publish(bytes)``, rclpy's ``publish_raw``) and what the
 recorder writes are these bytes: one encoding per tick, vectorised over the segments. They are
@@ -17,7 +18,14 @@ ends padded to a multiple of 4 bytes.
   orientation x, y, z, w;
 * ``TFMessage``: the count, then per ``TransformStamped`` (aligned to 4) its stamp, the
   parent's ``frame_id``, the ``child_frame_id``, then (aligned to 8) translation x, y, z and
-  rotation x, y, z, w.
+  rotation x, y, z, w;
+* ``MarkerArray``: the count, then per ``Marker`` (aligned to 4) its header, ``ns``, ``id``,
+  ``type``, ``action``, (aligned to 8) ``pose`` and ``scale`` (``float64``), ``color`` (4
+  ``float32``), ``lifetime``, ``frame_locked``, ``points`` (count, then aligned to 8 three
+  ``float64`` each), and the fields the node leaves empty (``colors``, ``texture_resource``,
+  ``texture``, ``uv_coordinates``, ``text``, ``mesh_resource``, ``mesh_file``,
+  ``mesh_use_embedded_materials``). What changes from tick to tick (stamps, poses, points) is
+  a :class:`MarkerSpec`'s numbers; the rest is its layout's template.
 
 Nothing here imports ROS: the layouts depend on the frame names and the segment count only,
 so each is computed once (cached) and a tick fills in the stamp and the numbers.
@@ -25,13 +33,14 @@ so each is computed once (cached) and a tick fills in the stamp and the numbers.
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Sequence, Tuple
 
 import numpy as np
 
-__all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'pose_array_layout',
-           'tf_layout', 'pose_array_cdr', 'pose_block']
+__all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
+           'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -39,7 +48,10 @@ ENCAPSULATION = b'\x00\x01\x00\x00'
 POSE_FLOATS = 7
 
 _U32 = struct.Struct('<I')
+_I32X3 = struct.Struct('<3i')
 _TIME = struct.Struct('<iI')
+_VEC3 = struct.Struct('<3d')
+_RGBA = struct.Struct('<4f')
 _F8 = np.dtype('<f8')
 
 
@@ -165,3 +177,103 @@ class TFLayout:
 def tf_layout(parent: str, children: Tuple[str, ...]) -> TFLayout:
     """The (cached) :class:`TFLayout` of ``children`` (a tuple) under ``parent``."""
     return TFLayout(parent, children)
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """What stays the same of a ``visualization_msgs/Marker`` from tick to tick: the header's
+    stamp, the pose and the points (``n_points`` of them) are the tick's numbers; every field
+    not named here keeps its default (empty, zero, false)."""
+
+    ns: str
+    id: int
+    type: int
+    action: int
+    scale: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    color: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    n_points: int = 0
+
+
+def _align(body: bytearray, n: int) -> None:
+    body += bytes(-len(body) % n)
+
+
+class MarkerArrayLayout:
+    """The CDR layout of a ``MarkerArray`` of ``specs`` (:class:`MarkerSpec`), every marker in
+    ``frame_id`` with one stamp: a template, and where each marker's stamp and pose and each
+    point go."""
+
+    def __init__(self, frame_id: str, specs: Sequence[MarkerSpec]):
+        self.frame_id = frame_id
+        self.specs = tuple(specs)
+        self.n = len(self.specs)
+        self.n_points = sum(s.n_points for s in self.specs)
+        body = bytearray(_U32.pack(self.n))
+        stamps, poses, points = [], [], []
+        for spec in self.specs:
+            _align(body, 4)
+            stamps.append(len(body))
+            body += bytes(8)                                   # header.stamp
+            _string(body, frame_id)                            # header.frame_id
+            _string(body, spec.ns)
+            _align(body, 4)
+            body += _I32X3.pack(spec.id, spec.type, spec.action)
+            _align(body, 8)
+            poses.append(len(body))
+            body += bytes(8 * POSE_FLOATS)                     # pose
+            body += _VEC3.pack(*spec.scale)                    # scale
+            body += _RGBA.pack(*spec.color)                    # color (float32)
+            body += bytes(8)                                   # lifetime
+            body += b'\x00'                                    # frame_locked
+            _align(body, 4)
+            body += _U32.pack(spec.n_points)                   # points
+            if spec.n_points:
+                _align(body, 8)
+                points.extend(len(body) + 24 * k for k in range(spec.n_points))
+                body += bytes(24 * spec.n_points)
+            _align(body, 4)
+            body += bytes(4)                                   # colors: []
+            _string(body, '')                                  # texture_resource
+            _align(body, 4)
+            body += bytes(8)                                   # texture.header.stamp
+            _string(body, '')                                  # texture.header.frame_id
+            _string(body, '')                                  # texture.format
+            _align(body, 4)
+            body += bytes(4)                                   # texture.data: []
+            body += bytes(4)                                   # uv_coordinates: []
+            _string(body, '')                                  # text
+            _string(body, '')                                  # mesh_resource
+            _string(body, '')                                  # mesh_file.filename
+            _align(body, 4)
+            body += bytes(4)                                   # mesh_file.data: []
+            body += b'\x00'                                    # mesh_use_embedded_materials
+        #: Length of the data without the trailing padding to 4 bytes (as rmw serialises it).
+        self.unpadded_size = len(ENCAPSULATION) + len(body)
+        _align(body, 4)
+        self._template = np.frombuffer(ENCAPSULATION + bytes(body), dtype=np.uint8)
+        h = len(ENCAPSULATION)
+        at = [(h + np.array(stamps, dtype=np.intp)).reshape(-1, 1) + np.arange(8),
+              (h + np.array(poses, dtype=np.intp)).reshape(-1, 1) + np.arange(8 * POSE_FLOATS)]
+        #: byte indices of the stamps and poses ``(n, 64)`` and of the points ``(p, 24)``
+        self._at = np.concatenate(at, axis=1)
+        self._points_at = (h + np.array(points, dtype=np.intp)).reshape(-1, 1) + np.arange(24)
+        self.size = len(self._template)
+
+    def encode(self, sec: int, nanosec: int, poses: np.ndarray, points: np.ndarray) -> bytes:
+        """The CDR of the array stamped ``(sec, nanosec)``: marker ``i``'s pose is row ``i`` of
+        ``poses`` ``(n, 7)``; its points are the next ``n_points`` rows of ``points``
+        ``(p, 3)``, markers in order."""
+        poses = np.ascontiguousarray(poses, dtype=_F8)
+        points = np.ascontiguousarray(points, dtype=_F8)
+        if poses.shape != (self.n, POSE_FLOATS) or points.shape != (self.n_points, 3):
+            raise ValueError(f'expected poses ({self.n}, {POSE_FLOATS}) and points '
+                             f'({self.n_points}, 3), got {poses.shape} and {points.shape}')
+        data = self._template.copy()
+        if self.n:
+            values = np.empty((self.n, 8 + 8 * POSE_FLOATS), dtype=np.uint8)
+            values[:, :8] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
+            values[:, 8:] = poses.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
+            data[self._at] = values
+        if self.n_points:
+            data[self._points_at] = points.view(np.uint8).reshape(self.n_points, 24)
+        return data.tobytes()

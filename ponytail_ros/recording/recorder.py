@@ -363,8 +363,14 @@ class RunRecorder:
         """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""
         for c, poses in enumerate(tick.segments):
             self.segment_poses(c, poses, log_time_ns)
-        if tick.markers is not None:
-            self.markers(tick.markers, log_time_ns)
+        markers = tick.segment_markers
+        if markers is not None and self._writable():
+            try:
+                self._writer.write_serialized(
+                    self.layout.marker_topic, markers.cdr, log_time_ns,
+                    markers.stamp_ns if markers.stamp_ns >= 0 else log_time_ns)
+            except BagError as exc:
+                self._failed(exc)
 
     def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
         self.diagnostics(msg, log_time_ns)

@@ -181,8 +181,8 @@ class _Publishers:
         self.poses_published_at = time.perf_counter()
         if self.tf is not None:
             self.tf.publish(tf_cdr(tick.segments, self._node._tf_prefix))
-        if tick.markers is not None:
-            self.markers.publish(tick.markers)
+        if tick.segment_markers is not None:
+            self.markers.publish(tick.segment_markers.wire)
 
     def on_diagnostics(self, msg, log_time_ns):
         self.diagnostics.publish(msg)

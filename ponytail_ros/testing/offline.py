@@ -12,7 +12,6 @@ builds); needs no ROS graph, no DDS, no sleeping.
 """
 from __future__ import annotations
 
-import copy
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Union
@@ -81,8 +80,8 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         frame_id: the head poses' ``header.frame_id``.
         frames: poses of the extra kinematic frames (``frames`` parameter: a forearm carrying
             a collider), frame name -> samples or motion as for ``head`` (same world frame).
-        keep_markers: keep a copy of every ``MarkerArray`` (off by default: copying them
-            costs about as much as a cheap chain's physics).
+        keep_markers: keep every ``MarkerArray`` (off by default: building the message
+            objects costs about as much as a cheap chain's physics).
 
     Returns:
         The ``Trace``: every ``PoseArray`` the node would publish (per topic), the
@@ -125,7 +124,7 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
             for tp, msg in zip(topics, tick.poses):
                 poses[tp].append(msg)
             if keep_markers and tick.markers is not None:
-                markers.append(copy.deepcopy(tick.markers))
+                markers.append(tick.markers)
         if t_ns >= next_diag:
             status = core.diagnostic_status(t_ns, diag_period * 1e-9, '/ponytail')
             msg = DiagnosticArray(status=[status])
