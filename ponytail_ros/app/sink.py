@@ -31,7 +31,7 @@ class TickSink(Protocol):
 
     def on_tick(self, tick: NodeTick, log_time_ns: int) -> None:
         """One tick's messages (``tick.segments`` per chain: its ``PoseArray`` as CDR bytes,
-        ``.cdr``; ``tick.markers`` or None)."""
+        ``.cdr``; ``tick.segment_markers``, the ``MarkerArray`` as CDR, or None)."""
 
     def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
         """A ``diagnostic_msgs/DiagnosticArray``."""
