@@ -22,7 +22,8 @@ namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as 
 a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
-from typing import Dict, Optional, Sequence
+from functools import lru_cache
+from typing import Dict, Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray
@@ -33,7 +34,7 @@ import numpy as np
 from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
                                          quat_rotate)
 
-from .wire import MarkerArrayLayout, MarkerSpec, pose_array_layout, pose_block, tf_layout
+from .wire import MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'tf_cdr', 'ChainMessages', 'ColliderMarkers',
            'DELETE_ALL', 'IDENTITY_POSE',
@@ -141,10 +142,17 @@ def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
     """CDR of one ``tf2_msgs/TFMessage`` holding the segments of every chain in ``segments``
     (one tick's, so one frame and one stamp), chain after chain, root first."""
     first = segments[0]
-    children = tuple(segment_frame(prefix, s.chain, i) for s in segments for i in range(s.n))
+    layout = _tf_layout(first.frame_id, prefix, tuple((s.chain, s.n) for s in segments))
     block = first.poses if len(segments) == 1 else np.concatenate([s.poses for s in segments])
     sec, nanosec = first.stamp
-    return tf_layout(first.frame_id, children).encode(sec, nanosec, block)
+    return layout.encode(sec, nanosec, block)
+
+
+@lru_cache(maxsize=256)
+def _tf_layout(frame_id: str, prefix: str, chains: Tuple[Tuple[str, int], ...]) -> TFLayout:
+    """The ``TFLayout`` of the segments of ``chains`` (``(name, n_segments)``) under
+    ``frame_id`` (the frame names built once, not every tick)."""
+    return TFLayout(frame_id, [segment_frame(prefix, c, i) for c, n in chains for i in range(n)])
 
 
 class SegmentMarkers:

@@ -53,6 +53,7 @@ _TIME = struct.Struct('<iI')
 _VEC3 = struct.Struct('<3d')
 _RGBA = struct.Struct('<4f')
 _F8 = np.dtype('<f8')
+_U8 = np.dtype('<u8')
 
 
 def _string(body: bytearray, text: str) -> None:
@@ -70,6 +71,15 @@ def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
     block[:, :3] = origins
     block[:, 3:] = quats
     return block
+
+
+def _stamped_rows(sec: int, nanosec: int, block: np.ndarray) -> np.ndarray:
+    """``(n, 64)`` bytes: per row the stamp's 8 bytes, then that row of ``block`` ``(n, 7)``
+    (contiguous little-endian float64), copied as integers (every bit kept)."""
+    rows = np.empty((len(block), 1 + POSE_FLOATS), dtype=_U8)
+    rows[:, 0] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=_U8)
+    rows[:, 1:] = block.view(_U8)
+    return rows.view(np.uint8)
 
 
 class PoseArrayLayout:
@@ -166,10 +176,7 @@ class TFLayout:
                              f'got {block.shape}')
         data = self._template.copy()
         if self.n:
-            values = np.empty((self.n, 8 + 8 * POSE_FLOATS), dtype=np.uint8)
-            values[:, :8] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
-            values[:, 8:] = block.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
-            data[self._at] = values                 # one scatter: stamps and numbers
+            data[self._at] = _stamped_rows(sec, nanosec, block)   # one scatter
         return data.tobytes()
 
 
@@ -270,10 +277,7 @@ class MarkerArrayLayout:
                              f'({self.n_points}, 3), got {poses.shape} and {points.shape}')
         data = self._template.copy()
         if self.n:
-            values = np.empty((self.n, 8 + 8 * POSE_FLOATS), dtype=np.uint8)
-            values[:, :8] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=np.uint8)
-            values[:, 8:] = poses.view(np.uint8).reshape(self.n, 8 * POSE_FLOATS)
-            data[self._at] = values
+            data[self._at] = _stamped_rows(sec, nanosec, poses)
         if self.n_points:
             data[self._points_at] = points.view(np.uint8).reshape(self.n_points, 24)
         return data.tobytes()
