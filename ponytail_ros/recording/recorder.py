@@ -26,11 +26,13 @@ header stamp. The file order is the order in which the node handled the messages
 queue), which is what a replay needs: a head (or frame) pose written before a tick's
 ``PoseArray`` was queued before that tick.
 
-The node never waits on the disk: a write serialises the message and enqueues it; a background
-thread (``BagWriter``) does the I/O. Failures never reach the node: opening errors are logged and
-the node runs without recording; a later I/O error (disk full) is logged once and recording
-stops. See ``bag.py`` for what a SIGKILL loses (at most the last ~0.5 s of log time); SIGINT and
-SIGTERM end ``rclpy.spin`` and the node's ``destroy_node`` finalises the file.
+The node never waits on the disk: a write serialises the message and enqueues it (a tick's
+poses, ``/tf`` and markers come as CDR bytes already, ``app/wire.py``, and are enqueued as they
+are); a background thread (``BagWriter``) does the I/O. Failures never reach the node: opening
+errors are logged and the node runs without recording; a later I/O error (disk full) is logged
+once and recording stops. See ``bag.py`` for what a SIGKILL loses (at most the last ~0.5 s of
+log time); SIGINT and SIGTERM end ``rclpy.spin`` and the node's ``destroy_node`` finalises the
+file.
 """
 from __future__ import annotations
 
