@@ -224,3 +224,44 @@ def test_marker_array_is_serialize_messages_bytes(params, overrides, changes):
                   for m in ticks[-1].markers.markers if m.ns == 'ponytail'}
         assert colors == {(0.1, 0.2, 0.3, 0.4)}
         assert len(ticks[-1].markers.markers[0].points) == 6
+
+
+# -- PoseStamped in ------------------------------------------------------------------------------
+@settings(max_examples=200, deadline=None)
+@given(data=st.data(), frame_id=FRAMES, sec=SEC, nanosec=NANOSEC)
+def test_received_pose_is_what_rclpy_deserialises(data, frame_id, sec, nanosec):
+    from geometry_msgs.msg import PoseStamped
+    from ponytail_ros.app.messages import ReceivedPose
+    from ponytail_ros.app.wire import pose_stamped_fields
+    row = data.draw(poses_of(1, FLOATS))[0].tolist()
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = Time(sec=sec, nanosec=nanosec)
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = row[:3]
+    o.x, o.y, o.z, o.w = row[3:]
+    raw = serialize_message(msg)
+    sec2, nanosec2, frame2, position, orientation = pose_stamped_fields(raw)
+    assert (sec2, nanosec2, frame2) == (sec, nanosec, frame_id)
+    assert np.array(position + orientation).tobytes() == np.array(row).tobytes()   # bits
+    got = ReceivedPose.decode(raw)
+    assert got.message() is got.message()
+    assert serialize_canonical(got.message()) == serialize_canonical(
+        deserialize_message(raw, PoseStamped))
+
+
+def test_what_the_decoder_leaves_to_rclpy():
+    from geometry_msgs.msg import PoseStamped
+    from ponytail_ros.app.wire import pose_stamped_fields
+    msg = PoseStamped()
+    msg.header.frame_id = 'world'
+    raw = serialize_message(msg)
+    assert pose_stamped_fields(raw) is not None
+    assert pose_stamped_fields(b'\x00\x00' + raw[2:]) is None          # big endian
+    assert pose_stamped_fields(raw[:-1]) is None                        # cut short
+    assert pose_stamped_fields(raw[:12]) is None
+    bad = bytearray(raw)
+    bad[16] = 0xff                                                      # not UTF-8
+    assert pose_stamped_fields(bytes(bad)) is None
+    bad[16] = 0                                                         # a NUL inside
+    assert pose_stamped_fields(bytes(bad)) is None

@@ -23,10 +23,10 @@ a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
 from functools import lru_cache
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, Pose, PoseArray
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
 from visualization_msgs.msg import Marker, MarkerArray
 
 import numpy as np
@@ -34,11 +34,12 @@ import numpy as np
 from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
                                          quat_rotate)
 
-from .wire import MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block
+from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block,
+                   pose_stamped_fields)
 
-__all__ = ['SegmentPoses', 'SegmentMarkers', 'tf_cdr', 'ChainMessages', 'ColliderMarkers',
-           'DELETE_ALL', 'IDENTITY_POSE',
-           'Q_Z_TO_X', 'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
+__all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
+           'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
+           'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
 
 #: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
 TF_TOPIC = '/tf'
@@ -153,6 +154,50 @@ def _tf_layout(frame_id: str, prefix: str, chains: Tuple[Tuple[str, int], ...]) 
     """The ``TFLayout`` of the segments of ``chains`` (``(name, n_segments)``) under
     ``frame_id`` (the frame names built once, not every tick)."""
     return TFLayout(frame_id, [segment_frame(prefix, c, i) for c, n in chains for i in range(n)])
+
+
+class Stamp(NamedTuple):
+    """A header stamp (as ``builtin_interfaces/Time``: ``sec``, ``nanosec``)."""
+
+    sec: int
+    nanosec: int
+
+
+class ReceivedPose:
+    """A ``geometry_msgs/PoseStamped`` as received in CDR bytes (the node's raw input
+    subscriptions), its fields decoded with ``struct`` (``wire.pose_stamped_fields``); the
+    message object only when asked for (a recorder).
+
+    Build with :meth:`decode`, None when the bytes need rclpy's deserialisation instead.
+    """
+
+    __slots__ = ('cdr', 'stamp', 'frame_id', 'position', 'orientation', '_message')
+
+    def __init__(self, cdr: bytes, stamp: Stamp, frame_id: str, position, orientation):
+        self.cdr = cdr
+        self.stamp = stamp
+        self.frame_id = frame_id
+        self.position = position
+        self.orientation = orientation
+        self._message: Optional[PoseStamped] = None
+
+    @classmethod
+    def decode(cls, cdr: bytes) -> Optional['ReceivedPose']:
+        fields = pose_stamped_fields(cdr)
+        if fields is None:
+            return None
+        sec, nanosec, frame_id, position, orientation = fields
+        return cls(cdr, Stamp(sec, nanosec), frame_id, position, orientation)
+
+    def message(self) -> PoseStamped:
+        """The ``PoseStamped`` (built on the first call; the same object after)."""
+        if self._message is None:
+            msg = PoseStamped()
+            msg.header.stamp = Time(sec=self.stamp.sec, nanosec=self.stamp.nanosec)
+            msg.header.frame_id = self.frame_id
+            _set_pose(msg.pose, self.position, self.orientation)
+            self._message = msg
+        return self._message
 
 
 class SegmentMarkers:

@@ -35,12 +35,13 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
-           'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block']
+           'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
+           'pose_stamped_fields']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -52,6 +53,7 @@ _I32X3 = struct.Struct('<3i')
 _TIME = struct.Struct('<iI')
 _VEC3 = struct.Struct('<3d')
 _RGBA = struct.Struct('<4f')
+_POSE = struct.Struct('<7d')
 _F8 = np.dtype('<f8')
 _U8 = np.dtype('<u8')
 
@@ -281,3 +283,28 @@ class MarkerArrayLayout:
         if self.n_points:
             data[self._points_at] = points.view(np.uint8).reshape(self.n_points, 24)
         return data.tobytes()
+
+
+def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[float, ...],
+                                                      Tuple[float, ...]]]:
+    """``(sec, nanosec, frame_id, (x, y, z), (qx, qy, qz, qw))`` of the CDR of a
+    ``geometry_msgs/msg/PoseStamped`` (what a raw subscription receives); None if ``data`` is
+    not plain little-endian CDR of that layout, or its frame is not plain UTF-8 without a
+    NUL inside (then deserialise it the usual way)."""
+    if len(data) < 16 or data[0] != 0 or data[1] != 1:
+        return None
+    sec, nanosec = _TIME.unpack_from(data, 4)
+    (length,) = _U32.unpack_from(data, 12)
+    end = 16 + length                               # after the frame's NUL
+    at = end + (-(end - len(ENCAPSULATION)) % 8)    # the pose, aligned to 8
+    if length == 0 or at + 8 * POSE_FLOATS > len(data) or data[end - 1] != 0:
+        return None
+    frame = data[16:end - 1]
+    if b'\x00' in frame:
+        return None
+    try:
+        frame_id = frame.decode('utf-8')
+    except UnicodeDecodeError:
+        return None
+    pose = _POSE.unpack_from(data, at)
+    return sec, nanosec, frame_id, pose[:3], pose[3:]

@@ -50,6 +50,7 @@ from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of
 from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
                  tfmessage_type_hash)
 from .cdr import serialize_canonical
+from ponytail_ros.app.messages import ReceivedPose
 from ponytail_ros.app.param_values import metadata_from_values
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
@@ -355,7 +356,10 @@ class RunRecorder:
 
     # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
     def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
-        """The head pose (``source`` None) or frame ``source``'s, as received."""
+        """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
+        the node's ``ReceivedPose``: its message, built now)."""
+        if isinstance(msg, ReceivedPose):
+            msg = msg.message()
         if source is None:
             self.head(msg, log_time_ns)
         else:

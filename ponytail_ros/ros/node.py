@@ -55,6 +55,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rclpy.timer import TimerInfo
@@ -65,7 +66,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import report_compile
-from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, tf_cdr
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, tf_cdr
 from ponytail_ros.app.node_core import NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
@@ -137,6 +138,13 @@ def _coerce(param, kind):
     if kind == 'int' and t == Parameter.Type.DOUBLE and float(v).is_integer():
         return Parameter(param.name, Parameter.Type.INTEGER, int(v))
     return param
+
+
+def _received(data: bytes):
+    """A raw input's ``ReceivedPose``, or its ``PoseStamped`` when the bytes are not plain
+    little-endian CDR (``deserialize_message`` handles every case the decoder leaves)."""
+    pose = ReceivedPose.decode(data)
+    return pose if pose is not None else deserialize_message(data, PoseStamped)
 
 
 class _Timing:
@@ -229,11 +237,14 @@ class PonytailNode(Node):
         self._pose_pubs = [self.create_publisher(PoseArray, tp, OUTPUT_QOS) for tp in topics]
         self._marker_pub = self.create_publisher(MarkerArray, 'segment_markers', OUTPUT_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_pose,
-                                                  INPUT_QOS)
+        # Inputs taken raw (CDR bytes) and decoded with struct: rclpy's conversion of each
+        # message into Python objects costs more than the rest of handling it.
+        self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_cdr,
+                                                  INPUT_QOS, raw=True)
         self._frame_subs = [
             self.create_subscription(PoseStamped, topic,
-                                     lambda msg, i=i: self._on_frame_pose(i, msg), INPUT_QOS)
+                                     lambda data, i=i: self._on_frame_pose(i, _received(data)),
+                                     INPUT_QOS, raw=True)
             for i, topic in enumerate(self.core.frame_topics)]
         #: Input name ('head' or a frame's) -> its resolved topic (log messages).
         self._input_topics = {'head': self._head_sub.topic_name,
@@ -463,9 +474,16 @@ class PonytailNode(Node):
             f'{k}={v}' for k, v in sorted(changed.items())))
 
     # -- input -----------------------------------------------------------------------------
+    def _on_head_cdr(self, data):
+        self._on_head_pose(_received(data))
+
     def _on_head_pose(self, msg):
+        """A head pose: a ``PoseStamped`` or a ``ReceivedPose`` (the same fields)."""
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
         self._sinks.on_input(HEAD, msg, now_ns)
+        if isinstance(msg, ReceivedPose):
+            self.core.push_head(msg.stamp, now_ns, msg.position, msg.orientation, msg.frame_id)
+            return
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_head(msg.header.stamp, now_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w),
                             msg.header.frame_id)
@@ -473,6 +491,10 @@ class PonytailNode(Node):
     def _on_frame_pose(self, i, msg):
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
         self._sinks.on_input(i, msg, now_ns)
+        if isinstance(msg, ReceivedPose):
+            self.core.push_frame(i, msg.stamp, now_ns, msg.position, msg.orientation,
+                                 msg.frame_id)
+            return
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_frame(i, msg.header.stamp, now_ns, (p.x, p.y, p.z),
                              (q.x, q.y, q.z, q.w), msg.header.frame_id)
