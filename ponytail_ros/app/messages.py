@@ -331,6 +331,13 @@ class ChainMessages:
                 np.concatenate([joints, joints]), changed)
 
 
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
 class ColliderMarkers:
     """Markers of the scene's colliders (namespace ``colliders``), posed by the kinematic
     bodies they are fixed in."""
@@ -338,8 +345,13 @@ class ColliderMarkers:
     def __init__(self):
         self._key = None
         self._specs: tuple = ()
+        self._local: list = []
 
     def _build(self, colliders):
+        #: per collider its centre and unit axis in its body (the sphere's: +Z)
+        self._local = [(np.asarray(c.center, float),
+                        _unit(np.asarray(c.axis, float)) if c.kind != 'sphere' else _Z)
+                       for c in colliders]
         color = COLLIDER_COLOR
         specs = []
         for k, c in enumerate(colliders):
@@ -372,10 +384,8 @@ class ColliderMarkers:
         if key is None:
             return (), np.zeros((0, 7)), _NO_POINTS, changed
         poses, points = [], []
-        z = np.array([0.0, 0.0, 1.0])
-        for c in colliders:
-            centre, axis = np.asarray(c.center, float), np.asarray(c.axis, float)
-            axis = axis / np.linalg.norm(axis) if c.kind != 'sphere' else z
+        z = _Z
+        for c, (centre, axis) in zip(colliders, self._local):
             if c.body is not None:
                 qb = bodies.orientation[c.body]
                 centre = bodies.position[c.body] + quat_rotate(qb, centre)

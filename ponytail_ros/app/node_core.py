@@ -96,6 +96,7 @@ class NodeCore:
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
+        self._msgs_scene = None     # the scene the chain messages were last checked against
         self._collider_markers = ColliderMarkers()
         self._marker_key: Any = None
         self._marker_layout: Optional[MarkerArrayLayout] = None
@@ -144,10 +145,12 @@ class NodeCore:
         if out is None:
             return None
         scene = self.runner.scene
-        if any(m.n != c.n_segments or m.radius != c.radius or
-               not np.array_equal(m.lengths, c.lengths())
-               for m, c in zip(self._chain_msgs, scene.chains)):
-            self._chain_msgs = self._make_chain_messages(scene)
+        if scene is not self._msgs_scene:     # (a Scene is frozen: the same one, the same chains)
+            if any(m.n != c.n_segments or m.radius != c.radius or
+                   not np.array_equal(m.lengths, c.lengths())
+                   for m, c in zip(self._chain_msgs, scene.chains)):
+                self._chain_msgs = self._make_chain_messages(scene)
+            self._msgs_scene = scene
         # No frame set and no head pose seen (chains hanging from the world only): 'world'.
         frame = self.values['frame_id'] or out.frame_id or 'world'
         stamp_ns = self.stamp_ns(t_ns, out)

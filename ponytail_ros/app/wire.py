@@ -68,11 +68,8 @@ def _string(body: bytearray, text: str) -> None:
 def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
     """The ``(n, 7)`` little-endian float64 block of ``origins`` ``(n, 3)`` and ``quats``
     ``(n, 4)`` (x, y, z, w), a pose per row as CDR lays poses out."""
-    n = len(origins)
-    block = np.empty((n, POSE_FLOATS), dtype=_F8)
-    block[:, :3] = origins
-    block[:, 3:] = quats
-    return block
+    block = np.concatenate((origins, quats), axis=1)
+    return block if block.dtype == _F8 else block.astype(_F8)
 
 
 def _stamped_rows(sec: int, nanosec: int, block: np.ndarray) -> np.ndarray:
