@@ -2,9 +2,12 @@
 
 A chain's poses of a tick are a ``SegmentPoses``: the CDR bytes of its ``PoseArray``, encoded
 once from the pose arrays (``wire.py``), which the node publishes and the recorder writes as
-they are; the ``PoseArray`` object (and the ``/tf`` bytes) only when asked for. One
-``ChainMessages`` per chain keeps its marker objects and refills them each tick (building rclpy
-messages is the expensive part of publishing: allocation plus per-field type checks).
+they are; the ``PoseArray`` object (and the ``/tf`` bytes) only when asked for. The markers
+likewise (``SegmentMarkers``): ``ChainMessages`` (per chain) and ``ColliderMarkers`` give their
+``MarkerSpec``s (the same tuple while nothing changes) and each tick's poses and points, one
+``MarkerArrayLayout`` encodes them. Building rclpy messages (allocation plus per-field type
+checks) and converting them for rmw cost far more than the numbers; the node's inputs come in
+as bytes too (``ReceivedPose``).
 
 Conventions: a segment's pose has its origin at the proximal joint (towards the head) and its
 local +X along the segment, so the distal joint is ``origin + R · (length, 0, 0)``. Markers:
