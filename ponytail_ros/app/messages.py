@@ -1,7 +1,13 @@
 """Segment poses to ROS messages: ``geometry_msgs/PoseArray`` and ``visualization_msgs`` markers.
 
-One ``ChainMessages`` per chain keeps its message objects and refills them each tick (building
-rclpy messages is the expensive part of publishing: allocation plus per-field type checks).
+A chain's poses of a tick are a ``SegmentPoses``: the CDR bytes of its ``PoseArray``, encoded
+once from the pose arrays (``wire.py``), which the node publishes and the recorder writes as
+they are; the ``PoseArray`` object (and the ``/tf`` bytes) only when asked for. The markers
+likewise (``SegmentMarkers``): ``ChainMessages`` (per chain) and ``ColliderMarkers`` give their
+``MarkerSpec``s (the same tuple while nothing changes) and each tick's poses and points, one
+``MarkerArrayLayout`` encodes them. Building rclpy messages (allocation plus per-field type
+checks) and converting them for rmw cost far more than the numbers; the node's inputs come in
+as bytes too (``ReceivedPose``).
 
 Conventions: a segment's pose has its origin at the proximal joint (towards the head) and its
 local +X along the segment, so the distal joint is ``origin + R · (length, 0, 0)``. Markers:
@@ -19,18 +25,24 @@ namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as 
 a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
+from functools import lru_cache
+from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 
-from geometry_msgs.msg import Point, Pose, PoseArray
-from std_msgs.msg import ColorRGBA
-from visualization_msgs.msg import Marker
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
+from visualization_msgs.msg import Marker, MarkerArray
 
 import numpy as np
 
 from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
                                          quat_rotate)
 
-__all__ = ['ChainMessages', 'ColliderMarkers', 'delete_all_marker', 'Q_Z_TO_X',
-           'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
+from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block,
+                   pose_stamped_fields)
+
+__all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
+           'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
+           'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
 
 #: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
 TF_TOPIC = '/tf'
@@ -52,110 +64,281 @@ PLANE_SIZE = 2.0
 Q_Z_TO_X = np.array([0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)])
 
 
-def delete_all_marker(frame_id, stamp):
-    m = Marker()
-    m.header.frame_id = frame_id
-    m.header.stamp = stamp
-    m.action = Marker.DELETEALL
-    return m
-
-
 def _set_pose(pose, p, q):
     pos, ori = pose.position, pose.orientation
     pos.x, pos.y, pos.z = p
     ori.x, ori.y, ori.z, ori.w = q
 
 
+class SegmentPoses:
+    """One chain's segment poses of one tick, held as the CDR of its ``geometry_msgs/PoseArray``
+    (encoded once, ``wire.py``): what is published and recorded. Immutable: the arrays are
+    read-only views of the bytes.
+
+    Args:
+        chain: the chain's name (its TF frames are ``<prefix><chain>/<i>``).
+        origins, quats: ``(n, 3)`` and ``(n, 4)`` (x, y, z, w), root first.
+        frame_id: the ``header.frame_id``.
+        stamp_ns: the ``header.stamp``, integer ns.
+    """
+
+    __slots__ = ('chain', 'frame_id', 'stamp_ns', 'cdr', '_layout', '_message', '_tf')
+
+    def __init__(self, chain: str, origins, quats, frame_id: str, stamp_ns: int):
+        self.chain = chain
+        self.frame_id = frame_id
+        self.stamp_ns = int(stamp_ns)
+        self._layout = pose_array_layout(frame_id, len(origins))
+        sec, nanosec = self.stamp
+        #: The ``PoseArray``'s CDR (encapsulation header included, padding zeroed).
+        self.cdr: bytes = self._layout.encode(sec, nanosec, pose_block(origins, quats))
+        self._message: Optional[PoseArray] = None
+        self._tf: Dict[str, bytes] = {}
+
+    @property
+    def n(self) -> int:
+        return self._layout.n
+
+    @property
+    def stamp(self):
+        """``(sec, nanosec)`` of the stamp (as ``builtin_interfaces/Time`` splits it)."""
+        return self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(n, 7)``: position x, y, z, orientation x, y, z, w per segment (read-only)."""
+        return self._layout.poses(self.cdr)
+
+    @property
+    def origins(self) -> np.ndarray:
+        return self.poses[:, :3]
+
+    @property
+    def orientations(self) -> np.ndarray:
+        return self.poses[:, 3:]
+
+    def message(self) -> PoseArray:
+        """The ``PoseArray`` (built on the first call; the same object after)."""
+        if self._message is None:
+            msg = PoseArray()
+            msg.header.frame_id = self.frame_id
+            sec, nanosec = self.stamp
+            msg.header.stamp = Time(sec=sec, nanosec=nanosec)
+            poses = []
+            for row in self.poses.tolist():
+                pose = Pose()
+                _set_pose(pose, row[:3], row[3:])
+                poses.append(pose)
+            msg.poses = poses
+            self._message = msg
+        return self._message
+
+    def tf_cdr(self, prefix: str = '') -> bytes:
+        """CDR of the ``tf2_msgs/TFMessage`` of the segments: segment ``i`` as the frame
+        ``segment_frame(prefix, chain, i)``, child of ``frame_id``, at the stamp."""
+        data = self._tf.get(prefix)
+        if data is None:
+            data = self._tf[prefix] = tf_cdr((self,), prefix)
+        return data
+
+
+def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
+    """CDR of one ``tf2_msgs/TFMessage`` holding the segments of every chain in ``segments``
+    (one tick's, so one frame and one stamp), chain after chain, root first."""
+    first = segments[0]
+    layout = _tf_layout(first.frame_id, prefix, tuple((s.chain, s.n) for s in segments))
+    block = first.poses if len(segments) == 1 else np.concatenate([s.poses for s in segments])
+    sec, nanosec = first.stamp
+    return layout.encode(sec, nanosec, block)
+
+
+@lru_cache(maxsize=256)
+def _tf_layout(frame_id: str, prefix: str, chains: Tuple[Tuple[str, int], ...]) -> TFLayout:
+    """The ``TFLayout`` of the segments of ``chains`` (``(name, n_segments)``) under
+    ``frame_id`` (the frame names built once, not every tick)."""
+    return TFLayout(frame_id, [segment_frame(prefix, c, i) for c, n in chains for i in range(n)])
+
+
+class Stamp(NamedTuple):
+    """A header stamp (as ``builtin_interfaces/Time``: ``sec``, ``nanosec``)."""
+
+    sec: int
+    nanosec: int
+
+
+class ReceivedPose:
+    """A ``geometry_msgs/PoseStamped`` as received in CDR bytes (the node's raw input
+    subscriptions), its fields decoded with ``struct`` (``wire.pose_stamped_fields``); the
+    message object only when asked for (a recorder).
+
+    Build with :meth:`decode`, None when the bytes need rclpy's deserialisation instead.
+    """
+
+    __slots__ = ('cdr', 'stamp', 'frame_id', 'position', 'orientation', '_message')
+
+    def __init__(self, cdr: bytes, stamp: Stamp, frame_id: str, position, orientation):
+        self.cdr = cdr
+        self.stamp = stamp
+        self.frame_id = frame_id
+        self.position = position
+        self.orientation = orientation
+        self._message: Optional[PoseStamped] = None
+
+    @classmethod
+    def decode(cls, cdr: bytes) -> Optional['ReceivedPose']:
+        fields = pose_stamped_fields(cdr)
+        if fields is None:
+            return None
+        sec, nanosec, frame_id, position, orientation = fields
+        return cls(cdr, Stamp(sec, nanosec), frame_id, position, orientation)
+
+    def message(self) -> PoseStamped:
+        """The ``PoseStamped`` (built on the first call; the same object after)."""
+        if self._message is None:
+            msg = PoseStamped()
+            msg.header.stamp = Time(sec=self.stamp.sec, nanosec=self.stamp.nanosec)
+            msg.header.frame_id = self.frame_id
+            _set_pose(msg.pose, self.position, self.orientation)
+            self._message = msg
+        return self._message
+
+
+class SegmentMarkers:
+    """One tick's ``visualization_msgs/MarkerArray`` held as its CDR (encoded once from the
+    markers' specs and numbers, ``wire.MarkerArrayLayout``): what is published and recorded.
+
+    Args:
+        layout: the ``MarkerArrayLayout`` (frame and marker specs).
+        stamp_ns: every marker's ``header.stamp``, integer ns.
+        poses: ``(n, 7)``, a pose per marker; points: ``(p, 3)``, the markers' points in order.
+    """
+
+    __slots__ = ('layout', 'stamp_ns', 'poses', 'points', 'cdr', '_message')
+
+    def __init__(self, layout: MarkerArrayLayout, stamp_ns: int, poses: np.ndarray,
+                 points: np.ndarray):
+        self.layout = layout
+        self.stamp_ns = int(stamp_ns)
+        self.poses = poses
+        self.points = points
+        sec, nanosec = self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
+        #: The ``MarkerArray``'s CDR (encapsulation header included, padding zeroed).
+        self.cdr: bytes = layout.encode(sec, nanosec, poses, points)
+        self._message: Optional[MarkerArray] = None
+
+    @property
+    def wire(self) -> bytes:
+        """The CDR as rmw serialises the message (what the node publishes): ``cdr`` without
+        the zeros that pad it to a multiple of 4 bytes (a ``Marker`` ends with a bool)."""
+        return self.cdr[:self.layout.unpadded_size]
+
+    def message(self) -> MarkerArray:
+        """The ``MarkerArray`` (built on the first call; the same object after)."""
+        if self._message is None:
+            stamp = Time(sec=self.stamp_ns // 1_000_000_000,
+                         nanosec=self.stamp_ns % 1_000_000_000)
+            markers, k = [], 0
+            points = self.points.tolist()
+            for spec, row in zip(self.layout.specs, self.poses.tolist()):
+                m = Marker()
+                m.header.frame_id = self.layout.frame_id
+                m.header.stamp = stamp
+                m.ns, m.id, m.type, m.action = spec.ns, spec.id, spec.type, spec.action
+                _set_pose(m.pose, row[:3], row[3:])
+                m.scale.x, m.scale.y, m.scale.z = spec.scale
+                c = m.color
+                c.r, c.g, c.b, c.a = spec.color
+                if spec.n_points:
+                    pts = []
+                    for xyz in points[k:k + spec.n_points]:
+                        pt = Point()
+                        pt.x, pt.y, pt.z = xyz
+                        pts.append(pt)
+                    m.points = pts
+                    k += spec.n_points
+                markers.append(m)
+            self._message = MarkerArray(markers=markers)
+        return self._message
+
+
+#: The pose of a marker drawn by its points (and of the DELETEALL): the identity.
+IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+#: ``Marker.DELETEALL`` (namespace '', id 0).
+DELETE_ALL = MarkerSpec('', 0, Marker.ARROW, Marker.DELETEALL)
+_NO_POINTS = np.zeros((0, 3))
+
+
+def _rgba(color) -> tuple:
+    return (float(color[0]), float(color[1]), float(color[2]), float(color[3]))
+
+
 class ChainMessages:
-    """Reusable messages of one chain (``name``, segment ``lengths`` ``(n,)``, ``radius`` m)."""
+    """The marker specs of one chain (``name``, segment ``lengths`` ``(n,)``, ``radius`` m)
+    and the tick's ``SegmentPoses``."""
 
     def __init__(self, name, lengths, radius):
         self.name = name
         self.lengths = np.asarray(lengths, dtype=float)
         self.radius = float(radius)
         self.n = len(self.lengths)
-        self.pose_array = PoseArray()
-        self.pose_array.poses = [Pose() for _ in range(self.n)]
         self._style = None
-        self._markers = []
+        self._color = None
+        self._specs: tuple = ()
 
-    def fill_poses(self, origins, quats, frame_id, stamp):
-        """Fill and return the ``PoseArray`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
-        msg = self.pose_array
-        msg.header.frame_id = frame_id
-        msg.header.stamp = stamp
-        for pose, p, q in zip(msg.poses, origins.tolist(), quats.tolist()):
-            _set_pose(pose, p, q)
-        return msg
+    def segment_poses(self, origins, quats, frame_id, stamp_ns) -> SegmentPoses:
+        """The tick's ``SegmentPoses`` (origins ``(n, 3)``, quats ``(n, 4)``)."""
+        return SegmentPoses(self.name, origins, quats, frame_id, stamp_ns)
 
-    def _build_markers(self, style, color):
-        r = self.radius
-        spheres = Marker()
-        spheres.ns = self.name
-        spheres.id = 0
-        spheres.type = Marker.SPHERE_LIST
-        spheres.action = Marker.ADD
-        spheres.pose.orientation.w = 1.0
-        spheres.scale.x = spheres.scale.y = spheres.scale.z = 2.0 * r
-        spheres.points = [Point() for _ in range(self.n + 1)]
-        markers = [spheres]
+    def _build_specs(self, style, color):
+        r, rgba = self.radius, _rgba(color)
+        specs = [MarkerSpec(self.name, 0, Marker.SPHERE_LIST, Marker.ADD, (2.0 * r,) * 3,
+                            rgba, self.n + 1)]
         if style == 'capsules':
-            for i in range(self.n):
-                c = Marker()
-                c.ns = self.name
-                c.id = i + 1
-                c.type = Marker.CYLINDER
-                c.action = Marker.ADD
-                c.scale.x = c.scale.y = 2.0 * r
-                c.scale.z = float(self.lengths[i])
-                markers.append(c)
+            specs += [MarkerSpec(self.name, i + 1, Marker.CYLINDER, Marker.ADD,
+                                 (2.0 * r, 2.0 * r, float(self.lengths[i])), rgba)
+                      for i in range(self.n)]
         elif style == 'line':
-            line = Marker()
-            line.ns = self.name
-            line.id = 1
-            line.type = Marker.LINE_STRIP
-            line.action = Marker.ADD
-            line.pose.orientation.w = 1.0
-            line.scale.x = r
-            line.points = [Point() for _ in range(self.n + 1)]
-            markers.append(line)
-        self._markers = markers
+            specs.append(MarkerSpec(self.name, 1, Marker.LINE_STRIP, Marker.ADD, (r, 0.0, 0.0),
+                                    rgba, self.n + 1))
+        self._specs = tuple(specs)
         self._style = style
-        self.set_color(color)
+        self._color = color
 
     def set_color(self, color):
-        rgba = ColorRGBA(r=float(color[0]), g=float(color[1]), b=float(color[2]),
-                         a=float(color[3]))
-        for m in self._markers:
-            m.color = rgba
+        """The chain's colour (``(r, g, b, a)``) from now on."""
+        if self._style not in (None, 'off'):
+            self._build_specs(self._style, color)
+        self._color = color
 
-    def markers(self, origins, quats, style, color, frame_id, stamp):
-        """Markers of the chain (a list; empty for style 'off'), and whether the set of marker
-        ids changed since the last call (then send a DELETEALL first)."""
+    def markers(self, origins, quats, style, color):
+        """Markers of the chain: their specs (a tuple, the same object while nothing changes;
+        empty for style 'off'), poses ``(k, 7)``, points ``(p, 3)``, and whether the set of
+        marker ids changed since the last call (then send a DELETEALL first)."""
         if style == 'off':
             changed = self._style not in (None, 'off')
             self._style = 'off'
-            self._markers = []
-            return [], changed
+            self._specs = ()
+            return (), np.zeros((0, 7)), _NO_POINTS, changed
         changed = style != self._style
-        if changed:
-            self._build_markers(style, color)
+        if changed or color != self._color:
+            self._build_specs(style, color)
         axes = quat_axis_x(quats) * self.lengths[:, None]
-        joints = np.concatenate([origins, origins[-1:] + axes[-1:]]).tolist()
-        for m in self._markers:
-            m.header.frame_id = frame_id
-            m.header.stamp = stamp
-        for pt, j in zip(self._markers[0].points, joints):
-            pt.x, pt.y, pt.z = j
+        joints = np.concatenate([origins, origins[-1:] + axes[-1:]])
         if style == 'capsules':
-            centres = (origins + 0.5 * axes).tolist()
-            q_cyl = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape)).tolist()
-            for m, p, q in zip(self._markers[1:], centres, q_cyl):
-                _set_pose(m.pose, p, q)
-        else:
-            for pt, j in zip(self._markers[1].points, joints):
-                pt.x, pt.y, pt.z = j
-        return self._markers, changed
+            poses = np.empty((self.n + 1, 7))
+            poses[0] = IDENTITY_POSE
+            poses[1:, :3] = origins + 0.5 * axes
+            poses[1:, 3:] = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape))
+            return self._specs, poses, joints, changed
+        return (self._specs, np.stack([IDENTITY_POSE, IDENTITY_POSE]),
+                np.concatenate([joints, joints]), changed)
+
+
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
 
 
 class ColliderMarkers:
@@ -164,71 +347,55 @@ class ColliderMarkers:
 
     def __init__(self):
         self._key = None
-        self._markers = []
+        self._specs: tuple = ()
+        self._local: list = []
 
     def _build(self, colliders):
-        color = ColorRGBA(r=COLLIDER_COLOR[0], g=COLLIDER_COLOR[1], b=COLLIDER_COLOR[2],
-                          a=COLLIDER_COLOR[3])
-        markers = []
+        #: per collider its centre and unit axis in its body (the sphere's: +Z)
+        self._local = [(np.asarray(c.center, float),
+                        _unit(np.asarray(c.axis, float)) if c.kind != 'sphere' else _Z)
+                       for c in colliders]
+        color = COLLIDER_COLOR
+        specs = []
         for k, c in enumerate(colliders):
-            m = Marker()
-            m.ns = 'colliders'
-            m.action = Marker.ADD
-            m.color = color
             if c.kind == 'sphere':
-                m.id, m.type = k, Marker.SPHERE
-                m.scale.x = m.scale.y = m.scale.z = 2.0 * c.radius
-                markers.append(m)
+                specs.append(MarkerSpec('colliders', k, Marker.SPHERE, Marker.ADD,
+                                        (2.0 * c.radius,) * 3, color))
             elif c.kind == 'capsule':
-                m.id, m.type = 2 * k + 1000, Marker.CYLINDER
-                m.scale.x = m.scale.y = 2.0 * c.radius
-                m.scale.z = max(2.0 * c.half_length, 1e-6)
-                caps = Marker()
-                caps.ns, caps.id, caps.type = 'colliders', 2 * k + 1001, Marker.SPHERE_LIST
-                caps.action, caps.color = Marker.ADD, color
-                caps.pose.orientation.w = 1.0
-                caps.scale.x = caps.scale.y = caps.scale.z = 2.0 * c.radius
-                caps.points = [Point(), Point()]
-                markers += [m, caps]
+                specs += [MarkerSpec('colliders', 2 * k + 1000, Marker.CYLINDER, Marker.ADD,
+                                     (2.0 * c.radius, 2.0 * c.radius,
+                                      max(2.0 * c.half_length, 1e-6)), color),
+                          MarkerSpec('colliders', 2 * k + 1001, Marker.SPHERE_LIST, Marker.ADD,
+                                     (2.0 * c.radius,) * 3, color, 2)]
             else:
-                m.id, m.type = k, Marker.CUBE
-                m.scale.x = m.scale.y = PLANE_SIZE
-                m.scale.z = 1e-3
-                markers.append(m)
-        self._markers = markers
+                specs.append(MarkerSpec('colliders', k, Marker.CUBE, Marker.ADD,
+                                        (PLANE_SIZE, PLANE_SIZE, 1e-3), color))
+        self._specs = tuple(specs)
 
-    def markers(self, colliders, bodies, style, frame_id, stamp):
+    def markers(self, colliders, bodies, style):
         """Markers of ``colliders`` (``ColliderSpec``s) with the kinematic bodies ``bodies``
-        (``KinematicState``; a collider with ``body None`` is static), and whether the set of
-        marker ids changed since the last call."""
+        (``KinematicState``; a collider with ``body None`` is static): specs, poses, points
+        (as ``ChainMessages.markers``), and whether the set of marker ids changed since the
+        last call."""
         key = None if style == 'off' or not colliders else tuple(colliders)
         changed = key != self._key and self._key is not None
         if key != self._key:
             self._key = key
-            self._markers = []
+            self._specs = ()
             if key is not None:
                 self._build(colliders)
         if key is None:
-            return [], changed
-        markers = iter(self._markers)
-        z = np.array([0.0, 0.0, 1.0])
-        for c in colliders:
-            centre, axis = np.asarray(c.center, float), np.asarray(c.axis, float)
-            axis = axis / np.linalg.norm(axis) if c.kind != 'sphere' else z
+            return (), np.zeros((0, 7)), _NO_POINTS, changed
+        poses, points = [], []
+        z = _Z
+        for c, (centre, axis) in zip(colliders, self._local):
             if c.body is not None:
                 qb = bodies.orientation[c.body]
                 centre = bodies.position[c.body] + quat_rotate(qb, centre)
                 axis = quat_rotate(qb, axis)
             q = quat_from_two_vectors(z, axis)        # marker Z along the axis / normal
-            m = next(markers)
-            m.header.frame_id = frame_id
-            m.header.stamp = stamp
-            _set_pose(m.pose, centre.tolist(), q.tolist())
+            poses.append(np.concatenate([centre, q]))
             if c.kind == 'capsule':
-                caps = next(markers)
-                caps.header.frame_id = frame_id
-                caps.header.stamp = stamp
-                for pt, end in zip(caps.points, (centre - c.half_length * axis,
-                                                 centre + c.half_length * axis)):
-                    pt.x, pt.y, pt.z = end.tolist()
-        return self._markers, changed
+                poses.append(IDENTITY_POSE)
+                points += [centre - c.half_length * axis, centre + c.half_length * axis]
+        return (self._specs, np.array(poses), np.array(points).reshape(-1, 3), changed)

@@ -12,11 +12,12 @@ from typing import Any, List, Mapping, Optional
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from visualization_msgs.msg import MarkerArray
 
 import numpy as np
 
-from .messages import ChainMessages, ColliderMarkers, delete_all_marker
+from .messages import (DELETE_ALL, IDENTITY_POSE, ChainMessages, ColliderMarkers, SegmentMarkers,
+                       SegmentPoses)
+from .wire import MarkerArrayLayout
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
@@ -40,13 +41,26 @@ def time_msg(t_ns: int) -> Time:
 
 @dataclass
 class NodeTick:
-    """The messages of one tick: ``poses[i]`` is chain ``i``'s ``PoseArray``; ``markers`` a
-    ``MarkerArray`` when markers are due (``markers.rate``), else None."""
+    """The messages of one tick: ``segments[i]`` is chain ``i``'s ``SegmentPoses`` (its
+    ``PoseArray`` as CDR bytes, ``.cdr``); ``segment_markers`` the ``SegmentMarkers`` (the
+    ``MarkerArray`` as CDR) when markers are due (``markers.rate``), else None. The node and
+    the recorder use the bytes; the message objects (``poses``, ``markers``) are built when
+    first asked for."""
 
     output: TickOutput
     frame_id: str
-    poses: List[Any]
-    markers: Optional[Any]
+    segments: List[SegmentPoses]
+    segment_markers: Optional[SegmentMarkers]
+
+    @property
+    def poses(self) -> List[Any]:
+        """The ``PoseArray`` message per chain."""
+        return [s.message() for s in self.segments]
+
+    @property
+    def markers(self) -> Optional[Any]:
+        """The ``MarkerArray`` message, or None (no markers this tick)."""
+        return None if self.segment_markers is None else self.segment_markers.message()
 
 
 @dataclass
@@ -82,7 +96,10 @@ class NodeCore:
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
+        self._msgs_scene = None     # the scene the chain messages were last checked against
         self._collider_markers = ColliderMarkers()
+        self._marker_key: Any = None
+        self._marker_layout: Optional[MarkerArrayLayout] = None
         self._last_marker_t = None
         self.published = 0
         self.window = _Window()
@@ -128,16 +145,18 @@ class NodeCore:
         if out is None:
             return None
         scene = self.runner.scene
-        if any(m.n != c.n_segments or m.radius != c.radius or
-               not np.array_equal(m.lengths, c.lengths())
-               for m, c in zip(self._chain_msgs, scene.chains)):
-            self._chain_msgs = self._make_chain_messages(scene)
+        if scene is not self._msgs_scene:     # (a Scene is frozen: the same one, the same chains)
+            if any(m.n != c.n_segments or m.radius != c.radius or
+                   not np.array_equal(m.lengths, c.lengths())
+                   for m, c in zip(self._chain_msgs, scene.chains)):
+                self._chain_msgs = self._make_chain_messages(scene)
+            self._msgs_scene = scene
         # No frame set and no head pose seen (chains hanging from the world only): 'world'.
         frame = self.values['frame_id'] or out.frame_id or 'world'
-        stamp = time_msg(self.stamp_ns(t_ns, out))
+        stamp_ns = self.stamp_ns(t_ns, out)
         model = self.runner.sim.model
-        poses = [cm.fill_poses(out.origins[model.chain_slice(c)],
-                               out.orientations[model.chain_slice(c)], frame, stamp)
+        poses = [cm.segment_poses(out.origins[model.chain_slice(c)],
+                                  out.orientations[model.chain_slice(c)], frame, stamp_ns)
                  for c, cm in enumerate(self._chain_msgs)]
         self.published += 1
         win, rep = self.window, out.report
@@ -148,7 +167,7 @@ class NodeCore:
         win.dropped_time += rep.dropped_time
         if out.reset_reason == 'guard':
             win.guard_resets += 1
-        return NodeTick(out, frame, poses, self._markers(out, frame, stamp))
+        return NodeTick(out, frame, poses, self._markers(out, frame, stamp_ns))
 
     def stamp_ns(self, t_ns: int, out: TickOutput) -> int:
         """The outputs' stamp (ns) of the tick at ``t_ns``: the tick time (``output_stamp:
@@ -158,7 +177,7 @@ class NodeCore:
             return t_ns
         return t_ns - int(round((out.t - out.t_state) * 1e9))
 
-    def _markers(self, out, frame, stamp):
+    def _markers(self, out, frame, stamp_ns):
         style = self.values['markers.style']
         period = 1.0 / self.values['markers.rate']
         if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
@@ -167,25 +186,30 @@ class NodeCore:
         self._last_marker_t = out.t
         model = self.runner.sim.model
         delete = False
-        markers = []
+        parts = []
         for c, cm in enumerate(self._chain_msgs):
             sl = model.chain_slice(c)
             color = self.values[chain_param_name(self.chains[c], 'color')]
-            ms, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color,
-                                     frame, stamp)
+            *part, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color)
             delete = delete or changed
-            markers.extend(ms)
-        ms, changed = self._collider_markers.markers(
+            parts.append(part)
+        *part, changed = self._collider_markers.markers(
             self.runner.scene.colliders,
             self.runner.bodies_at(out.t_state if self.values['output_stamp'] == 'simulated'
-                                  else out.t), style, frame, stamp)
+                                  else out.t), style)
         delete = delete or changed
-        markers.extend(ms)
+        parts.append(part)
         if delete:
-            markers.insert(0, delete_all_marker(frame, stamp))
-        if not markers:
+            parts.insert(0, [(DELETE_ALL,), IDENTITY_POSE[None], np.zeros((0, 3))])
+        specs = tuple(p[0] for p in parts)     # (the same tuples while nothing changes)
+        if not any(specs):
             return None
-        return MarkerArray(markers=markers)
+        if (frame, specs) != self._marker_key:
+            self._marker_key = (frame, specs)
+            self._marker_layout = MarkerArrayLayout(frame, [s for ss in specs for s in ss])
+        return SegmentMarkers(self._marker_layout, stamp_ns,
+                              np.concatenate([p[1] for p in parts]),
+                              np.concatenate([p[2] for p in parts]))
 
     # -- parameters ----------------------------------------------------------------------------
     def ours(self, changed: Mapping[str, Any]) -> dict:

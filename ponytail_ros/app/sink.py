@@ -27,10 +27,12 @@ class TickSink(Protocol):
     """Receives everything the node handles or emits, in the order it does."""
 
     def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
-        """An input pose as received: ``source`` is ``HEAD`` (None) or the frame's index."""
+        """An input pose as received (a message, or the node's ``ReceivedPose``: its CDR and
+        fields, ``.message()``): ``source`` is ``HEAD`` (None) or the frame's index."""
 
     def on_tick(self, tick: NodeTick, log_time_ns: int) -> None:
-        """One tick's messages (``tick.poses`` per chain, ``tick.markers`` or None)."""
+        """One tick's messages (``tick.segments`` per chain: its ``PoseArray`` as CDR bytes,
+        ``.cdr``; ``tick.segment_markers``, the ``MarkerArray`` as CDR, or None)."""
 
     def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
         """A ``diagnostic_msgs/DiagnosticArray``."""

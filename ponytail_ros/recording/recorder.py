@@ -26,11 +26,13 @@ header stamp. The file order is the order in which the node handled the messages
 queue), which is what a replay needs: a head (or frame) pose written before a tick's
 ``PoseArray`` was queued before that tick.
 
-The node never waits on the disk: a write serialises the message and enqueues it; a background
-thread (``BagWriter``) does the I/O. Failures never reach the node: opening errors are logged and
-the node runs without recording; a later I/O error (disk full) is logged once and recording
-stops. See ``bag.py`` for what a SIGKILL loses (at most the last ~0.5 s of log time); SIGINT and
-SIGTERM end ``rclpy.spin`` and the node's ``destroy_node`` finalises the file.
+The node never waits on the disk: a write serialises the message and enqueues it (a tick's
+poses, ``/tf`` and markers come as CDR bytes already, ``app/wire.py``, and are enqueued as they
+are); a background thread (``BagWriter``) does the I/O. Failures never reach the node: opening
+errors are logged and the node runs without recording; a later I/O error (disk full) is logged
+once and recording stops. See ``bag.py`` for what a SIGKILL loses (at most the last ~0.5 s of
+log time); SIGINT and SIGTERM end ``rclpy.spin`` and the node's ``destroy_node`` finalises the
+file.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of
 from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
                  tfmessage_type_hash)
 from .cdr import serialize_canonical
+from ponytail_ros.app.messages import ReceivedPose
 from ponytail_ros.app.param_values import metadata_from_values
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
@@ -198,7 +201,8 @@ class RunRecorder:
         canonical: write canonical CDR (``cdr.zero_padding``: alignment gaps zeroed, the
             slack rclpy leaves after the data cut): equal messages are equal bytes and readers
             that check the length (rosbags) accept every type. On by default; off writes
-            ``serialize_message``'s bytes as they are.
+            ``serialize_message``'s bytes as they are (the segment poses of a tick come as
+            canonical CDR already, ``app/wire.py``, and are written as they come either way).
         overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
         tf: also record every chain's segments on ``/tf`` (``tf2_msgs/msg/TFMessage``, one
             message per chain per tick, written with its ``PoseArray``; see ``tf.py``).
@@ -275,12 +279,23 @@ class RunRecorder:
         """The I/O error that stopped recording, or None."""
         return self._writer.error
 
-    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
-        """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+    def _writable(self) -> bool:
         if self._closed:
-            return  # a callback after destroy_node: nothing to record any more
+            return False  # a callback after destroy_node: nothing to record any more
         if self._writer.error is not None:
             self._report_error()
+            return False
+        return True
+
+    def _failed(self, exc: BagError) -> None:
+        # A negative time, or closed by another thread meanwhile: never the node's problem;
+        # reported once like an I/O error.
+        if not self._closed:
+            self._report_error(str(exc))
+
+    def write(self, topic: str, msg: Any, log_time_ns: int) -> None:
+        """Record ``msg`` on ``topic`` at ``log_time_ns``; publish time = its header stamp."""
+        if not self._writable():
             return
         try:
             if self._canonical:
@@ -294,10 +309,23 @@ class RunRecorder:
                                                                            self._tf_prefix),
                                               log_time_ns, _publish_time(msg, log_time_ns))
         except BagError as exc:
-            # A negative time, or closed by another thread meanwhile: never the node's
-            # problem; reported once like an I/O error.
-            if not self._closed:
-                self._report_error(str(exc))
+            self._failed(exc)
+
+    def segment_poses(self, chain_index: int, poses: Any, log_time_ns: int) -> None:
+        """Chain ``chain_index``'s ``SegmentPoses`` (``app/messages.py``): its ``PoseArray``
+        bytes as they are (already canonical CDR), then its ``/tf``, without a message object
+        or a second serialisation. Publish time = the stamp (the log time if negative)."""
+        if not self._writable():
+            return
+        topic = self.layout.pose_topics[chain_index]
+        publish_ns = poses.stamp_ns if poses.stamp_ns >= 0 else log_time_ns
+        try:
+            self._writer.write_serialized(topic, poses.cdr, log_time_ns, publish_ns)
+            if topic in self._tf_chains:
+                self._writer.write_serialized(TF_TOPIC, poses.tf_cdr(self._tf_prefix),
+                                              log_time_ns, publish_ns)
+        except BagError as exc:
+            self._failed(exc)
 
     def head(self, msg: Any, log_time_ns: int) -> None:
         """A head pose as received, at its receive time."""
@@ -328,7 +356,10 @@ class RunRecorder:
 
     # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
     def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
-        """The head pose (``source`` None) or frame ``source``'s, as received."""
+        """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
+        the node's ``ReceivedPose``: its message, built now)."""
+        if isinstance(msg, ReceivedPose):
+            msg = msg.message()
         if source is None:
             self.head(msg, log_time_ns)
         else:
@@ -336,10 +367,16 @@ class RunRecorder:
 
     def on_tick(self, tick: Any, log_time_ns: int) -> None:
         """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""
-        for c, msg in enumerate(tick.poses):
-            self.poses(c, msg, log_time_ns)
-        if tick.markers is not None:
-            self.markers(tick.markers, log_time_ns)
+        for c, poses in enumerate(tick.segments):
+            self.segment_poses(c, poses, log_time_ns)
+        markers = tick.segment_markers
+        if markers is not None and self._writable():
+            try:
+                self._writer.write_serialized(
+                    self.layout.marker_topic, markers.cdr, log_time_ns,
+                    markers.stamp_ns if markers.stamp_ns >= 0 else log_time_ns)
+            except BagError as exc:
+                self._failed(exc)
 
     def on_diagnostics(self, msg: Any, log_time_ns: int) -> None:
         self.diagnostics(msg, log_time_ns)

@@ -10,9 +10,11 @@ recording alone.
 ``tf2_msgs`` is not among the ROS 2 PyPI wheels, so nothing here imports it: the ``ros2msg``
 schema is the type's ``.msg`` text (:data:`TFMESSAGE_MSG`, as in ros2/geometry2) followed by its
 dependencies from the installed ``geometry_msgs`` (``bag.message_definition_of_text``, exactly
-as rosbag2 writes it), the CDR is laid out by :func:`tf_message_cdr` (plain CDR, little endian,
-padding zeroed, as ``cdr.py`` makes rclpy's), and the ``RIHS01`` type hash is computed from the
-type description as ``rosidl_generator_type_description`` does (:func:`tfmessage_type_hash`).
+as rosbag2 writes it), the CDR is laid out by hand (plain CDR, little endian, padding zeroed, as
+``cdr.py`` makes rclpy's): a tick's by ``app/wire.py`` from its pose arrays
+(``SegmentPoses.tf_cdr``), a ``PoseArray`` message's by :func:`tf_from_pose_array`, and the
+``RIHS01`` type hash is computed from the type description as
+``rosidl_generator_type_description`` does (:func:`tfmessage_type_hash`).
 """
 from __future__ import annotations
 

@@ -55,6 +55,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rclpy.timer import TimerInfo
@@ -65,7 +66,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import report_compile
-from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, tf_cdr
 from ponytail_ros.app.node_core import NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
@@ -139,6 +140,13 @@ def _coerce(param, kind):
     return param
 
 
+def _received(data: bytes):
+    """A raw input's ``ReceivedPose``, or its ``PoseStamped`` when the bytes are not plain
+    little-endian CDR (``deserialize_message`` handles every case the decoder leaves)."""
+    pose = ReceivedPose.decode(data)
+    return pose if pose is not None else deserialize_message(data, PoseStamped)
+
+
 class _Timing:
     """Wall-clock timing between two diagnostics messages (the rest is ``NodeCore``'s)."""
 
@@ -175,13 +183,14 @@ class _Publishers:
         pass
 
     def on_tick(self, tick, log_time_ns):
-        for pub, msg in zip(self.poses, tick.poses):
-            pub.publish(msg)
+        # The poses as encoded by the core (CDR bytes): rclpy publishes them raw.
+        for pub, poses in zip(self.poses, tick.segments):
+            pub.publish(poses.cdr)
         self.poses_published_at = time.perf_counter()
         if self.tf is not None:
-            self._node._publish_tf(tick.poses)
-        if tick.markers is not None:
-            self.markers.publish(tick.markers)
+            self.tf.publish(tf_cdr(tick.segments, self._node._tf_prefix))
+        if tick.segment_markers is not None:
+            self.markers.publish(tick.segment_markers.wire)
 
     def on_diagnostics(self, msg, log_time_ns):
         self.diagnostics.publish(msg)
@@ -228,11 +237,14 @@ class PonytailNode(Node):
         self._pose_pubs = [self.create_publisher(PoseArray, tp, OUTPUT_QOS) for tp in topics]
         self._marker_pub = self.create_publisher(MarkerArray, 'segment_markers', OUTPUT_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_pose,
-                                                  INPUT_QOS)
+        # Inputs taken raw (CDR bytes) and decoded with struct: rclpy's conversion of each
+        # message into Python objects costs more than the rest of handling it.
+        self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_cdr,
+                                                  INPUT_QOS, raw=True)
         self._frame_subs = [
             self.create_subscription(PoseStamped, topic,
-                                     lambda msg, i=i: self._on_frame_pose(i, msg), INPUT_QOS)
+                                     lambda data, i=i: self._on_frame_pose(i, _received(data)),
+                                     INPUT_QOS, raw=True)
             for i, topic in enumerate(self.core.frame_topics)]
         #: Input name ('head' or a frame's) -> its resolved topic (log messages).
         self._input_topics = {'head': self._head_sub.topic_name,
@@ -305,23 +317,7 @@ class PonytailNode(Node):
                     'not ship it): the segments are not published on /tf. Source a ROS 2 '
                     'workspace that has tf2_msgs; recordings (record_path) hold /tf regardless')
             return None
-        self._tf_message = TFMessage
         return self.create_publisher(TFMessage, TF_TOPIC, QoSProfile(depth=TF_QOS_DEPTH))
-
-    def _publish_tf(self, poses):
-        from geometry_msgs.msg import TransformStamped
-        msg = self._tf_message()
-        for chain, array in zip(self._chains, poses):
-            for i, pose in enumerate(array.poses):
-                t = TransformStamped()
-                t.header = array.header
-                t.child_frame_id = segment_frame(self._tf_prefix, chain, i)
-                t.transform.translation.x = pose.position.x
-                t.transform.translation.y = pose.position.y
-                t.transform.translation.z = pose.position.z
-                t.transform.rotation = pose.orientation
-                msg.transforms.append(t)
-        self._tf_pub.publish(msg)
 
     def _startup_warning(self, text):
         self.startup_warnings.append(text)
@@ -478,9 +474,16 @@ class PonytailNode(Node):
             f'{k}={v}' for k, v in sorted(changed.items())))
 
     # -- input -----------------------------------------------------------------------------
+    def _on_head_cdr(self, data):
+        self._on_head_pose(_received(data))
+
     def _on_head_pose(self, msg):
+        """A head pose: a ``PoseStamped`` or a ``ReceivedPose`` (the same fields)."""
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
         self._sinks.on_input(HEAD, msg, now_ns)
+        if isinstance(msg, ReceivedPose):
+            self.core.push_head(msg.stamp, now_ns, msg.position, msg.orientation, msg.frame_id)
+            return
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_head(msg.header.stamp, now_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w),
                             msg.header.frame_id)
@@ -488,6 +491,10 @@ class PonytailNode(Node):
     def _on_frame_pose(self, i, msg):
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
         self._sinks.on_input(i, msg, now_ns)
+        if isinstance(msg, ReceivedPose):
+            self.core.push_frame(i, msg.stamp, now_ns, msg.position, msg.orientation,
+                                 msg.frame_id)
+            return
         p, q = msg.pose.position, msg.pose.orientation
         self.core.push_frame(i, msg.header.stamp, now_ns, (p.x, p.y, p.z),
                              (q.x, q.y, q.z, q.w), msg.header.frame_id)

@@ -241,7 +241,7 @@ class Harness:
                 arrays = [(out.origins[model.chain_slice(c)].copy(),
                            out.orientations[model.chain_slice(c)].copy())
                           for c in range(model.n_chains)]
-                self._ticks.append((t_ns, arrays, result.markers is not None))
+                self._ticks.append((t_ns, arrays, result.segment_markers is not None))
             return result
         core.push_head = counting_push  # type: ignore[method-assign]
         core.push_frame = counting_push_frame  # type: ignore[method-assign]

@@ -12,14 +12,12 @@ builds); needs no ROS graph, no DDS, no sleeping.
 """
 from __future__ import annotations
 
-import copy
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Union
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Pose, PoseArray
 
 from ponytail_ros.app.node_core import NodeCore, time_msg
 
@@ -44,21 +42,6 @@ def n_ticks(duration: float, rate: float) -> int:
 def stamp_msg(t: float) -> Time:
     """``builtin_interfaces/Time`` of ``t`` s (rounded to the ns)."""
     return time_msg(stamp_ns(t))
-
-
-def _copy_pose_array(msg: PoseArray) -> PoseArray:
-    out = PoseArray()
-    out.header.frame_id = msg.header.frame_id
-    out.header.stamp = Time(sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec)
-    poses = []
-    for p in msg.poses:
-        c = Pose()
-        c.position.x, c.position.y, c.position.z = p.position.x, p.position.y, p.position.z
-        o = p.orientation
-        c.orientation.x, c.orientation.y, c.orientation.z, c.orientation.w = o.x, o.y, o.z, o.w
-        poses.append(c)
-    out.poses = poses
-    return out
 
 
 def _frame_samples(config: Config, frames: Optional[Mapping[str, HeadInput]],
@@ -97,8 +80,8 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         frame_id: the head poses' ``header.frame_id``.
         frames: poses of the extra kinematic frames (``frames`` parameter: a forearm carrying
             a collider), frame name -> samples or motion as for ``head`` (same world frame).
-        keep_markers: keep a copy of every ``MarkerArray`` (off by default: copying them
-            costs about as much as a cheap chain's physics).
+        keep_markers: keep every ``MarkerArray`` (off by default: building the message
+            objects costs about as much as a cheap chain's physics).
 
     Returns:
         The ``Trace``: every ``PoseArray`` the node would publish (per topic), the
@@ -137,11 +120,11 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         last_ns = t_ns
         if tick is not None:
             builder.record(core.runner, tick.output, tick.frame_id)
-            # (copies: the core refills the same message objects every tick)
+            # (each tick's messages are its own: built from its bytes when asked for)
             for tp, msg in zip(topics, tick.poses):
-                poses[tp].append(_copy_pose_array(msg))
+                poses[tp].append(msg)
             if keep_markers and tick.markers is not None:
-                markers.append(copy.deepcopy(tick.markers))
+                markers.append(tick.markers)
         if t_ns >= next_diag:
             status = core.diagnostic_status(t_ns, diag_period * 1e-9, '/ponytail')
             msg = DiagnosticArray(status=[status])

@@ -1,0 +1,307 @@
+"""The tick's output as CDR bytes, laid out with NumPy: ``geometry_msgs/msg/PoseArray``,
+``tf2_msgs/msg/TFMessage`` and ``visualization_msgs/msg/MarkerArray``, straight from the pose
+arrays (no message objects).
+
+What the node publishes (``Publisher.publish(bytes)``, rclpy's ``publish_raw``) and what the
+recorder writes are these bytes: one encoding per tick, vectorised over the segments. They are
+the bytes ``rclpy.serialization.serialize_message`` gives for the equivalent message with its
+alignment gaps zeroed (``recording/cdr.py``'s canonical CDR; a test checks it byte for byte).
+
+Layout (plain CDR, XCDR1, little endian, as ROS 2 uses it): a 4-byte encapsulation header
+``00 01 00 00``, then the fields in order, each primitive aligned to its size relative to the
+end of that header; a string is a ``uint32`` length counting its terminating NUL, the bytes,
+the NUL; a sequence a ``uint32`` count, then its elements. Padding bytes are zero; the data
+ends padded to a multiple of 4 bytes.
+
+* ``PoseArray``: ``header.stamp`` (``int32`` sec, ``uint32`` nanosec), ``header.frame_id``,
+  the count, then (aligned to 8) one block of 7 ``float64`` per pose: position x, y, z,
+  orientation x, y, z, w;
+* ``TFMessage``: the count, then per ``TransformStamped`` (aligned to 4) its stamp, the
+  parent's ``frame_id``, the ``child_frame_id``, then (aligned to 8) translation x, y, z and
+  rotation x, y, z, w;
+* ``MarkerArray``: the count, then per ``Marker`` (aligned to 4) its header, ``ns``, ``id``,
+  ``type``, ``action``, (aligned to 8) ``pose`` and ``scale`` (``float64``), ``color`` (4
+  ``float32``), ``lifetime``, ``frame_locked``, ``points`` (count, then aligned to 8 three
+  ``float64`` each), and the fields the node leaves empty (``colors``, ``texture_resource``,
+  ``texture``, ``uv_coordinates``, ``text``, ``mesh_resource``, ``mesh_file``,
+  ``mesh_use_embedded_materials``). What changes from tick to tick (stamps, poses, points) is
+  a :class:`MarkerSpec`'s numbers; the rest is its layout's template.
+
+Nothing here imports ROS: the layouts depend on the frame names and the segment count only,
+so each is computed once (cached) and a tick fills in the stamp and the numbers.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+
+__all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
+           'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
+           'pose_stamped_fields']
+
+#: CDR little endian, options 0.
+ENCAPSULATION = b'\x00\x01\x00\x00'
+#: float64 numbers per pose: position x, y, z, orientation x, y, z, w.
+POSE_FLOATS = 7
+
+_U32 = struct.Struct('<I')
+_I32X3 = struct.Struct('<3i')
+_TIME = struct.Struct('<iI')
+_VEC3 = struct.Struct('<3d')
+_RGBA = struct.Struct('<4f')
+_POSE = struct.Struct('<7d')
+_F8 = np.dtype('<f8')
+_U8 = np.dtype('<u8')
+
+
+def _string(body: bytearray, text: str) -> None:
+    """Append a CDR string at the end of ``body`` (its offsets relative to the CDR origin)."""
+    data = text.encode('utf-8') + b'\x00'
+    body += bytes(-len(body) % 4)
+    body += _U32.pack(len(data)) + data
+
+
+def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """The ``(n, 7)`` little-endian float64 block of ``origins`` ``(n, 3)`` and ``quats``
+    ``(n, 4)`` (x, y, z, w), a pose per row as CDR lays poses out."""
+    block = np.concatenate((origins, quats), axis=1)
+    return block if block.dtype == _F8 else block.astype(_F8)
+
+
+def _stamped_rows(sec: int, nanosec: int, block: np.ndarray) -> np.ndarray:
+    """``(n, 64)`` bytes: per row the stamp's 8 bytes, then that row of ``block`` ``(n, 7)``
+    (contiguous little-endian float64), copied as integers (every bit kept)."""
+    rows = np.empty((len(block), 1 + POSE_FLOATS), dtype=_U8)
+    rows[:, 0] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=_U8)
+    rows[:, 1:] = block.view(_U8)
+    return rows.view(np.uint8)
+
+
+class PoseArrayLayout:
+    """The CDR layout of a ``PoseArray`` of ``n`` poses in frame ``frame_id``.
+
+    Attributes:
+        n: the number of poses.
+        frame_id: the header's frame.
+        data_offset: byte offset of the first pose's block in the data (from its first byte,
+            the encapsulation header's).
+        size: length of the data, bytes.
+    """
+
+    def __init__(self, frame_id: str, n: int):
+        self.frame_id = frame_id
+        self.n = int(n)
+        body = bytearray(8)                    # the stamp, filled in per message
+        _string(body, frame_id)
+        body += bytes(-len(body) % 4)
+        body += _U32.pack(self.n)
+        if self.n:
+            body += bytes(-len(body) % 8)
+        #: what follows the stamp up to the first pose (the frame, the count, padding)
+        self._middle = bytes(body[8:])
+        self.data_offset = len(ENCAPSULATION) + len(body)
+        self.size = self.data_offset + 8 * POSE_FLOATS * self.n   # (a multiple of 4)
+
+    def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
+        """The CDR of the message stamped ``(sec, nanosec)`` with poses ``block`` ``(n, 7)``
+        (:func:`pose_block`; any float array of that shape, converted to little-endian
+        float64)."""
+        block = np.ascontiguousarray(block, dtype=_F8)
+        if block.shape != (self.n, POSE_FLOATS):
+            raise ValueError(f'expected poses of shape ({self.n}, {POSE_FLOATS}), '
+                             f'got {block.shape}')
+        return b''.join((ENCAPSULATION, _TIME.pack(sec, nanosec), self._middle,
+                         block.tobytes()))
+
+    def poses(self, data: bytes) -> np.ndarray:
+        """The ``(n, 7)`` poses of ``data`` (this layout's CDR) as a read-only view."""
+        return np.frombuffer(data, dtype=_F8, count=POSE_FLOATS * self.n,
+                             offset=self.data_offset).reshape(self.n, POSE_FLOATS)
+
+
+@lru_cache(maxsize=256)
+def pose_array_layout(frame_id: str, n: int) -> PoseArrayLayout:
+    """The (cached) :class:`PoseArrayLayout` of ``n`` poses in ``frame_id``."""
+    return PoseArrayLayout(frame_id, n)
+
+
+def pose_array_cdr(origins: np.ndarray, quats: np.ndarray, sec: int, nanosec: int,
+                   frame_id: str) -> bytes:
+    """CDR of the ``PoseArray`` with poses ``origins`` ``(n, 3)``, ``quats`` ``(n, 4)`` (x, y,
+    z, w), stamped ``(sec, nanosec)``, in ``frame_id``."""
+    return pose_array_layout(frame_id, len(origins)).encode(sec, nanosec,
+                                                             pose_block(origins, quats))
+
+
+class TFLayout:
+    """The CDR layout of a ``TFMessage`` of one transform per child frame in ``children``, all
+    children of ``parent`` with one stamp (a chain's segments as TF frames)."""
+
+    def __init__(self, parent: str, children: Sequence[str]):
+        self.parent = parent
+        self.children = tuple(children)
+        self.n = len(self.children)
+        body = bytearray(_U32.pack(self.n))
+        stamps, poses = [], []
+        for child in self.children:
+            body += bytes(-len(body) % 4)
+            stamps.append(len(body))
+            body += bytes(8)
+            _string(body, parent)
+            _string(body, child)
+            body += bytes(-len(body) % 8)
+            poses.append(len(body))
+            body += bytes(8 * POSE_FLOATS)
+        body += bytes(-len(body) % 4)
+        self._template = np.frombuffer(ENCAPSULATION + bytes(body), dtype=np.uint8)
+        h = len(ENCAPSULATION)
+        #: byte indices ``(n, 64)`` of each transform's stamp (8 bytes) and numbers (56)
+        self._at = np.concatenate([
+            (h + np.array(stamps, dtype=np.intp)).reshape(-1, 1) + np.arange(8),
+            (h + np.array(poses, dtype=np.intp)).reshape(-1, 1) + np.arange(8 * POSE_FLOATS)],
+            axis=1)
+        self.size = len(self._template)
+
+    def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
+        """The CDR of the message stamped ``(sec, nanosec)``; transform ``i`` is row ``i`` of
+        ``block`` ``(n, 7)`` (translation, rotation x, y, z, w)."""
+        block = np.ascontiguousarray(block, dtype=_F8)
+        if block.shape != (self.n, POSE_FLOATS):
+            raise ValueError(f'expected poses of shape ({self.n}, {POSE_FLOATS}), '
+                             f'got {block.shape}')
+        data = self._template.copy()
+        if self.n:
+            data[self._at] = _stamped_rows(sec, nanosec, block)   # one scatter
+        return data.tobytes()
+
+
+@lru_cache(maxsize=256)
+def tf_layout(parent: str, children: Tuple[str, ...]) -> TFLayout:
+    """The (cached) :class:`TFLayout` of ``children`` (a tuple) under ``parent``."""
+    return TFLayout(parent, children)
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """What stays the same of a ``visualization_msgs/Marker`` from tick to tick: the header's
+    stamp, the pose and the points (``n_points`` of them) are the tick's numbers; every field
+    not named here keeps its default (empty, zero, false)."""
+
+    ns: str
+    id: int
+    type: int
+    action: int
+    scale: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    color: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    n_points: int = 0
+
+
+def _align(body: bytearray, n: int) -> None:
+    body += bytes(-len(body) % n)
+
+
+class MarkerArrayLayout:
+    """The CDR layout of a ``MarkerArray`` of ``specs`` (:class:`MarkerSpec`), every marker in
+    ``frame_id`` with one stamp: a template, and where each marker's stamp and pose and each
+    point go."""
+
+    def __init__(self, frame_id: str, specs: Sequence[MarkerSpec]):
+        self.frame_id = frame_id
+        self.specs = tuple(specs)
+        self.n = len(self.specs)
+        self.n_points = sum(s.n_points for s in self.specs)
+        body = bytearray(_U32.pack(self.n))
+        stamps, poses, points = [], [], []
+        for spec in self.specs:
+            _align(body, 4)
+            stamps.append(len(body))
+            body += bytes(8)                                   # header.stamp
+            _string(body, frame_id)                            # header.frame_id
+            _string(body, spec.ns)
+            _align(body, 4)
+            body += _I32X3.pack(spec.id, spec.type, spec.action)
+            _align(body, 8)
+            poses.append(len(body))
+            body += bytes(8 * POSE_FLOATS)                     # pose
+            body += _VEC3.pack(*spec.scale)                    # scale
+            body += _RGBA.pack(*spec.color)                    # color (float32)
+            body += bytes(8)                                   # lifetime
+            body += b'\x00'                                    # frame_locked
+            _align(body, 4)
+            body += _U32.pack(spec.n_points)                   # points
+            if spec.n_points:
+                _align(body, 8)
+                points.extend(len(body) + 24 * k for k in range(spec.n_points))
+                body += bytes(24 * spec.n_points)
+            _align(body, 4)
+            body += bytes(4)                                   # colors: []
+            _string(body, '')                                  # texture_resource
+            _align(body, 4)
+            body += bytes(8)                                   # texture.header.stamp
+            _string(body, '')                                  # texture.header.frame_id
+            _string(body, '')                                  # texture.format
+            _align(body, 4)
+            body += bytes(4)                                   # texture.data: []
+            body += bytes(4)                                   # uv_coordinates: []
+            _string(body, '')                                  # text
+            _string(body, '')                                  # mesh_resource
+            _string(body, '')                                  # mesh_file.filename
+            _align(body, 4)
+            body += bytes(4)                                   # mesh_file.data: []
+            body += b'\x00'                                    # mesh_use_embedded_materials
+        #: Length of the data without the trailing padding to 4 bytes (as rmw serialises it).
+        self.unpadded_size = len(ENCAPSULATION) + len(body)
+        _align(body, 4)
+        self._template = np.frombuffer(ENCAPSULATION + bytes(body), dtype=np.uint8)
+        h = len(ENCAPSULATION)
+        at = [(h + np.array(stamps, dtype=np.intp)).reshape(-1, 1) + np.arange(8),
+              (h + np.array(poses, dtype=np.intp)).reshape(-1, 1) + np.arange(8 * POSE_FLOATS)]
+        #: byte indices of the stamps and poses ``(n, 64)`` and of the points ``(p, 24)``
+        self._at = np.concatenate(at, axis=1)
+        self._points_at = (h + np.array(points, dtype=np.intp)).reshape(-1, 1) + np.arange(24)
+        self.size = len(self._template)
+
+    def encode(self, sec: int, nanosec: int, poses: np.ndarray, points: np.ndarray) -> bytes:
+        """The CDR of the array stamped ``(sec, nanosec)``: marker ``i``'s pose is row ``i`` of
+        ``poses`` ``(n, 7)``; its points are the next ``n_points`` rows of ``points``
+        ``(p, 3)``, markers in order."""
+        poses = np.ascontiguousarray(poses, dtype=_F8)
+        points = np.ascontiguousarray(points, dtype=_F8)
+        if poses.shape != (self.n, POSE_FLOATS) or points.shape != (self.n_points, 3):
+            raise ValueError(f'expected poses ({self.n}, {POSE_FLOATS}) and points '
+                             f'({self.n_points}, 3), got {poses.shape} and {points.shape}')
+        data = self._template.copy()
+        if self.n:
+            data[self._at] = _stamped_rows(sec, nanosec, poses)
+        if self.n_points:
+            data[self._points_at] = points.view(np.uint8).reshape(self.n_points, 24)
+        return data.tobytes()
+
+
+def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[float, ...],
+                                                      Tuple[float, ...]]]:
+    """``(sec, nanosec, frame_id, (x, y, z), (qx, qy, qz, qw))`` of the CDR of a
+    ``geometry_msgs/msg/PoseStamped`` (what a raw subscription receives); None if ``data`` is
+    not plain little-endian CDR of that layout, or its frame is not plain UTF-8 without a
+    NUL inside (then deserialise it the usual way)."""
+    if len(data) < 16 or data[0] != 0 or data[1] != 1:
+        return None
+    sec, nanosec = _TIME.unpack_from(data, 4)
+    (length,) = _U32.unpack_from(data, 12)
+    end = 16 + length                               # after the frame's NUL
+    at = end + (-(end - len(ENCAPSULATION)) % 8)    # the pose, aligned to 8
+    if length == 0 or at + 8 * POSE_FLOATS > len(data) or data[end - 1] != 0:
+        return None
+    frame = data[16:end - 1]
+    if b'\x00' in frame:
+        return None
+    try:
+        frame_id = frame.decode('utf-8')
+    except UnicodeDecodeError:
+        return None
+    pose = _POSE.unpack_from(data, at)
+    return sec, nanosec, frame_id, pose[:3], pose[3:]
