@@ -653,7 +653,7 @@ def _valid_sample(t, p, q, quat_tolerance):
         q = np.asarray(q, dtype=float).reshape(4)
     except (TypeError, ValueError):
         return False
-    if not (math.isfinite(t) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+    if not (math.isfinite(t) and np.isfinite(p).all() and np.isfinite(q).all()):
         return False
     return abs(math.sqrt(float(q @ q)) - 1.0) <= quat_tolerance
 

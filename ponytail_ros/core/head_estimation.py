@@ -70,7 +70,7 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .head_kernels import FIT_SIZE, loess_fit
+from .head_kernels import FIT_SIZE, loess_fit, median_interval
 
 __all__ = ['HeadEstimator', 'REJECT_REASONS']
 
@@ -180,7 +180,7 @@ class HeadEstimator:
         ``delay`` is one or two of these."""
         if self._n < 2:
             return None
-        return float(np.median(np.diff(self._t[:self._n])))
+        return float(median_interval(self._t, self._n))
 
     def reset(self):
         """Forget the history (after a teleport): the next accepted sample starts anew."""
@@ -202,7 +202,7 @@ class HeadEstimator:
             q = np.asarray(orientation, dtype=float).reshape(4)
         except Exception:  # noqa: BLE001 - whatever the input, never raise
             return None, None, 'malformed'
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
             return None, None, 'nonfinite'
         norm = math.sqrt(float(q @ q))
         if norm < 1e-9:
@@ -260,7 +260,8 @@ class HeadEstimator:
         p, q, reason = self._check_pose(position, orientation)
         if reason is not None:
             return False
-        if np.linalg.norm(p - self._p[self._n - 1]) > max_distance:
+        last = self._p[self._n - 1]
+        if math.dist(p.tolist(), last.tolist()) > max_distance:
             return True
         d = min(abs(float(q @ self._q[self._n - 1])), 1.0)
         return 2.0 * math.acos(d) > max_angle

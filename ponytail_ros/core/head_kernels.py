@@ -21,7 +21,7 @@ from numba import njit
 
 from .limit_kernels import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, scale
 
-__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'FIT_SIZE']
+__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'median_interval', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -167,6 +167,13 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
         out[16 + a] = alpha[a]
     for a in range(4):
         out[3 + a] = q[a]
+
+
+@njit(cache=True)
+def median_interval(ts, n):
+    """Median of the ``n - 1`` intervals between the first ``n`` stamps ``ts`` (s), ``n ≥ 2``
+    (as ``np.median(np.diff(ts[:n]))``)."""
+    return np.median(ts[1:n] - ts[:n - 1])
 
 
 @njit(cache=True)

@@ -713,5 +713,5 @@ def _check_head(head):
     """Refuse a non-finite head state, naming the field: it must never reach the chain."""
     for name in ('position', 'orientation', 'linear_velocity', 'angular_velocity',
                  'linear_acceleration', 'angular_acceleration'):
-        if not np.all(np.isfinite(getattr(head, name))):
+        if not np.isfinite(getattr(head, name)).all():
             raise SceneError(f'head.{name}', getattr(head, name).tolist(), 'finite numbers')
