@@ -132,3 +132,23 @@ def test_non_finite_head_frame_is_refused_and_the_chain_untouched(field):
     assert np.array_equal(sim.state.x, before.x) and sim.t == pytest.approx(0.05, abs=1 / 240)
     sim.advance_frame(0.2, KinematicState.still(ANCHOR))
     assert sim.state.is_finite() and sim.joint_gaps().max() < 1e-12
+
+
+def test_a_colliding_chain_is_refused_past_the_segments_its_contacts_can_be_solved_for():
+    """``MAX_COLLIDING_SEGMENTS``: a chain that collides is refused beyond it (the error names
+    the field and both ranges); the same chain with ``collide: false``, or with no collider
+    in the scene, takes the full range and simply runs."""
+    from ponytail_ros.core.scene import MAX_COLLIDING_SEGMENTS, MAX_SEGMENTS, ColliderSpec
+    skull = ColliderSpec.sphere(center=(0.0, 0.0, 0.0), radius=0.09)
+    with pytest.raises(SceneError) as err:
+        Scene(chains=[ChainSpec(n_segments=MAX_COLLIDING_SEGMENTS + 1)], colliders=[skull])
+    assert err.value.field == 'chains[0].n_segments'
+    assert f'[1, {MAX_COLLIDING_SEGMENTS}]' in str(err.value)
+    assert f'up to {MAX_SEGMENTS} with collide: false' in str(err.value)
+    Scene(chains=[ChainSpec(n_segments=MAX_COLLIDING_SEGMENTS)], colliders=[skull])
+    Scene(chains=[ChainSpec(n_segments=MAX_SEGMENTS, collide=False)], colliders=[skull])
+    free = Simulator(Scene(chains=[ChainSpec(n_segments=MAX_SEGMENTS, length=0.35)],
+                           solver=SolverSpec(dt=1 / 960)), KinematicState.still())
+    report = free.advance_frame(1 / 120, KinematicState.still())
+    assert report.reset_reason is None and report.steps == 8
+    assert report.max_gap < 1e-9

@@ -340,3 +340,22 @@ def test_head_script_is_smooth_and_loops():
     stop = [np.linalg.norm(m.state_at(t).linear_acceleration[0, :2])
             for t in np.arange(12.6, 13.0, 0.005)]
     assert max(stop) > 20.0                 # the sharp stop: over 2 g
+
+
+def test_a_live_n_segments_past_the_colliding_range_is_refused_and_the_chain_runs_on():
+    """``config/ponytail.yaml`` (a ponytail colliding with its skull): a live change to
+    ``n_segments: 4096`` is refused, naming the parameter and the range that runs
+    (``MAX_COLLIDING_SEGMENTS``), and the running value stays; within the range it is
+    accepted."""
+    from ponytail_ros.app.node_core import NodeCore
+    from ponytail_ros.core.scene import MAX_COLLIDING_SEGMENTS
+    from ponytail_ros.resources import config_path
+    from ponytail_ros.testing import load_config
+    core = NodeCore(load_config(config_path('ponytail.yaml')).values)
+    with pytest.raises(ParameterError) as err:
+        core.check_change({'ponytail.n_segments': 4096})
+    assert 'ponytail.n_segments' in err.value.names
+    assert f'[1, {MAX_COLLIDING_SEGMENTS}]' in str(err.value)
+    assert core.values['ponytail.n_segments'] == 12
+    core.check_change({'ponytail.n_segments': MAX_COLLIDING_SEGMENTS})
+    core.check_change({'ponytail.n_segments': 4096, 'ponytail.collide': False})

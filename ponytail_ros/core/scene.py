@@ -27,13 +27,18 @@ import numpy.typing as npt
 
 __all__ = ['SceneError', 'ChainSpec', 'ColliderSpec', 'SolverSpec', 'Scene', 'cylinder_inertia',
            'INTEGRATORS', 'LINEAR_SOLVERS', 'DAMPING_METHODS', 'COLLIDER_KINDS', 'MAX_SEGMENTS',
-           'MAX_COLLIDERS']
+           'MAX_COLLIDERS', 'MAX_COLLIDING_SEGMENTS']
 
 INTEGRATORS = ('rk4', 'symplectic_euler', 'rattle')
 LINEAR_SOLVERS = ('banded', 'dense')
 DAMPING_METHODS = ('auto', 'explicit', 'implicit')
 COLLIDER_KINDS = ('sphere', 'capsule', 'plane')
 MAX_SEGMENTS = 4096
+#: Segments of a chain that collides with colliders: the contact solve per step grows with the
+#: segments touching (rows, and a chain solve per row) far faster than the free step, and past
+#: this a tick takes seconds (``python -m ponytail_ros.bench.tick_cost``, figures in
+#: ``docs/bench/tick_cost.txt``).
+MAX_COLLIDING_SEGMENTS = 256
 MAX_COLLIDERS = 256
 
 #: Three numbers: a point (m), a direction or a vector (m/s, m/s²), in the frame the field names.
@@ -426,7 +431,18 @@ class Scene:
             if not isinstance(col, ColliderSpec):
                 raise SceneError(f'colliders[{i}]', col, 'a ColliderSpec')
             col.validate(f'colliders[{i}]', self.n_kinematic_bodies)
+        self._check_colliding_segments()
         return self
+
+    def _check_colliding_segments(self) -> None:
+        if not self.colliders:
+            return
+        for i, c in enumerate(self.chains):
+            if c.collide and c.n_segments > MAX_COLLIDING_SEGMENTS:
+                raise SceneError(f'chains[{i}].n_segments', c.n_segments,
+                                 f'an integer in [1, {MAX_COLLIDING_SEGMENTS}] for a chain that '
+                                 f'collides (collide: true); up to {MAX_SEGMENTS} with '
+                                 'collide: false')
 
     @property
     def n_segments(self) -> int:

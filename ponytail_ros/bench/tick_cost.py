@@ -1,0 +1,71 @@
+"""``python -m ponytail_ros.bench.tick_cost``: wall time of one tick of the core for a params
+file's scene at a given segment count, with and without its contacts.
+
+Each tick is ``Simulator.advance_frame`` over one ``rate`` period with the head given at the
+frame (``SwayYawMotion``, the reference's moving head), as the node calls it, Python
+included; the first frames (start-up) are left out. Prints one line per
+(n_segments, collide) case: median and largest ms per tick, and whether the guard reset.
+What the segment ranges of ``core/scene.py`` (``MAX_SEGMENTS``, ``MAX_COLLIDING_SEGMENTS``)
+rest on.
+"""
+import argparse
+import json
+import time
+
+import numpy as np
+
+from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.head import SwayYawMotion
+from ponytail_ros.core.simulator import Simulator
+from ponytail_ros.testing import load_config
+
+__all__ = ['measure', 'main']
+
+
+def measure(params, chain, n_segments, collide, ticks):
+    """``(median s, max s, reset reasons)`` per tick of ``ticks`` ticks."""
+    cfg = load_config(params, {f'{chain}.n_segments': n_segments, f'{chain}.collide': collide})
+    rate = cfg.values['rate']
+    motion = SwayYawMotion()
+    sim = Simulator(cfg.scene, motion.state_at(0.0))
+    wall, resets = [], []
+    for k in range(1, ticks + 3):
+        t = k / rate
+        t0 = time.perf_counter()
+        report = sim.advance_frame(t, motion.state_at(t))
+        if k > 2:
+            wall.append(time.perf_counter() - t0)
+        if report.reset_reason:
+            resets.append(report.reset_reason)
+    return float(np.median(wall)), float(max(wall)), resets
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.tick_cost',
+                                description=__doc__.split('\n\n')[0])
+    p.add_argument('--params', default='config/ponytail.yaml')
+    p.add_argument('--chain', default='ponytail')
+    p.add_argument('--segments', type=int, nargs='+', default=[12, 256, 1024, 4096])
+    p.add_argument('--ticks', type=int, default=10)
+    p.add_argument('--json', help='write the rows to this file')
+    args = p.parse_args(argv)
+    report_compile()
+    rows = []
+    for n in args.segments:
+        for collide in (False, True):
+            try:
+                med, worst, resets = measure(args.params, args.chain, n, collide, args.ticks)
+            except ValueError as err:               # out of the range that runs: say so
+                print(f'{n:5d} segments, collide {collide!s:5}: refused: {err}')
+                continue
+            rows.append(dict(n_segments=n, collide=collide, median_ms=1e3 * med,
+                             max_ms=1e3 * worst, resets=resets))
+            print(f'{n:5d} segments, collide {collide!s:5}: {1e3 * med:9.1f} ms per tick '
+                  f'(max {1e3 * worst:.1f}), resets: {resets or "none"}')
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == '__main__':
+    main()
