@@ -182,6 +182,8 @@ def test_every_bad_input_is_dropped_counted_and_harmless(harness):
     for k, n in expected.items():
         assert d[f'dropped inputs: {k}'] == str(n)
     assert d['resets'] == '0' and d['head'] == 'ok'
+    # The window's tick times: 0 < p99 <= max (ms), as measured by the node itself.
+    assert 0.0 < float(d['tick time p99 (ms)']) <= float(d['tick time max (ms)'])
     n = len(got)
     assert h.spin_until(lambda: len(got) >= n + 10, 3.0)      # still publishing
     for msg in got:

@@ -4,7 +4,8 @@ Starts ``ponytail_head_demo`` (the built-in animation publisher) and ``ponytail_
 params file as two processes in a private ROS domain, as a user would, lets the node start
 (compile or load the step, first poses), then reads the node process's CPU time (user +
 system, ``/proc/<pid>/stat``) over ``--seconds`` of wall time: the share of one core it takes.
-Prints one line per run; ``--json`` writes them.
+Also reads the node's ``/diagnostics`` over that time: the tick's wall time, p99 and largest, per
+1 s window. Prints one line per run; ``--json`` writes them.
 """
 import argparse
 import json
@@ -15,7 +16,28 @@ import subprocess
 import sys
 import time
 
+import numpy as np
+
 _TICK = os.sysconf('SC_CLK_TCK')
+
+# A third process: the node's /diagnostics windows (1 s each), their tick-time p99 and max.
+_LISTEN = """
+import json, rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+rclpy.init()
+node = rclpy.create_node('node_cpu_listener')
+def on_diagnostics(msg):
+    for status in msg.status:
+        kv = {v.key: v.value for v in status.values}
+        if 'tick time p99 (ms)' in kv:
+            print(json.dumps([float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)'])]),
+                  flush=True)
+node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+    pass
+"""
 
 
 def _cpu_seconds(pid):
@@ -37,18 +59,28 @@ def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=F
             str(params), *extra])
     node = subprocess.Popen([sys.executable, *cmd],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    listener = None
     try:
         time.sleep(warmup)
+        if not floor:
+            listener = subprocess.Popen([sys.executable, '-c', _LISTEN], env=env, text=True,
+                                        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         c0, t0 = _cpu_seconds(node.pid), time.monotonic()
         time.sleep(seconds)
         c1, t1 = _cpu_seconds(node.pid), time.monotonic()
         if node.poll() is not None:
             raise RuntimeError(f'the node exited: {node.stderr.read().decode()[-2000:]}')
-        return (c1 - c0) / (t1 - t0)
+        windows = []
+        if listener is not None:
+            listener.send_signal(signal.SIGINT)
+            out, _ = listener.communicate(timeout=10)
+            windows = [json.loads(line) for line in out.splitlines() if line.startswith('[')]
+        return (c1 - c0) / (t1 - t0), windows
     finally:
-        for p in (node, head):
-            p.send_signal(signal.SIGINT)
-        for p in (node, head):
+        for p in [q for q in (node, head, listener) if q is not None]:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in [q for q in (node, head, listener) if q is not None]:
             try:
                 p.wait(10)
             except subprocess.TimeoutExpired:
@@ -67,14 +99,20 @@ def main(argv=None):
     args = p.parse_args(argv)
     rows = []
     if args.floor:
-        share = measure(None, args.seconds, args.warmup, floor=True)
+        share, _ = measure(None, args.seconds, args.warmup, floor=True)
         rows.append(dict(params='rclpy_floor', cpu_share=share, seconds=args.seconds))
         print(f'rclpy_floor (no simulation): {100 * share:.1f} % of one core (same measurement)')
     for params in args.params:
-        share = measure(params, args.seconds, args.warmup)
-        rows.append(dict(params=params, cpu_share=share, seconds=args.seconds))
+        share, windows = measure(params, args.seconds, args.warmup)
+        p99 = [w[0] for w in windows]
+        rows.append(dict(params=params, cpu_share=share, seconds=args.seconds,
+                         tick_p99_ms=p99, tick_max_ms=[w[1] for w in windows]))
         print(f'{params}: {100 * share:.1f} % of one core (CPU time over {args.seconds:g} s '
               f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz)')
+        if p99:
+            print(f'  tick time p99 per 1 s /diagnostics window: median {np.median(p99):.2f} ms, '
+                  f'worst {max(p99):.2f} ms ({len(p99)} windows); largest tick '
+                  f'{max(w[1] for w in windows):.2f} ms')
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)
