@@ -7,15 +7,21 @@ included; the first frames (start-up) are left out. Prints one line per
 (n_segments, collide) case: median and largest ms per tick, and whether the guard reset.
 What the segment ranges of ``core/scene.py`` (``MAX_SEGMENTS``, ``MAX_COLLIDING_SEGMENTS``)
 rest on.
+
+``--characters N``: instead, N characters in one scene, each the params file's chains and
+colliders on its own kinematic body (the head moving as above, the characters 1 m apart): one
+tick of the core for all of them, head estimation and ROS not included (a crowd node's floor).
 """
 import argparse
+import dataclasses
 import json
 import time
 
 import numpy as np
 
 from ponytail_ros.core.compile import report_compile
-from ponytail_ros.core.head import SwayYawMotion
+from ponytail_ros.core.head import KinematicState, SwayYawMotion
+from ponytail_ros.core.scene import Scene
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.testing import load_config
 
@@ -40,6 +46,39 @@ def measure(params, chain, n_segments, collide, ticks):
     return float(np.median(wall)), float(max(wall)), resets
 
 
+def crowd(params, n, ticks):
+    """``(median s, max s, reset reasons)`` per tick of ``n`` characters in one scene."""
+    cfg = load_config(params)
+    base = cfg.scene
+    chains = [dataclasses.replace(c, anchor_body=k) for k in range(n) for c in base.chains]
+    colliders = [dataclasses.replace(c, body=k) for k in range(n) for c in base.colliders]
+    scene = Scene(chains=chains, colliders=colliders, n_kinematic_bodies=n,
+                  gravity=base.gravity, wind=base.wind, solver=base.solver)
+    motion = SwayYawMotion()
+    offsets = np.stack([np.zeros(n), np.arange(n, dtype=float), np.zeros(n)], axis=1)
+
+    def heads(t):
+        one = motion.state_at(t)
+        return KinematicState(one.position + offsets, *(np.repeat(getattr(one, f), n, axis=0)
+                                                         for f in ('orientation',
+                                                                   'linear_velocity',
+                                                                   'angular_velocity',
+                                                                   'linear_acceleration',
+                                                                   'angular_acceleration')))
+    rate = cfg.values['rate']
+    sim = Simulator(scene, heads(0.0))
+    wall, resets = [], []
+    for k in range(1, ticks + 3):
+        t = k / rate
+        t0 = time.perf_counter()
+        report = sim.advance_frame(t, heads(t))
+        if k > 2:
+            wall.append(time.perf_counter() - t0)
+        if report.reset_reason:
+            resets.append(report.reset_reason)
+    return float(np.median(wall)), float(max(wall)), resets
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.tick_cost',
                                 description=__doc__.split('\n\n')[0])
@@ -47,10 +86,19 @@ def main(argv=None):
     p.add_argument('--chain', default='ponytail')
     p.add_argument('--segments', type=int, nargs='+', default=[12, 256, 1024, 4096])
     p.add_argument('--ticks', type=int, default=10)
+    p.add_argument('--characters', type=int, nargs='+',
+                   help='measure crowds of this many characters instead')
     p.add_argument('--json', help='write the rows to this file')
     args = p.parse_args(argv)
     report_compile()
     rows = []
+    for n in args.characters or []:
+        med, worst, resets = crowd(args.params, n, args.ticks)
+        rows.append(dict(characters=n, median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets))
+        print(f'{n:5d} characters: {1e3 * med:9.1f} ms per tick (max {1e3 * worst:.1f}; '
+              f'120 Hz allows 8.3), resets: {resets or "none"}')
+    if args.characters:
+        args.segments = []
     for n in args.segments:
         for collide in (False, True):
             try:
