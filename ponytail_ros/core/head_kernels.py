@@ -19,26 +19,13 @@ import math
 import numpy as np
 from numba import njit
 
-from .limit_kernels import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, scale
+from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
+                            qto_rotvec, scale)
 
 __all__ = ['loess_fit', 'track_table', 'point_kinematics', 'median_interval', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
-
-
-@njit(cache=True)
-def _to_rotvec(q):
-    """Rotation vector (angle in [0, π]) of a unit quaternion."""
-    x, y, z, w = q
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-8:
-        f = 2.0 / max(w, 1e-300)
-    else:
-        f = 2.0 * math.atan2(s, w) / s
-    return (x * f, y * f, z * f)
 
 
 @njit(cache=True)
@@ -137,7 +124,7 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
         for c in range(npar):
             V[r, c] = x
             x *= tau
-        phi = _to_rotvec(qmul((qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]), q_ref))
+        phi = qto_rotvec(qmul((qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]), q_ref))
         for a in range(3):
             Y[r, a] = (ps[i, a] - mean[a]) * wt
             Y[r, 3 + a] = phi[a] * wt
@@ -181,7 +168,7 @@ def _slerp(q0, q1, s):
     """Spherical linear interpolation of unit quaternions (``rotations.quat_slerp``)."""
     if dot((q0[0], q0[1], q0[2]), (q1[0], q1[1], q1[2])) + q0[3] * q1[3] < 0.0:
         q1 = (-q1[0], -q1[1], -q1[2], -q1[3])
-    phi = _to_rotvec(qmul(q1, qconj(q0)))
+    phi = qto_rotvec(qmul(q1, qconj(q0)))
     return qmul(qfrom_rotvec(scale(s, phi)), q0)
 
 

@@ -119,6 +119,20 @@ def qfrom_rotvec(phi):
     return (phi[0] * s, phi[1] * s, phi[2] * s, math.cos(half))
 
 
+@njit(cache=True)
+def qto_rotvec(q):
+    """Rotation vector (axis × angle, angle in [0, π]) of the unit quaternion ``q``."""
+    x, y, z, w = q
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-8:
+        f = 2.0 / max(w, 1e-300)
+    else:
+        f = 2.0 * math.atan2(s, w) / s
+    return (x * f, y * f, z * f)
+
+
 # -- swing and twist of one joint ----------------------------------------------------------
 @njit(cache=True)
 def relative(q, anchor_q, q_rest, is_first, chain_of, i):

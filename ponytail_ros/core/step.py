@@ -31,7 +31,7 @@ import numpy as np
 
 from . import contact_kernels
 from .chain_solve import factor, solve
-from .limit_kernels import qmatrix
+from .limit_kernels import qmatrix, qto_rotvec
 
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
            'SYMPLECTIC_EULER', 'RATTLE',
@@ -117,19 +117,6 @@ def _from_rotvec(p0, p1, p2):
     else:
         s = np.sin(half) / angle
     return p0 * s, p1 * s, p2 * s, np.cos(half)
-
-
-@_inline
-def _to_rotvec(x, y, z, w):
-    """Rotation vector (angle in [0, π]) of a unit quaternion."""
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = np.sqrt(x * x + y * y + z * z)
-    if s < 1e-8:
-        scale = 2.0 / max(w, 1e-300)
-    else:
-        scale = 2.0 * np.arctan2(s, w) / s
-    return x * scale, y * scale, z * scale
 
 
 @_inline
@@ -291,7 +278,7 @@ def _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
                 rx, ry, rz, rw = _qmul(px, py, pz, pw, M.q_rest[i, 0], M.q_rest[i, 1],
                                        M.q_rest[i, 2], M.q_rest[i, 3])
                 ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, q[i, 0], q[i, 1], q[i, 2], q[i, 3])
-                p0, p1, p2 = _to_rotvec(ex, ey, ez, ew)
+                p0, p1, p2 = qto_rotvec((ex, ey, ez, ew))
                 s0, s1, s2 = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], p0, p1, p2)
                 k = M.stiffness[i]
                 tau0 -= k * s0
