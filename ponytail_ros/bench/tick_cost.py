@@ -97,9 +97,7 @@ def main(argv=None):
         rows.append(dict(characters=n, median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets))
         print(f'{n:5d} characters: {1e3 * med:9.1f} ms per tick (max {1e3 * worst:.1f}; '
               f'120 Hz allows 8.3), resets: {resets or "none"}')
-    if args.characters:
-        args.segments = []
-    for n in args.segments:
+    for n in [] if args.characters else args.segments:
         for collide in (False, True):
             try:
                 med, worst, resets = measure(args.params, args.chain, n, collide, args.ticks)

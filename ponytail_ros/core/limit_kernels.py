@@ -11,6 +11,10 @@ import math
 import numpy as np
 from numba import njit
 
+from .kernel_cache import ensure_fresh
+
+ensure_fresh()      # the shared helpers' module: every kernel module imports it (``kernel_cache``)
+
 __all__ = ['joint_angles', 'limit_terms', 'project_limits']
 
 

@@ -47,33 +47,28 @@ def guard_measures(length, is_first, chain_of, inertia, x, q, v, w, anchor_posit
                 return
     out[0] = 1.0
     gap = speed = rate = checked = precession = 0.0
+    e_prev = (0.0, 0.0, 0.0)
     for i in range(n):
         c = chain_of[i]
         e = qaxis_x((q[i, 0], q[i, 1], q[i, 2], q[i, 3]))
+        if is_first[i]:
+            pp = (anchor_position[c, 0], anchor_position[c, 1], anchor_position[c, 2])
+            pw = (anchor_omega[c, 0], anchor_omega[c, 1], anchor_omega[c, 2])
+        else:                               # the parent's distal joint, the parent's ω
+            hp = 0.5 * length[i - 1]
+            pp = (x[i - 1, 0] + hp * e_prev[0], x[i - 1, 1] + hp * e_prev[1],
+                  x[i - 1, 2] + hp * e_prev[2])
+            pw = (w[i - 1, 0], w[i - 1, 1], w[i - 1, 2])
         half = 0.5 * length[i]
-        d2 = 0.0
-        r2 = 0.0
-        for a in range(3):
-            if is_first[i]:
-                parent_point = anchor_position[c, a]
-                parent_w = anchor_omega[c, a]
-            else:
-                ep = qaxis_x((q[i - 1, 0], q[i - 1, 1], q[i - 1, 2], q[i - 1, 3]))
-                parent_point = x[i - 1, a] + 0.5 * length[i - 1] * ep[a]
-                parent_w = w[i - 1, a]
-            d = parent_point - (x[i, a] - half * e[a])
-            d2 += d * d
-            r = w[i, a] - parent_w
-            r2 += r * r
-        gap = max(gap, math.sqrt(d2))
+        d0 = pp[0] - (x[i, 0] - half * e[0])
+        d1 = pp[1] - (x[i, 1] - half * e[1])
+        d2 = pp[2] - (x[i, 2] - half * e[2])
+        r0, r1, r2 = w[i, 0] - pw[0], w[i, 1] - pw[1], w[i, 2] - pw[2]
+        e_prev = e
+        gap = max(gap, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
         speed = max(speed, math.sqrt(v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2))
-        rate = max(rate, math.sqrt(r2))
+        rate = max(rate, math.sqrt(r0 * r0 + r1 * r1 + r2 * r2))
         if swing_only:
-            if is_first[i]:
-                p0, p1, p2 = anchor_omega[c, 0], anchor_omega[c, 1], anchor_omega[c, 2]
-            else:
-                p0, p1, p2 = w[i - 1, 0], w[i - 1, 1], w[i - 1, 2]
-            r0, r1, r2 = w[i, 0] - p0, w[i, 1] - p1, w[i, 2] - p2
             along = r0 * e[0] + r1 * e[1] + r2 * e[2]
             checked = max(checked, math.sqrt((r0 - along * e[0]) ** 2 + (r1 - along * e[1]) ** 2
                                              + (r2 - along * e[2]) ** 2))
@@ -95,6 +90,7 @@ def segment_poses(length, is_first, chain_of, x, q, w, tau, anchor_position, ori
     exactly), as ``Simulator.state_at`` does.
     """
     n = x.shape[0]
+    e_prev = (0.0, 0.0, 0.0)
     for i in range(n):
         qi = (q[i, 0], q[i, 1], q[i, 2], q[i, 3])
         if tau > 0.0:
@@ -108,6 +104,5 @@ def segment_poses(length, is_first, chain_of, x, q, w, tau, anchor_position, ori
             elif is_first[i]:
                 origins[i, a] = anchor_position[chain_of[i], a]
             else:
-                ep = qaxis_x((quats[i - 1, 0], quats[i - 1, 1], quats[i - 1, 2],
-                              quats[i - 1, 3]))
-                origins[i, a] = origins[i - 1, a] + length[i - 1] * ep[a]
+                origins[i, a] = origins[i - 1, a] + length[i - 1] * e_prev[a]
+        e_prev = e
