@@ -334,3 +334,31 @@ def test_anchor_track_at_is_its_table():
         one = track.at(t)
         for field in ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity'):
             assert np.array_equal(getattr(one, field), getattr(table, field)[k]), (field, t)
+
+
+def test_vectorised_motions_equal_their_per_time_states_bit_for_bit():
+    """``states_at(times)`` (what ``advance_to`` evaluates before each compiled call) and
+    ``state_at(t)`` at each time are two codings of one motion: equal bit for bit, and so are
+    the anchor points computed from them (``point_table`` against ``point_kinematics``); a
+    rounding-level difference here would change the chaotic exact-motion runs."""
+    from ponytail_ros.app.motions import ShakeNodHead, SpinHead, crowd_motion, shake_motion
+    from ponytail_ros.core.head import (StillMotion, SwayYawMotion, WithStaticBodies,
+                                        point_table)
+    from helpers import TwoBodies
+    fields = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+              'linear_acceleration', 'angular_acceleration')
+    times = np.sort(np.random.default_rng(3).uniform(0.0, 30.0, 301))
+    attach = np.array([[-0.1, 0.0, 0.05], [0.1, 0.02, 0.0]])
+    for motion in (SwayYawMotion(), shake_motion(), crowd_motion(5), StillMotion((1, 2, 3)),
+                   WithStaticBodies(SwayYawMotion(), 2), SpinHead(3.0, ramp=0.5),
+                   ShakeNodHead(), TwoBodies()):
+        states = motion.states_at(times)
+        body = np.array([0, states.position.shape[1] - 1])
+        table = point_table(states, body, attach)
+        for k, t in enumerate(times):
+            one = motion.state_at(t)
+            for f in fields:
+                assert np.array_equal(getattr(states, f)[k], getattr(one, f)), (motion, f, t)
+            point = one.point_kinematics(body, attach)
+            for f in ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity'):
+                assert np.array_equal(getattr(table, f)[k], getattr(point, f)), (motion, f, t)

@@ -86,6 +86,24 @@ class SinusoidHead(HeadMotion):
                               linear_acceleration=-self.A * self.w ** 2 * s,
                               angular_acceleration=al)
 
+    def states_at(self, times):
+        t = np.asarray(times, dtype=float).reshape(-1, 1, 1)
+        arg = self.w * t + self.phi                                    # (T, K, 3)
+        s, c = np.sin(arg), np.cos(arg)
+        yaw, yaw_d, yaw_dd = self.yaw(t[:, :, 0])                     # (T, K) each
+        shape = arg.shape
+        q = np.zeros(shape[:2] + (4,))
+        q[..., 2] = np.sin(0.5 * yaw)
+        q[..., 3] = np.cos(0.5 * yaw)
+        w = np.zeros(shape)
+        w[..., 2] = yaw_d
+        al = np.zeros(shape)
+        al[..., 2] = yaw_dd
+        return KinematicState(position=self.p0 + self.A * s, orientation=q,
+                              linear_velocity=self.A * self.w * c, angular_velocity=w,
+                              linear_acceleration=-self.A * self.w ** 2 * s,
+                              angular_acceleration=al)
+
     def peak_acceleration(self, r=0.0):
         """Upper bound of the acceleration of a point at distance ``r`` from the yaw axis."""
         lin = np.linalg.norm(self.A * self.w ** 2, axis=1)

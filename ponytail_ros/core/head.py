@@ -22,7 +22,7 @@ from .head_kernels import point_kinematics, track_table
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
-    'WithStaticBodies',
+    'WithStaticBodies', 'stack_states', 'point_table',
     'AnchorTrack',
 ]
 
@@ -114,10 +114,41 @@ def stack_anchors(anchors):
 
 
 class HeadMotion:
-    """A prescribed motion: ``state_at(t)`` returns the ``KinematicState`` at time ``t`` (s)."""
+    """A prescribed motion: ``state_at(t)`` returns the ``KinematicState`` at time ``t`` (s).
+
+    ``states_at(times)`` returns the states at all ``times`` ``(T,)`` at once, as one
+    ``KinematicState`` whose arrays have a leading time axis ``(T, K, 3|4)``: the simulator
+    evaluates an exact motion at every stage time of a call before the compiled step runs.
+    The default stacks ``state_at``; a motion in closed form overrides it with array
+    expressions that give the same values bit for bit (the same IEEE operations per element:
+    NumPy's ``sin`` and ``cos`` of an array equal those of its elements one by one).
+    """
 
     def state_at(self, t):  # pragma: no cover - interface
         raise NotImplementedError
+
+    def states_at(self, times):
+        return stack_states([self.state_at(t) for t in np.asarray(times, dtype=float)])
+
+
+def stack_states(states):
+    """One ``KinematicState`` of arrays ``(T, K, 3|4)`` from a sequence of ``T`` of them."""
+    return KinematicState(*(np.stack([getattr(s, f) for s in states]) for f in _FIELDS))
+
+
+def point_table(states, body, r_local):
+    """Eq. 1–3 for points fixed in bodies at every time of ``states`` (a ``KinematicState``
+    of ``(T, K, 3|4)`` arrays, as ``HeadMotion.states_at`` gives): an ``AnchorKinematics`` of
+    ``(T, C, 3|4)`` arrays, each row as ``KinematicState.point_kinematics`` computes it."""
+    T, K = states.position.shape[:2]
+    body = np.asarray(body, dtype=np.int64).reshape(-1)
+    C = body.shape[0]
+    # The T instants as T·K bodies of one state: row t's bodies are t·K ... t·K + K - 1.
+    flat = KinematicState(*(np.reshape(getattr(states, f), (T * K, -1)) for f in _FIELDS))
+    rows = flat.point_kinematics((np.arange(T)[:, None] * K + body).reshape(-1),
+                                 np.tile(np.asarray(r_local, dtype=float).reshape(C, 3), (T, 1)))
+    return AnchorKinematics(*(np.reshape(getattr(rows, f), (T, C, -1)) for f in (
+        'position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')))
 
 
 class WithStaticBodies(HeadMotion):
@@ -130,6 +161,14 @@ class WithStaticBodies(HeadMotion):
     def state_at(self, t):
         return self.motion.state_at(t).with_static_bodies(self.k)
 
+    def states_at(self, times):
+        moving = self.motion.states_at(times)
+        T = moving.position.shape[0]
+        still = KinematicState.still(np.zeros((self.k, 3)))
+        return KinematicState(*(np.concatenate(
+            [getattr(moving, f), np.broadcast_to(getattr(still, f), (T,) + getattr(still, f).shape)],
+            axis=1) for f in _FIELDS))
+
 
 class StillMotion(HeadMotion):
     """Kinematic bodies that never move (a ceiling anchor, a still head)."""
@@ -139,6 +178,12 @@ class StillMotion(HeadMotion):
 
     def state_at(self, t):
         return self._state
+
+    def states_at(self, times):
+        T = np.asarray(times).reshape(-1).shape[0]
+        return KinematicState(*(np.broadcast_to(getattr(self._state, f),
+                                                (T,) + getattr(self._state, f).shape).copy()
+                                for f in _FIELDS))
 
 
 class SwayYawMotion(HeadMotion):
@@ -169,6 +214,24 @@ class SwayYawMotion(HeadMotion):
             linear_acceleration=np.array([[-self.A * w * w * np.sin(w * t), 0.0, 0.0]]),
             angular_acceleration=np.array([[0.0, 0.0, yaw_dd]]),
         )
+
+    def states_at(self, times):
+        t = np.asarray(times, dtype=float).reshape(-1)
+        w = 2.0 * np.pi * self.f
+        wy = 2.0 * np.pi * self.fy
+        yaw = self.Y * np.sin(wy * t)
+        z = np.zeros((t.shape[0], 1, 3))
+        p = np.broadcast_to(self.p0, z.shape) + z
+        p[:, 0, 0] = self.p0[0] + self.A * np.sin(w * t)
+        q = z[:, :, [0, 0, 0, 0]]
+        q[:, 0, 2] = np.sin(0.5 * yaw)
+        q[:, 0, 3] = np.cos(0.5 * yaw)
+        v, om, a, al = z.copy(), z.copy(), z.copy(), z.copy()
+        v[:, 0, 0] = self.A * w * np.cos(w * t)
+        om[:, 0, 2] = self.Y * wy * np.cos(wy * t)
+        a[:, 0, 0] = -self.A * w * w * np.sin(w * t)
+        al[:, 0, 2] = -self.Y * wy * wy * np.sin(wy * t)
+        return KinematicState(p, q, v, om, a, al)
 
 
 class AnchorTrack:

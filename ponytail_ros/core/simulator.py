@@ -30,7 +30,7 @@ import numpy as np
 
 from . import collision
 from . import step as compiled
-from .head import AnchorTrack, HeadMotion, KinematicState, stack_anchors
+from .head import AnchorTrack, HeadMotion, KinematicState, point_table, stack_anchors
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -239,16 +239,29 @@ class Simulator:
 
         ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``).
         """
+        states_at = _memo_times(motion.states_at)       # the anchors' and bodies' tables share it
+        m = self.model
+
+        def anchor_table(times):
+            return point_table(states_at(times), m.anchor_body, m.attach)
+
         if not self._needs_bodies:
             anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
             self._anchor_at = anchor_at
-            return self._advance(t_target, anchor_at, motion.state_at)
+            return self._advance(t_target, anchor_at, motion.state_at, anchor_table=anchor_table)
         # Colliders fixed in moving bodies: one evaluation of the motion for both.
         state_at = _memo_last(motion.state_at)
         anchor_at = _memo_last(lambda t: self.anchors(state_at(t)))
         bodies_at = _memo_last(lambda t: _body_kinematics(state_at(t)))
+
+        def body_table(times):
+            states = states_at(times)
+            k = states.position.shape[1]
+            return point_table(states, np.arange(k), np.zeros((k, 3)))
+
         self._anchor_at = anchor_at
-        report = self._advance(t_target, anchor_at, motion.state_at, bodies_at)
+        report = self._advance(t_target, anchor_at, motion.state_at, bodies_at,
+                               anchor_table=anchor_table, body_table=body_table)
         self._bodies_at = bodies_at
         self._last_bodies = (self.t, bodies_at(self.t))
         return report
@@ -696,6 +709,18 @@ def _memo_last(f, size=2):
                 cache.pop(next(iter(cache)))
             v = cache[t] = f(t)
         return v
+    return g
+
+
+def _memo_times(f):
+    """Cache ``f(times)`` for the last ``times`` array (by identity): the anchor and body
+    tables of one call are evaluated from one evaluation of the motion."""
+    last = [None, None]
+
+    def g(times):
+        if last[0] is not times:
+            last[0], last[1] = times, f(times)
+        return last[1]
     return g
 
 
