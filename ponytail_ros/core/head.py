@@ -166,7 +166,8 @@ class WithStaticBodies(HeadMotion):
         T = moving.position.shape[0]
         still = KinematicState.still(np.zeros((self.k, 3)))
         return KinematicState(*(np.concatenate(
-            [getattr(moving, f), np.broadcast_to(getattr(still, f), (T,) + getattr(still, f).shape)],
+            [getattr(moving, f), np.broadcast_to(getattr(still, f),
+                                                 (T,) + getattr(still, f).shape)],
             axis=1) for f in _FIELDS))
 
 
