@@ -2,10 +2,11 @@
 node's ROS work costs, with no simulation at all.
 
 It subscribes to ``head_pose`` (``PoseStamped``) and, on a wall-clock timer at ``rate`` Hz,
-publishes a ``PoseArray`` of ``n_poses`` poses on ``segment_poses``, on rclpy's default
-``SingleThreadedExecutor``, as ``ponytail_node`` does. ``node_cpu --floor`` measures it beside
-the head demo exactly as it measures the real node: the difference is what the simulation and
-its bookkeeping cost, and the floor bounds what any Python node can reach on this machine.
+publishes a ``PoseArray`` of ``n_poses`` poses on ``segment_poses``, spun as ``ponytail_node``
+is (``ros.spin``: the executor of ``PONYTAIL_EXECUTOR``, ``EventsExecutor`` by default).
+``node_cpu --floor`` measures it beside the head demo exactly as it measures the real node:
+the difference is what the simulation and its bookkeeping cost, and the floor bounds what any
+Python node can reach on this machine.
 """
 import argparse
 import sys
@@ -17,6 +18,8 @@ def main(argv=None):
     import rclpy
     from geometry_msgs.msg import Pose, PoseArray, PoseStamped
     from rclpy.node import Node
+
+    from ponytail_ros.ros.spin import make_executor, spin_until_signal
 
     p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.rclpy_floor',
                                 description=__doc__.split('\n\n')[0])
@@ -42,7 +45,7 @@ def main(argv=None):
 
     node.create_timer(1.0 / args.rate, tick)
     try:
-        rclpy.spin(node)
+        spin_until_signal(make_executor(), node)
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
     finally:
