@@ -122,3 +122,15 @@ def test_invalid_parameters_rejected_at_start_up_with_the_name(processes):
     out, err = proc.communicate(timeout=20)
     assert proc.returncode == 2
     assert 'ponytail.attach' in err and 'Traceback' not in err
+
+
+def test_unknown_executor_refused_at_start_up_with_the_allowed_values(processes):
+    env = dict(child_env(), PONYTAIL_EXECUTOR='multi')
+    proc = subprocess.Popen([sys.executable, '-m', 'ponytail_ros.node', '--ros-args',
+                             '--params-file', str(CONFIG)], env=env, cwd=str(ROOT),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    processes.append(proc)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2
+    assert "PONYTAIL_EXECUTOR = 'multi'" in err and 'events or single' in err
+    assert 'Traceback' not in err
