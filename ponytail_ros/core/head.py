@@ -143,12 +143,19 @@ def point_table(states, body, r_local):
     T, K = states.position.shape[:2]
     body = np.asarray(body, dtype=np.int64).reshape(-1)
     C = body.shape[0]
-    # The T instants as T·K bodies of one state: row t's bodies are t·K ... t·K + K - 1.
-    flat = KinematicState(*(np.reshape(getattr(states, f), (T * K, -1)) for f in _FIELDS))
-    rows = flat.point_kinematics((np.arange(T)[:, None] * K + body).reshape(-1),
-                                 np.tile(np.asarray(r_local, dtype=float).reshape(C, 3), (T, 1)))
-    return AnchorKinematics(*(np.reshape(getattr(rows, f), (T, C, -1)) for f in (
-        'position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')))
+    # The T instants as T·K bodies of one state: row t's bodies are t·K ... t·K + K - 1; the
+    # outputs' (T·C, ·) views fill the (T, C, ·) tables.
+    out = AnchorKinematics(np.empty((T, C, 3)), np.empty((T, C, 3)), np.empty((T, C, 3)),
+                           np.empty((T, C, 4)), np.empty((T, C, 3)))
+    point_kinematics(*(np.ascontiguousarray(getattr(states, f), dtype=float).reshape(T * K, -1)
+                       for f in _FIELDS),
+                     (np.arange(T)[:, None] * K + body).reshape(-1),
+                     np.broadcast_to(np.asarray(r_local, dtype=float).reshape(C, 3),
+                                     (T, C, 3)).reshape(T * C, 3),
+                     out.position.reshape(T * C, 3), out.velocity.reshape(T * C, 3),
+                     out.acceleration.reshape(T * C, 3), out.orientation.reshape(T * C, 4),
+                     out.angular_velocity.reshape(T * C, 3))
+    return out
 
 
 class WithStaticBodies(HeadMotion):

@@ -30,7 +30,8 @@ import numpy as np
 
 from . import collision
 from . import step as compiled
-from .head import AnchorTrack, HeadMotion, KinematicState, point_table, stack_anchors
+from .head import (AnchorKinematics, AnchorTrack, HeadMotion, KinematicState, point_table,
+                   stack_anchors)
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -370,6 +371,7 @@ class Simulator:
         implicit_damping = m.implicit_damping and m.active_terms['damping']
         system = _System(self, anchor_at)
         failure = None
+        self._end_row = None            # the last anchor table's end row: the anchor at self.t
         t_start = time.perf_counter()
         try:
             if self.unilateral is not None:
@@ -382,6 +384,7 @@ class Simulator:
                     x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
                     self._run_compiled(n_steps, self.dt, table, x, q, v, w)
                     self._n_steps += n_steps
+                    self._end_row = table
             else:
                 for _ in range(max(n_steps, 0)):
                     t = self._t_base + self._n_steps * self.dt
@@ -401,7 +404,11 @@ class Simulator:
         t_steps = time.perf_counter()
         self.t = self._t_base + self._n_steps * self.dt
         self.state = ChainState(x, q, v, w)
-        anchor = anchor_at(self.t)
+        # The table's end row is the anchor at self.t bit for bit (the same evaluation).
+        end = self._end_row
+        anchor = anchor_at(self.t) if end is None or failure is not None else AnchorKinematics(
+            end.position[-1], end.velocity[-1], end.acceleration[-1], end.orientation[-1],
+            end.angular_velocity[-1])
         self._last_anchor = (self.t, anchor)
         g = self._measures(anchor)
         report.max_gap = float(g[1]) if g[0] else np.inf
@@ -443,8 +450,10 @@ class Simulator:
         done = 0
         while done < n_steps:
             times = self._stage_times(n_steps - done)
-            A = self._table(anchor_table(times) if anchor_table else
-                            stack_anchors([anchor_at(t) for t in times]))
+            table = anchor_table(times) if anchor_table else \
+                stack_anchors([anchor_at(t) for t in times])
+            A = self._table(table)
+            self._end_row = table           # its end row is the call's end, sub-steps or not
             B = A
             if moving:
                 B = self._table(body_table(times) if body_table else
