@@ -105,12 +105,14 @@ TYPE_NAMES = {
 }
 
 
-@pytest.fixture
-def recorded(tmp_path):
-    """A finished bag with 5 messages on each topic; returns (path, [(topic, msg, t_ns)])."""
+@pytest.fixture(params=[True, False], ids=['background', 'foreground'])
+def recorded(tmp_path, request):
+    """A finished bag with 5 messages on each topic; returns (path, [(topic, msg, t_ns)]).
+    Written on the writer thread and in the caller's (``background=False``, the offline
+    replay's): the same file either way."""
     path = tmp_path / 'run.mcap'
     written = []
-    with BagWriter(path) as writer:
+    with BagWriter(path, background=request.param) as writer:
         for name, (cls, _) in TOPICS.items():
             qos = (QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
                    if cls is MarkerArray else 10)

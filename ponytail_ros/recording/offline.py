@@ -365,7 +365,7 @@ def _open_output(inp: ReplayInput, output_path: Path, values, frames, frame_topi
     try:
         return RunRecorder(
             output_path, layout, parameters, head_type=inp.head_type, frame_types=frame_types,
-            overwrite=overwrite,
+            overwrite=overwrite, background=False,     # offline: nothing waits on the disk
             chunk_duration_ns=_OUTPUT_CHUNK_DURATION_NS, tf=tf,
             tf_prefix=(tf_prefix if tf_prefix is not None
                        else inp.metadata.get(RECORDING_METADATA, {}).get('tf_prefix', '')),

@@ -203,7 +203,7 @@ class RunRecorder:
             that check the length (rosbags) accept every type. On by default; off writes
             ``serialize_message``'s bytes as they are (the segment poses of a tick come as
             canonical CDR already, ``app/wire.py``, and are written as they come either way).
-        overwrite, chunk_size, chunk_duration_ns: of ``BagWriter``.
+        overwrite, chunk_size, chunk_duration_ns, background: of ``BagWriter``.
         tf: also record every chain's segments on ``/tf`` (``tf2_msgs/msg/TFMessage``, one
             message per chain per tick, written with its ``PoseArray``; see ``tf.py``).
         tf_prefix: the segment frames are ``<tf_prefix><chain>/<i>``.
@@ -219,7 +219,8 @@ class RunRecorder:
                  info: Optional[Mapping[str, str]] = None,
                  on_error: Optional[Callable[[str], None]] = None,
                  canonical: bool = True, overwrite: bool = False, chunk_size: int = 64 * 1024,
-                 chunk_duration_ns: int = 500_000_000, tf: bool = True, tf_prefix: str = ''):
+                 chunk_duration_ns: int = 500_000_000, tf: bool = True, tf_prefix: str = '',
+                 background: bool = True):
         path = Path(path)
         if path.is_dir():
             raise BagError(f'cannot create bag {path}: it is a directory')
@@ -229,7 +230,7 @@ class RunRecorder:
         self._canonical = canonical
         self._closed = False
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
-                                 chunk_duration_ns=chunk_duration_ns)
+                                 chunk_duration_ns=chunk_duration_ns, background=background)
         #: pose topic -> chain name, for the chains' TF frames (empty without tf)
         self._tf_chains = dict(zip(layout.pose_topics, layout.chains)) if tf else {}
         self._tf_prefix = tf_prefix

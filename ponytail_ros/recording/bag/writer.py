@@ -66,6 +66,9 @@ class BagWriter:
         chunk_size: bytes of message data after which a chunk is written out.
         chunk_duration_ns: log time (ns) a chunk may span before it is written out; also the
             wall time without messages after which a partial chunk is written out.
+        background: write on a background thread (the default: a live node's tick never
+            waits on the disk). False: write in the caller's thread, for an offline run that
+            waits on nothing: it saves the thread hand-offs (~10 % of a replay's CPU).
 
     Raises:
         BagError: the file exists (and ``overwrite`` is false), its folder is missing, it is
@@ -73,7 +76,8 @@ class BagWriter:
     """
 
     def __init__(self, path: Union[str, os.PathLike], *, overwrite: bool = False,
-                 chunk_size: int = 64 * 1024, chunk_duration_ns: int = 500_000_000):
+                 chunk_size: int = 64 * 1024, chunk_duration_ns: int = 500_000_000,
+                 background: bool = True):
         if chunk_size <= 0 or chunk_duration_ns <= 0:
             raise BagError('chunk_size and chunk_duration_ns must be positive')
         self.path = Path(path)
@@ -103,9 +107,12 @@ class BagWriter:
         except OSError as exc:
             _close_quietly(self._stream)
             raise BagError(f'cannot write bag {self.path}: {_reason(exc)}') from None
-        self._thread = threading.Thread(target=self._run, name=f'BagWriter {self.path.name}',
-                                        daemon=True)
-        self._thread.start()
+        self._thread: Optional[threading.Thread] = None
+        self._finished = False
+        if background:
+            self._thread = threading.Thread(target=self._run,
+                                            name=f'BagWriter {self.path.name}', daemon=True)
+            self._thread.start()
         atexit.register(self.close)
 
     @staticmethod
@@ -162,7 +169,7 @@ class BagWriter:
                            definition=message_definition(type_name), qos=_qos_dict(profile),
                            type_hash=type_hash(type_name))
         self._topics[name] = topic
-        self._queue.put(('topic', topic))
+        self._submit(('topic', topic))
 
     def write(self, topic: str, msg: Any, log_time_ns: int,
               publish_time_ns: Optional[int] = None) -> None:
@@ -200,7 +207,7 @@ class BagWriter:
         if self._closed:
             raise BagError(f'bag {self.path} is closed')
         if self._error is None:  # after an I/O error messages are dropped, not queued
-            self._queue.put(('message', topic, bytes(data), log_time_ns, publish_time_ns))
+            self._submit(('message', topic, bytes(data), log_time_ns, publish_time_ns))
 
     def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Store a metadata record (e.g. :data:`PARAMETERS_METADATA`); all keys and values str.
@@ -214,7 +221,7 @@ class BagWriter:
             raise BagError(f'metadata {name!r} must map str to str')
         if self._closed:
             raise BagError(f'bag {self.path} is closed')
-        self._queue.put(('metadata', name, dict(data)))
+        self._submit(('metadata', name, dict(data)))
 
     def close(self) -> None:
         """Write out everything queued, the final metadata and the summary; close the file.
@@ -226,8 +233,9 @@ class BagWriter:
         """
         if not self._closed:
             self._closed = True
-            self._queue.put(_CLOSE)
-        self._thread.join()
+            self._submit(_CLOSE)
+        if self._thread is not None:
+            self._thread.join()
         atexit.unregister(self.close)
 
     def close_on_signals(self, signals: Iterable[int] = (signal.SIGINT, signal.SIGTERM)) -> None:
@@ -262,6 +270,13 @@ class BagWriter:
 
     # -- writer thread ----------------------------------------------------------------------
 
+    def _submit(self, item) -> None:
+        """To the writer thread's queue, or (no thread) written now."""
+        if self._thread is not None:
+            self._queue.put(item)
+        else:
+            self._process(item)
+
     def _run(self) -> None:
         idle_timeout_s = self._chunk_duration_ns / 1e9
         while True:
@@ -269,17 +284,24 @@ class BagWriter:
                 item = self._queue.get(timeout=idle_timeout_s)
             except queue.Empty:
                 item = ('idle',)
+            self._process(item)
             if item is _CLOSE:
-                self._finish()
                 return
-            if self._error is not None:
-                continue  # recording stopped; drain the queue until close
-            try:
-                self._handle(item)
-            # Any failure (ENOSPC, EIO, ...) stops recording; it must never reach the caller.
-            except Exception as exc:  # noqa: BLE001
-                self._error = BagError(
-                    f'writing bag {self.path} failed: {_reason(exc)}; recording stopped')
+
+    def _process(self, item) -> None:
+        if item is _CLOSE:
+            if not self._finished:
+                self._finished = True
+                self._finish()
+            return
+        if self._error is not None:
+            return  # recording stopped; drain the queue until close
+        try:
+            self._handle(item)
+        # Any failure (ENOSPC, EIO, ...) stops recording; it must never reach the caller.
+        except Exception as exc:  # noqa: BLE001
+            self._error = BagError(
+                f'writing bag {self.path} failed: {_reason(exc)}; recording stopped')
 
     def _handle(self, item: tuple) -> None:
         kind = item[0]
