@@ -38,7 +38,7 @@ from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, qua
                                          quat_rotate)
 
 from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block,
-                   pose_stamped_fields)
+                   pose_stamped_cdr, pose_stamped_fields)
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
            'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
@@ -191,6 +191,12 @@ class ReceivedPose:
             return None
         sec, nanosec, frame_id, position, orientation = fields
         return cls(cdr, Stamp(sec, nanosec), frame_id, position, orientation)
+
+    def canonical_cdr(self) -> bytes:
+        """The pose's canonical CDR (``wire.pose_stamped_cdr``): what the recorder writes. The
+        bytes received may carry uninitialised padding or slack (``recording.cdr``)."""
+        return pose_stamped_cdr(self.stamp.sec, self.stamp.nanosec, self.frame_id,
+                                self.position, self.orientation)
 
     def message(self) -> PoseStamped:
         """The ``PoseStamped`` (built on the first call; the same object after)."""

@@ -41,7 +41,7 @@ import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
            'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
-           'pose_stamped_fields']
+           'pose_stamped_fields', 'pose_stamped_cdr']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -305,3 +305,15 @@ def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[floa
         return None
     pose = _POSE.unpack_from(data, at)
     return sec, nanosec, frame_id, pose[:3], pose[3:]
+
+
+def pose_stamped_cdr(sec: int, nanosec: int, frame_id: str, position, orientation) -> bytes:
+    """The canonical CDR of a ``geometry_msgs/msg/PoseStamped`` (alignment gaps zeroed, no
+    slack after the data: what ``recording.cdr.serialize_canonical`` gives): the inverse of
+    ``pose_stamped_fields``, so a pose received as bytes is recorded without a message object."""
+    body = bytearray(ENCAPSULATION)
+    body += _TIME.pack(sec, nanosec)
+    _string(body, frame_id)
+    body += bytes(-(len(body) - len(ENCAPSULATION)) % 8)     # the pose, aligned to 8
+    body += _POSE.pack(*position, *orientation)
+    return bytes(body)

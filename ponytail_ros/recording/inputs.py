@@ -76,9 +76,10 @@ class ReplayInput:
             raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a '
                               f'head pose ({" or ".join(HEAD_TYPES)})')
 
-    def messages(self, topics):
-        """``BagReader.messages`` in this input's order (:attr:`order`)."""
-        return self.reader.messages(topics, order=self.order)
+    def messages(self, topics, raw=False):
+        """``BagReader.messages`` in this input's order (:attr:`order`); ``raw``: as CDR
+        bytes."""
+        return self.reader.messages(topics, order=self.order, raw=raw)
 
     def truncated_warning(self) -> str:
         return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '

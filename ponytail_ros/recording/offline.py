@@ -21,6 +21,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values,
                                            unknown_parameter_warnings, values_from_metadata,
                                            values_from_params_file)
+from ponytail_ros.app.messages import ReceivedPose
 from ponytail_ros.app.parameters import ParameterError, frame_names
 from ponytail_ros.app.parameters import frame_topics as topics_of
 
@@ -415,8 +416,27 @@ class _OfflineLoop:
         self.next_tick: Optional[int] = None
         self.last_log: Optional[int] = None
 
+    def _decoders(self) -> Dict[str, Callable[[bytes], Any]]:
+        """Topic -> bytes to what the node takes: ``PoseStamped`` poses as ``ReceivedPose``
+        (their fields read with ``struct``, recorded again as they are: no message object and
+        no serialisation), everything else deserialised."""
+        from rclpy.serialization import deserialize_message
+
+        from .bag.msgdefs import _message_class
+        out: Dict[str, Callable[[bytes], Any]] = {}
+        for topic, type_name in self.wanted.items():
+            cls = _message_class(type_name)
+            if type_name == HEAD_TYPES[0]:
+                out[topic] = lambda data, cls=cls: (ReceivedPose.decode(data)
+                                                    or deserialize_message(data, cls))
+            else:
+                out[topic] = lambda data, cls=cls: deserialize_message(data, cls)
+        return out
+
     def run(self) -> None:
-        for topic, _, msg, log_ns in self.inp.messages(self.wanted):
+        decode = self._decoders()
+        for topic, _, data, log_ns in self.inp.messages(self.wanted, raw=True):
+            msg = decode[topic](data)
             if self.mode == 'nominal' and self.next_tick is not None:
                 while self.next_tick < log_ns:
                     self._schedule_tick(self.next_tick)

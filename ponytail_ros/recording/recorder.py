@@ -359,12 +359,18 @@ class RunRecorder:
     def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
         """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
         the node's ``ReceivedPose``: its message, built now)."""
+        topic = (self.layout.head_topic if source is None
+                 else self.layout.frame_topics[source])
         if isinstance(msg, ReceivedPose):
-            msg = msg.message()
-        if source is None:
-            self.head(msg, log_time_ns)
-        else:
-            self.frame(source, msg, log_time_ns)
+            # Its fields re-encoded as canonical CDR: no message object, no serialisation.
+            if self._writable():
+                try:
+                    self._writer.write_serialized(topic, msg.canonical_cdr(), log_time_ns,
+                                                  _publish_time(msg, log_time_ns))
+                except BagError as exc:
+                    self._failed(exc)
+            return
+        self.write(topic, msg, log_time_ns)
 
     def on_tick(self, tick: Any, log_time_ns: int) -> None:
         """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
+from ponytail_ros.app.messages import ReceivedPose
 from ponytail_ros.app.node_core import NodeCore, time_msg
 from ponytail_ros.app.parameters import ParameterError
 from ponytail_ros.app.sink import HEAD, TickSink
@@ -45,21 +46,21 @@ class ReplayNode:
         return self.core.published
 
     def head(self, msg, log_time_ns: int) -> None:
-        """A recorded head pose at its receive time."""
+        """A recorded head pose at its receive time: a message, or a ``ReceivedPose`` (a
+        ``PoseStamped`` read as bytes)."""
         self.sink.on_input(HEAD, msg, log_time_ns)
-        p, q = head_pose(msg, self._head_type)
-        stamp = msg.header.stamp
+        stamp, frame_id, p, q = _fields(msg, self._head_type)
         if (self._zero_stamp_valid and stamp.sec == 0 and stamp.nanosec == 0
                 and self.core.stamp_source == 'header'):
-            self.runner.push(0.0, p, q, msg.header.frame_id)  # NodeCore would take "no stamp"
+            self.runner.push(0.0, p, q, frame_id)  # NodeCore would take "no stamp"
             return
-        self.core.push_head(stamp, log_time_ns, p, q, msg.header.frame_id)
+        self.core.push_head(stamp, log_time_ns, p, q, frame_id)
 
     def frame(self, i: int, msg, log_time_ns: int) -> None:
-        """A recorded pose of frame ``i`` at its receive time."""
+        """A recorded pose of frame ``i`` at its receive time (as ``head``)."""
         self.sink.on_input(i, msg, log_time_ns)
-        p, q = head_pose(msg, self._frame_types[i])
-        self.core.push_frame(i, msg.header.stamp, log_time_ns, p, q, msg.header.frame_id)
+        stamp, frame_id, p, q = _fields(msg, self._frame_types[i])
+        self.core.push_frame(i, stamp, log_time_ns, p, q, frame_id)
 
     def tick(self, t_ns: int):
         """Tick at ``t_ns``; its ``TickOutput`` (None: nothing to publish yet)."""
@@ -110,3 +111,11 @@ class ReplayNode:
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = time_msg(t_ns)
         return msg
+
+
+def _fields(msg, type_name):
+    """``(stamp, frame_id, position, orientation)`` of a pose message or ``ReceivedPose``."""
+    if isinstance(msg, ReceivedPose):
+        return msg.stamp, msg.frame_id, msg.position, msg.orientation
+    p, q = head_pose(msg, type_name)
+    return msg.header.stamp, msg.header.frame_id, p, q
