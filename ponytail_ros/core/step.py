@@ -130,32 +130,43 @@ def _normalize(q, i):
 
 # -- mass properties and the joint system ------------------------------------------------------
 @_inline
+def _rotation_matrix(q, i):
+    """Rows of R(q_i), body to world (the arithmetic of ``limit_kernels.qmatrix``, as
+    scalars: no 3×3 scratch array to allocate per call)."""
+    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    return ((1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
+            (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
+            (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)))
+
+
+@_inline
 def _inertia_terms(M, q, e, hv, Iinv):
     """Segment axes ``e``, half-vectors ``hv`` = (l/2) e and world inverse inertias ``Iinv``
     ``(n, 3, 3)`` at orientations ``q``."""
     n = q.shape[0]
-    R = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
     for i in range(n):
         if M.axisymmetric:
             e0, e1, e2 = _axis(q, i)
-            e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
             ip = M.inv_inertia[i, 1]
             k = M.inv_inertia[i, 0] - ip
-            for a in range(3):
-                for b in range(3):
-                    Iinv[i, a, b] = k * e[i, a] * e[i, b]
-                Iinv[i, a, a] += ip
+            ke0, ke1, ke2 = k * e0, k * e1, k * e2
+            # I⁻¹ = I_p⁻¹ 1 + (I_a⁻¹ - I_p⁻¹) e eᵀ
+            Iinv[i, 0, 0], Iinv[i, 0, 1], Iinv[i, 0, 2] = ke0 * e0 + ip, ke0 * e1, ke0 * e2
+            Iinv[i, 1, 0], Iinv[i, 1, 1], Iinv[i, 1, 2] = ke1 * e0, ke1 * e1 + ip, ke1 * e2
+            Iinv[i, 2, 0], Iinv[i, 2, 1], Iinv[i, 2, 2] = ke2 * e0, ke2 * e1, ke2 * e2 + ip
         else:
-            qmatrix((q[i, 0], q[i, 1], q[i, 2], q[i, 3]), R)
+            R = _rotation_matrix(q, i)
+            e0, e1, e2 = R[0][0], R[1][0], R[2][0]
+            d = (M.inv_inertia[i, 0], M.inv_inertia[i, 1], M.inv_inertia[i, 2])
             for a in range(3):
-                e[i, a] = R[a, 0]
                 for b in range(3):
                     s = 0.0
                     for k in range(3):
-                        s += R[a, k] * R[b, k] * M.inv_inertia[i, k]
+                        s += R[a][k] * R[b][k] * d[k]
                     Iinv[i, a, b] = s
-        for a in range(3):
-            hv[i, a] = M.half[i] * e[i, a]
+        e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
+        g = M.half[i]
+        hv[i, 0], hv[i, 1], hv[i, 2] = g * e0, g * e1, g * e2
 
 
 @_inline
@@ -392,26 +403,6 @@ def _workspace(n):
             np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
 
 
-@_inline
-def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c,
-                dq, dwb):
-    """RK4's right-hand side in body-frame ω: (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α)."""
-    n = x.shape[0]
-    for i in range(n):
-        w_tmp[i, 0], w_tmp[i, 1], w_tmp[i, 2] = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3],
-                                                       wb[i, 0], wb[i, 1], wb[i, 2])
-    if not _accelerations(M, A, row, x, q, v, w_tmp, ext_F, ext_T, ws, acc, alpha, f_c):
-        return False
-    for i in range(n):
-        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-        b0, b1, b2 = wb[i, 0], wb[i, 1], wb[i, 2]
-        d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, b0, b1, b2, 0.0)
-        dq[i, 0], dq[i, 1], dq[i, 2], dq[i, 3] = 0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3
-        dwb[i, 0], dwb[i, 1], dwb[i, 2] = _qrot(-qx, -qy, -qz, qw, alpha[i, 0], alpha[i, 1],
-                                                alpha[i, 2])
-    return True
-
-
 @_jit
 def _rk4_workspace(n):
     return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
@@ -420,52 +411,63 @@ def _rk4_workspace(n):
             np.empty((n, 3)), np.empty((n, 3)))
 
 
+@_inline
+def _rk4_sum(s, weight, total, d):
+    """RK4's d₁ + 2 d₂ + 2 d₃ + d₄, summed as the stage derivatives ``d`` come (``s`` =
+    0..3)."""
+    return d if s == 0 else total + weight * d
+
+
 @_jit
 def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside.
-    The stage derivatives d_s are summed as they come (d1 + 2 d2 + 2 d3 + d4, in that
-    order), so no stage is stored."""
+
+    The right-hand side is (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α), with a, α from
+    ``_accelerations`` at the stage's world ω = R ω_b (``w_s``). The stage derivatives are
+    summed as they come (d1 + 2 d2 + 2 d3 + d4, in that order), so no stage is stored; each
+    segment's derivative, sums and next stage are done in one pass."""
     n = x.shape[0]
-    wb, w_tmp, xs, qs, vs, wbs, dv, dq, dwb, sx, sv, sq, swb, alpha = rws
+    wb, w_s, xs, qs, vs, wbs, acc, _, _, sx, sv, sq, swb, alpha = rws
     for i in range(n):
-        wb[i, 0], wb[i, 1], wb[i, 2] = _qrot(-q[i, 0], -q[i, 1], -q[i, 2], q[i, 3],
-                                             w[i, 0], w[i, 1], w[i, 2])
+        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w[i, 0], w[i, 1], w[i, 2])
+        wb[i, 0], wb[i, 1], wb[i, 2] = b0, b1, b2
         for a in range(3):
             xs[i, a] = x[i, a]
             vs[i, a] = v[i, a]
-            wbs[i, a] = wb[i, a]
-        for a in range(4):
-            qs[i, a] = q[i, a]
+        wbs[i, 0], wbs[i, 1], wbs[i, 2] = b0, b1, b2
+        qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3] = qx, qy, qz, qw
+        w_s[i, 0], w_s[i, 1], w_s[i, 2] = _qrot(qx, qy, qz, qw, b0, b1, b2)
     hh = 0.5 * h
     for s in range(4):
         row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
-        if not _rk4_derivs(M, A, row, xs, qs, vs, wbs, ext_F, ext_T, ws, w_tmp, dv, alpha,
-                           f_c, dq, dwb):
+        if not _accelerations(M, A, row, xs, qs, vs, w_s, ext_F, ext_T, ws, acc, alpha, f_c):
             return False
         weight = 1.0 if (s == 0 or s == 3) else 2.0
         c = hh if s < 2 else h            # the next stage's offset
         for i in range(n):
+            qx, qy, qz, qw = qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]
+            d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, wbs[i, 0], wbs[i, 1], wbs[i, 2], 0.0)
+            e0, e1, e2 = _qrot(-qx, -qy, -qz, qw, alpha[i, 0], alpha[i, 1], alpha[i, 2])
+            dx = (vs[i, 0], vs[i, 1], vs[i, 2])            # ẋ = v
+            dv = (acc[i, 0], acc[i, 1], acc[i, 2])
+            dwb = (e0, e1, e2)
+            dq = (0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3)
             for a in range(3):
-                dx = vs[i, a]               # ẋ = v at this stage
-                if s == 0:
-                    sx[i, a] = dx
-                    sv[i, a] = dv[i, a]
-                    swb[i, a] = dwb[i, a]
-                else:
-                    sx[i, a] += weight * dx
-                    sv[i, a] += weight * dv[i, a]
-                    swb[i, a] += weight * dwb[i, a]
-                if s < 3:
-                    xs[i, a] = x[i, a] + c * dx
-                    vs[i, a] = v[i, a] + c * dv[i, a]
-                    wbs[i, a] = wb[i, a] + c * dwb[i, a]
+                sx[i, a] = _rk4_sum(s, weight, sx[i, a], dx[a])
+                sv[i, a] = _rk4_sum(s, weight, sv[i, a], dv[a])
+                swb[i, a] = _rk4_sum(s, weight, swb[i, a], dwb[a])
             for a in range(4):
-                if s == 0:
-                    sq[i, a] = dq[i, a]
-                else:
-                    sq[i, a] += weight * dq[i, a]
-                if s < 3:
-                    qs[i, a] = q[i, a] + c * dq[i, a]
+                sq[i, a] = _rk4_sum(s, weight, sq[i, a], dq[a])
+            if s < 3:                     # the next stage's state
+                for a in range(3):
+                    xs[i, a] = x[i, a] + c * dx[a]
+                    vs[i, a] = v[i, a] + c * dv[a]
+                    wbs[i, a] = wb[i, a] + c * dwb[a]
+                for a in range(4):
+                    qs[i, a] = q[i, a] + c * dq[a]
+                w_s[i, 0], w_s[i, 1], w_s[i, 2] = _qrot(qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3],
+                                                        wbs[i, 0], wbs[i, 1], wbs[i, 2])
     sixth = h / 6.0
     for i in range(n):
         for a in range(3):
