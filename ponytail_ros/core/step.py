@@ -544,7 +544,7 @@ def _rk4_sum(s, weight, total, d):
     return d if s == 0 else total + weight * d
 
 
-@_jit
+@_inline
 def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside.
 
@@ -1051,7 +1051,7 @@ def _band_solve(ab, b, kl):
 
 
 # -- stabilisation -----------------------------------------------------------------------------
-@_jit
+@_inline
 def _project(M, A, row, x, q, v, w, velocities):
     """Centres rebuilt so every joint closes exactly from the anchor outward, and for RK4
     (``velocities``) the centre velocities from the anchor point's velocity and the ω above
