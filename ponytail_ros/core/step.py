@@ -411,7 +411,7 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
       tip to root: the back substitution, and each segment's joint forces applied.
     The arithmetic of every value is that of ``_inertia_terms``, ``_factor_joints``,
     ``chain_solve.solve`` and ``_apply_joint_impulses`` in turn."""
-    F, T, e, hv, Iinv, D, L, C, Lo, tang = ws
+    F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]
     _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T)
     baumgarte = M.baumgarte_stiffness != 0.0 or M.baumgarte_damping != 0.0
@@ -524,9 +524,9 @@ def _baumgarte(M, A, row, x, v, w, hv, i, a, wxh):
 
 @_jit
 def _workspace(n):
+    """F, T, e, hv ``(n, 3)``; Iinv, C = P⁻¹, Lo = 𝓛 ``(n, 3, 3)``."""
     return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
-            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)),
-            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
+            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
 
 
 @_jit
@@ -806,7 +806,7 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
     """One symplectic Euler or RATTLE step (``integrators.symplectic_euler`` /
     ``integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
     ``ws`` are those of q, left by the previous step's projection). False if a solve fails."""
-    F, T, e, hv, Iinv, D, L, C, Lo, tmp = ws
+    F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]
     r0, r1 = 2 * k, 2 * k + 2
     rattle = M.integrator == RATTLE
@@ -1129,8 +1129,7 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
         s = starts[c]
         e = starts[c + 1] if c + 1 < starts.shape[0] else n
         m = e - s
-        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
-              W[7][:m], W[8][:m], W[9][:m])
+        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
         rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
                R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
         status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
@@ -1188,8 +1187,7 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         for c in range(starts.shape[0]):
             s, e = starts[c], ends[c]
             m = e - s
-            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
-                  W[7][:m], W[8][:m], W[9][:m])
+            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
             rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
                    R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
             status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
