@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 
 from . import contact_kernels
-from .chain_solve import factor, solve
+from .chain_solve import invert_pivot, pivot, solve, store_factors
 from .limit_kernels import qmatrix, qto_rotvec
 
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
@@ -129,33 +129,92 @@ def _normalize(q, i):
 
 
 # -- mass properties and the joint system ------------------------------------------------------
+# The per-segment helpers below take and return scalars (tuples): an inline helper that takes
+# arrays and branches pays their reference counts on every call, inside the segment loops.
+_ZERO6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@_inline
+def _rotation_matrix(q, i):
+    """Rows of R(q_i), body to world (the arithmetic of ``limit_kernels.qmatrix``, as
+    scalars: no 3×3 scratch array to allocate per call)."""
+    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    return ((1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
+            (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
+            (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)))
+
+
+@_inline
+def _inv_inertia_axisymmetric(e0, e1, e2, ia, ip):
+    """World I⁻¹ = I_p⁻¹ 1 + (I_a⁻¹ - I_p⁻¹) e eᵀ (row-major 9-tuple) of an axisymmetric
+    segment of axis e, inverse moments ``ia`` (axial), ``ip`` (1/(kg·m²))."""
+    k = ia - ip
+    ke0, ke1, ke2 = k * e0, k * e1, k * e2
+    return (ke0 * e0 + ip, ke0 * e1, ke0 * e2,
+            ke1 * e0, ke1 * e1 + ip, ke1 * e2,
+            ke2 * e0, ke2 * e1, ke2 * e2 + ip)
+
+
+@_inline
+def _rdr(Ra, Rb, d):
+    """(R diag(d) Rᵀ)_ab from rows a and b of R."""
+    s = 0.0
+    s += Ra[0] * Rb[0] * d[0]
+    s += Ra[1] * Rb[1] * d[1]
+    s += Ra[2] * Rb[2] * d[2]
+    return s
+
+
+@_inline
+def _inv_inertia_general(R, d):
+    """World I⁻¹ = R diag(d) Rᵀ (row-major 9-tuple), d the inverse principal moments."""
+    R0, R1, R2 = R
+    return (_rdr(R0, R0, d), _rdr(R0, R1, d), _rdr(R0, R2, d),
+            _rdr(R1, R0, d), _rdr(R1, R1, d), _rdr(R1, R2, d),
+            _rdr(R2, R0, d), _rdr(R2, R1, d), _rdr(R2, R2, d))
+
+
+@_inline
+def _block(X, i):
+    """The 3×3 block ``X[i]`` as a row-major 9-tuple."""
+    return (X[i, 0, 0], X[i, 0, 1], X[i, 0, 2], X[i, 1, 0], X[i, 1, 1], X[i, 1, 2],
+            X[i, 2, 0], X[i, 2, 1], X[i, 2, 2])
+
+
+@_inline
+def _store_block(X, i, b):
+    X[i, 0, 0], X[i, 0, 1], X[i, 0, 2] = b[0], b[1], b[2]
+    X[i, 1, 0], X[i, 1, 1], X[i, 1, 2] = b[3], b[4], b[5]
+    X[i, 2, 0], X[i, 2, 1], X[i, 2, 2] = b[6], b[7], b[8]
+
+
+@_inline
+def _mul9(X, v0, v1, v2):
+    """The row-major 3×3 ``X`` times v."""
+    return (X[0] * v0 + X[1] * v1 + X[2] * v2,
+            X[3] * v0 + X[4] * v1 + X[5] * v2,
+            X[6] * v0 + X[7] * v1 + X[8] * v2)
+
+
 @_inline
 def _inertia_terms(M, q, e, hv, Iinv):
     """Segment axes ``e``, half-vectors ``hv`` = (l/2) e and world inverse inertias ``Iinv``
     ``(n, 3, 3)`` at orientations ``q``."""
     n = q.shape[0]
-    R = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
     for i in range(n):
         if M.axisymmetric:
             e0, e1, e2 = _axis(q, i)
-            e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
-            ip = M.inv_inertia[i, 1]
-            k = M.inv_inertia[i, 0] - ip
-            for a in range(3):
-                for b in range(3):
-                    Iinv[i, a, b] = k * e[i, a] * e[i, b]
-                Iinv[i, a, a] += ip
+            X = _inv_inertia_axisymmetric(e0, e1, e2, M.inv_inertia[i, 0], M.inv_inertia[i, 1])
         else:
-            qmatrix((q[i, 0], q[i, 1], q[i, 2], q[i, 3]), R)
-            for a in range(3):
-                e[i, a] = R[a, 0]
-                for b in range(3):
-                    s = 0.0
-                    for k in range(3):
-                        s += R[a, k] * R[b, k] * M.inv_inertia[i, k]
-                    Iinv[i, a, b] = s
-        for a in range(3):
-            hv[i, a] = M.half[i] * e[i, a]
+            R = _rotation_matrix(q, i)
+            e0, e1, e2 = R[0][0], R[1][0], R[2][0]
+            X = _inv_inertia_general(R, (M.inv_inertia[i, 0], M.inv_inertia[i, 1],
+                                         M.inv_inertia[i, 2]))
+        _store_block(Iinv, i, X)
+        e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
+        g = M.half[i]
+        hv[i, 0], hv[i, 1], hv[i, 2] = g * e0, g * e1, g * e2
 
 
 @_inline
@@ -167,61 +226,70 @@ def _apply3(Mx, i, v0, v1, v2):
 
 
 @_inline
-def _factor_joints(M, hv, Iinv, D, L, C, Lo):
-    """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised.
+def _G_axisymmetric(h0, h1, h2, ip):
+    """G = [h]× I⁻¹ [h]× = (h hᵀ - |h|² 1) / I_p of an axisymmetric segment (h ∥ its axis):
+    the upper triangle (00, 01, 02, 11, 12, 22)."""
+    hh = h0 * h0 + h1 * h1 + h2 * h2
+    return ((h0 * h0 - hh) * ip, h0 * h1 * ip, h0 * h2 * ip, (h1 * h1 - hh) * ip,
+            h1 * h2 * ip, (h2 * h2 - hh) * ip)
 
-    A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},  A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1}),
-    G = [h]× I⁻¹ [h]× (symmetric; the parent terms only where joint i has a parent segment);
-    for axisymmetric segments G = (h hᵀ - |h|² 1) / I_p.
-    """
+
+@_inline
+def _G_general(h0, h1, h2, X):
+    """G = [h]× I⁻¹ [h]× for the world I⁻¹ ``X`` (row-major), with
+    [h]× = ((0, -h2, h1), (h2, 0, -h0), (-h1, h0, 0)): the upper triangle."""
+    a00 = -h2 * X[3] + h1 * X[6]
+    a01 = -h2 * X[4] + h1 * X[7]
+    a02 = -h2 * X[5] + h1 * X[8]
+    a10 = h2 * X[0] - h0 * X[6]
+    a11 = h2 * X[1] - h0 * X[7]
+    a12 = h2 * X[2] - h0 * X[8]
+    a20 = -h1 * X[0] + h0 * X[3]
+    a21 = -h1 * X[1] + h0 * X[4]
+    return (a01 * h2 - a02 * h1, -a00 * h2 + a02 * h0, a00 * h1 - a01 * h0,
+            -a10 * h2 + a12 * h0, a10 * h1 - a11 * h0, a20 * h1 - a21 * h0)
+
+
+@_inline
+def _joint_row(first, pinv_prev, im, imp, g, gp):
+    """Joint i's row of A = J M⁻¹ Jᵀ, factorised (``chain_solve.pivot``):
+    ``(ok, 𝓛_i, P_i⁻¹)``. ``g``, ``gp``: G of the child segment and of the parent (upper
+    triangles), ``im``, ``imp`` their inverse masses; ``first``: no parent segment (``imp``,
+    ``gp`` unused), ``pinv_prev``: the previous row's P⁻¹.
+
+    A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},  A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})."""
+    g00, g01, g02, g11, g12, g22 = g
+    if first:
+        ok, pinv = invert_pivot((im - g00, -g01, -g02, im - g11, -g12, im - g22))
+        return ok, _ZERO9, pinv
+    p00, p01, p02, p11, p12, p22 = gp
+    s = im + imp
+    d = (s - g00 - p00, -g01 - p01, -g02 - p02, s - g11 - p11, -g12 - p12, s - g22 - p22)
+    l = (-imp - p00, -p01, -p02, -p01, -imp - p11, -p12, -p02, -p12, -imp - p22)
+    return pivot(d, l, pinv_prev)
+
+
+@_inline
+def _factor_joints(M, hv, Iinv, C, Lo):
+    """A = J M⁻¹ Jᵀ at half-vectors ``hv`` (Hecker's A of Eq. 14 per joint), factorised into
+    ``C`` = P⁻¹ and ``Lo`` = 𝓛 (``chain_solve``) in one pass, row by row (``_joint_row``);
+    False if A is not positive definite."""
     n = hv.shape[0]
-    p00 = p01 = p02 = p11 = p12 = p22 = 0.0          # G of the previous segment
+    g = pinv = _ZERO6
     for i in range(n):
+        gp = g
         h0, h1, h2 = hv[i, 0], hv[i, 1], hv[i, 2]
         if M.axisymmetric:
-            ip = M.inv_inertia[i, 1]
-            hh = h0 * h0 + h1 * h1 + h2 * h2
-            g00, g11, g22 = (h0 * h0 - hh) * ip, (h1 * h1 - hh) * ip, (h2 * h2 - hh) * ip
-            g01, g02, g12 = h0 * h1 * ip, h0 * h2 * ip, h1 * h2 * ip
+            g = _G_axisymmetric(h0, h1, h2, M.inv_inertia[i, 1])
         else:
-            # [h]× I⁻¹ [h]× with [h]× = ((0, -h2, h1), (h2, 0, -h0), (-h1, h0, 0))
-            X = Iinv
-            a00 = -h2 * X[i, 1, 0] + h1 * X[i, 2, 0]
-            a01 = -h2 * X[i, 1, 1] + h1 * X[i, 2, 1]
-            a02 = -h2 * X[i, 1, 2] + h1 * X[i, 2, 2]
-            a10 = h2 * X[i, 0, 0] - h0 * X[i, 2, 0]
-            a11 = h2 * X[i, 0, 1] - h0 * X[i, 2, 1]
-            a12 = h2 * X[i, 0, 2] - h0 * X[i, 2, 2]
-            a20 = -h1 * X[i, 0, 0] + h0 * X[i, 1, 0]
-            a21 = -h1 * X[i, 0, 1] + h0 * X[i, 1, 1]
-            g00 = a01 * h2 - a02 * h1
-            g01 = -a00 * h2 + a02 * h0
-            g02 = a00 * h1 - a01 * h0
-            g11 = -a10 * h2 + a12 * h0
-            g12 = a10 * h1 - a11 * h0
-            g22 = a20 * h1 - a21 * h0
-        im = M.inv_mass[i]
-        if M.is_first[i]:
-            D[i, 0, 0], D[i, 1, 1], D[i, 2, 2] = im - g00, im - g11, im - g22
-            D[i, 0, 1] = D[i, 1, 0] = -g01
-            D[i, 0, 2] = D[i, 2, 0] = -g02
-            D[i, 1, 2] = D[i, 2, 1] = -g12
-            for a in range(3):
-                for b in range(3):
-                    L[i, a, b] = 0.0
-        else:
-            imp = M.inv_mass[i - 1]
-            s = im + imp
-            D[i, 0, 0], D[i, 1, 1], D[i, 2, 2] = s - g00 - p00, s - g11 - p11, s - g22 - p22
-            D[i, 0, 1] = D[i, 1, 0] = -g01 - p01
-            D[i, 0, 2] = D[i, 2, 0] = -g02 - p02
-            D[i, 1, 2] = D[i, 2, 1] = -g12 - p12
-            L[i, 0, 0], L[i, 1, 1], L[i, 2, 2] = -imp - p00, -imp - p11, -imp - p22
-            L[i, 0, 1] = L[i, 1, 0] = -p01
-            L[i, 0, 2] = L[i, 2, 0] = -p02
-            L[i, 1, 2] = L[i, 2, 1] = -p12
-        p00, p01, p02, p11, p12, p22 = g00, g01, g02, g11, g12, g22
-    return factor(D, L, M.is_first, C, Lo)
+            g = _G_general(h0, h1, h2, _block(Iinv, i))
+        first = M.is_first[i]
+        imp = 0.0 if first else M.inv_mass[i - 1]
+        ok, lo, pinv = _joint_row(first, pinv, M.inv_mass[i], imp, g, gp)
+        if not ok:
+            return False
+        store_factors(C, Lo, i, pinv, lo)
+    return True
 
 
 @_inline
@@ -316,16 +384,15 @@ def _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
 
 
 @_inline
-def _gyroscopic(M, q, i, e, w0, w1, w2):
-    """ω × Iω of segment i (world)."""
-    if M.axisymmetric:
-        s = (M.inertia[i, 0] - M.inertia[i, 1]) * (e[i, 0] * w0 + e[i, 1] * w1 + e[i, 2] * w2)
-        c0, c1, c2 = _cross(w0, w1, w2, e[i, 0], e[i, 1], e[i, 2])
+def _gyroscopic(axisymmetric, I0, I1, I2, e0, e1, e2, qx, qy, qz, qw, w0, w1, w2):
+    """ω × Iω (world) of a segment of principal moments (I0, I1, I2), axis e, orientation q.
+    Scalars only: an inline helper taking arrays would pay their reference counts per call."""
+    if axisymmetric:
+        s = (I0 - I1) * (e0 * w0 + e1 * w1 + e2 * w2)
+        c0, c1, c2 = _cross(w0, w1, w2, e0, e1, e2)
         return s * c0, s * c1, s * c2
-    qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
     b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w0, w1, w2)
-    l0, l1, l2 = _qrot(qx, qy, qz, qw, M.inertia[i, 0] * b0, M.inertia[i, 1] * b1,
-                       M.inertia[i, 2] * b2)
+    l0, l1, l2 = _qrot(qx, qy, qz, qw, I0 * b0, I1 * b1, I2 * b2)
     return _cross(w0, w1, w2, l0, l1, l2)
 
 
@@ -333,83 +400,133 @@ def _gyroscopic(M, q, i, e, w0, w1, w2):
 @_inline
 def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
     """Linear and angular accelerations (m/s², rad/s²) with every joint enforced
-    (``solver.Dynamics.accelerations``); False if A is not positive definite."""
-    F, T, e, hv, Iinv, D, L, C, Lo, tang = ws
+    (``solver.Dynamics.accelerations``), ``f_c`` the joint forces (N); False if A is not
+    positive definite.
+
+    After the applied forces, two sweeps, the factorisation's own (``chain_solve``):
+      root to tip, per segment i: its mass properties and free accelerations (Eq. 11 without
+        f_c), joint i's right-hand side (Eq. 3), joint i's row of A factorised and the
+        right-hand side forward-substituted. The factorisation is a chain of dependent
+        divisions from joint to joint; the segment's own work beside it fills the wait.
+      tip to root: the back substitution, and each segment's joint forces applied.
+    The arithmetic of every value is that of ``_inertia_terms``, ``_factor_joints``,
+    ``chain_solve.solve`` and ``_apply_joint_impulses`` in turn."""
+    F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]
     _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T)
-    _inertia_terms(M, q, e, hv, Iinv)
-    if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
-        return False
-    for i in range(n):
-        g0, g1, g2 = _gyroscopic(M, q, i, e, w[i, 0], w[i, 1], w[i, 2])
-        a0, a1, a2 = _apply3(Iinv, i, T[i, 0] - g0, T[i, 1] - g1, T[i, 2] - g2)
-        alpha[i, 0], alpha[i, 1], alpha[i, 2] = a0, a1, a2          # Eq. 11 without f_c
-        for a in range(3):
-            acc[i, a] = F[i, a] * M.inv_mass[i]
-        # Joint-point accelerations under applied forces (Eq. 3): r_d = h, r_p = -h.
-        c0, c1, c2 = _cross(a0, a1, a2, hv[i, 0], hv[i, 1], hv[i, 2])
-        u0, u1, u2 = _cross(w[i, 0], w[i, 1], w[i, 2], hv[i, 0], hv[i, 1], hv[i, 2])
-        d0, d1, d2 = _cross(w[i, 0], w[i, 1], w[i, 2], u0, u1, u2)
-        tang[i, 0], tang[i, 1], tang[i, 2] = c0 + d0, c1 + d1, c2 + d2
     baumgarte = M.baumgarte_stiffness != 0.0 or M.baumgarte_damping != 0.0
+    g = pinv = _ZERO6                   # G and P⁻¹ of the previous segment / joint
+    z0 = z1 = z2 = 0.0                  # the previous joint's forward-substituted rhs
+    pa0 = pa1 = pa2 = 0.0               # the previous segment's distal-point acceleration
     for i in range(n):
-        c = M.chain_of[i]
-        for a in range(3):
-            if M.is_first[i]:
-                parent = A.acceleration[row, c, a]
-            else:
-                parent = acc[i - 1, a] + tang[i - 1, a]
-            f_c[i, a] = parent - (acc[i, a] - tang[i, a])
+        first = M.is_first[i]
+        # Mass properties.
+        if M.axisymmetric:
+            e0, e1, e2 = _axis(q, i)
+            X = _inv_inertia_axisymmetric(e0, e1, e2, M.inv_inertia[i, 0], M.inv_inertia[i, 1])
+        else:
+            R = _rotation_matrix(q, i)
+            e0, e1, e2 = R[0][0], R[1][0], R[2][0]
+            X = _inv_inertia_general(R, (M.inv_inertia[i, 0], M.inv_inertia[i, 1],
+                                         M.inv_inertia[i, 2]))
+        _store_block(Iinv, i, X)
+        half = M.half[i]
+        h0, h1, h2 = half * e0, half * e1, half * e2
+        hv[i, 0], hv[i, 1], hv[i, 2] = h0, h1, h2
+        # Free accelerations (Eq. 11 without f_c) and the joint points' under them (Eq. 3):
+        # r_d = h, r_p = -h.
+        w0, w1, w2 = w[i, 0], w[i, 1], w[i, 2]
+        y0, y1, y2 = _gyroscopic(M.axisymmetric, M.inertia[i, 0], M.inertia[i, 1],
+                                 M.inertia[i, 2], e0, e1, e2, q[i, 0], q[i, 1], q[i, 2],
+                                 q[i, 3], w0, w1, w2)
+        a0, a1, a2 = _mul9(X, T[i, 0] - y0, T[i, 1] - y1, T[i, 2] - y2)
+        alpha[i, 0], alpha[i, 1], alpha[i, 2] = a0, a1, a2
+        im = M.inv_mass[i]
+        ac0, ac1, ac2 = F[i, 0] * im, F[i, 1] * im, F[i, 2] * im
+        acc[i, 0], acc[i, 1], acc[i, 2] = ac0, ac1, ac2
+        c0, c1, c2 = _cross(a0, a1, a2, h0, h1, h2)
+        u0, u1, u2 = _cross(w0, w1, w2, h0, h1, h2)              # ω × h
+        d0, d1, d2 = _cross(w0, w1, w2, u0, u1, u2)
+        t0, t1, t2 = c0 + d0, c1 + d1, c2 + d2                   # tangential + centripetal
+        # Joint i's right-hand side: parent point minus child point acceleration.
+        if first:
+            c = M.chain_of[i]
+            pa0 = A.acceleration[row, c, 0]
+            pa1 = A.acceleration[row, c, 1]
+            pa2 = A.acceleration[row, c, 2]
+        r0, r1, r2 = pa0 - (ac0 - t0), pa1 - (ac1 - t1), pa2 - (ac2 - t2)
         if baumgarte:
-            u0, u1, u2 = _cross(w[i, 0], w[i, 1], w[i, 2], hv[i, 0], hv[i, 1], hv[i, 2])
-            wxh = (u0, u1, u2)
-            for a in range(3):
-                if M.is_first[i]:
-                    pp = A.position[row, c, a]
-                    pv = A.velocity[row, c, a]
-                else:
-                    pp = x[i - 1, a] + hv[i - 1, a]
-                    pu0, pu1, pu2 = _cross(w[i - 1, 0], w[i - 1, 1], w[i - 1, 2],
-                                           hv[i - 1, 0], hv[i - 1, 1], hv[i - 1, 2])
-                    pv = v[i - 1, a] + (pu0, pu1, pu2)[a]
-                gap = pp - (x[i, a] - hv[i, a])
-                rate = pv - (v[i, a] - wxh[a])
-                f_c[i, a] += M.baumgarte_damping * rate + M.baumgarte_stiffness * gap
-    solve(C, Lo, M.is_first, f_c)
-    dv, dw = F, T                       # the forces are consumed: reuse their storage
-    _apply_joint_impulses(M, f_c, hv, Iinv, dv, dw)
-    for i in range(n):
-        for a in range(3):
-            acc[i, a] += dv[i, a]
-            alpha[i, a] += dw[i, a]
+            r0 += _baumgarte(M, A, row, x, v, w, hv, i, 0, u0)
+            r1 += _baumgarte(M, A, row, x, v, w, hv, i, 1, u1)
+            r2 += _baumgarte(M, A, row, x, v, w, hv, i, 2, u2)
+        pa0, pa1, pa2 = ac0 + t0, ac1 + t1, ac2 + t2
+        # Joint i's row of A, factorised; forward substitution (1 + 𝓛) z = b.
+        if M.axisymmetric:
+            gi = _G_axisymmetric(h0, h1, h2, M.inv_inertia[i, 1])
+        else:
+            gi = _G_general(h0, h1, h2, X)
+        imp = 0.0 if first else M.inv_mass[i - 1]
+        ok, lo, pinv = _joint_row(first, pinv, im, imp, gi, g)
+        if not ok:
+            return False
+        store_factors(C, Lo, i, pinv, lo)
+        g = gi
+        if not first:
+            r0 -= lo[0] * z0 + lo[1] * z1 + lo[2] * z2
+            r1 -= lo[3] * z0 + lo[4] * z1 + lo[5] * z2
+            r2 -= lo[6] * z0 + lo[7] * z1 + lo[8] * z2
+        f_c[i, 0], f_c[i, 1], f_c[i, 2] = r0, r1, r2
+        z0, z1, z2 = r0, r1, r2
+    # Tip to root: (1 + 𝓛)ᵀ λ = P⁻¹ z, then each segment's joint forces: + λ_i on it at its
+    # proximal end, - λ_{i+1} at its distal end (``_apply_joint_impulses``).
+    l0 = l1 = l2 = 0.0                  # λ_{i+1}
+    for i in range(n - 1, -1, -1):
+        z0, z1, z2 = f_c[i, 0], f_c[i, 1], f_c[i, 2]
+        P = _block(C, i)
+        f0, f1, f2 = _mul9(P, z0, z1, z2)
+        if i + 1 < n and not M.is_first[i + 1]:
+            f0 -= Lo[i + 1, 0, 0] * l0 + Lo[i + 1, 1, 0] * l1 + Lo[i + 1, 2, 0] * l2
+            f1 -= Lo[i + 1, 0, 1] * l0 + Lo[i + 1, 1, 1] * l1 + Lo[i + 1, 2, 1] * l2
+            f2 -= Lo[i + 1, 0, 2] * l0 + Lo[i + 1, 1, 2] * l1 + Lo[i + 1, 2, 2] * l2
+        f_c[i, 0], f_c[i, 1], f_c[i, 2] = f0, f1, f2
+        g0, g1, g2 = (l0, l1, l2) if M.has_child[i] else (0.0, 0.0, 0.0)
+        im = M.inv_mass[i]
+        acc[i, 0] += (f0 - g0) * im
+        acc[i, 1] += (f1 - g1) * im
+        acc[i, 2] += (f2 - g2) * im
+        # (-h) × f_c + h × (-f_next) = (f_c + f_next) × h
+        t0, t1, t2 = _cross(f0 + g0, f1 + g1, f2 + g2, hv[i, 0], hv[i, 1], hv[i, 2])
+        b0, b1, b2 = _apply3(Iinv, i, t0, t1, t2)
+        alpha[i, 0] += b0
+        alpha[i, 1] += b1
+        alpha[i, 2] += b2
+        l0, l1, l2 = f0, f1, f2
     return True
 
 
 @_jit
+def _baumgarte(M, A, row, x, v, w, hv, i, a, wxh):
+    """Joint i's Baumgarte term 2ζ Ċ + κ C along axis ``a`` (``wxh`` = (ω × h)_a of segment
+    i; segment i-1's ``hv`` already set)."""
+    if M.is_first[i]:
+        c = M.chain_of[i]
+        pp = A.position[row, c, a]
+        pv = A.velocity[row, c, a]
+    else:
+        pp = x[i - 1, a] + hv[i - 1, a]
+        pu0, pu1, pu2 = _cross(w[i - 1, 0], w[i - 1, 1], w[i - 1, 2],
+                               hv[i - 1, 0], hv[i - 1, 1], hv[i - 1, 2])
+        pv = v[i - 1, a] + (pu0, pu1, pu2)[a]
+    gap = pp - (x[i, a] - hv[i, a])
+    rate = pv - (v[i, a] - wxh)
+    return M.baumgarte_damping * rate + M.baumgarte_stiffness * gap
+
+
+@_jit
 def _workspace(n):
+    """F, T, e, hv ``(n, 3)``; Iinv, C = P⁻¹, Lo = 𝓛 ``(n, 3, 3)``."""
     return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
-            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)),
-            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
-
-
-@_inline
-def _rk4_derivs(M, A, row, x, q, v, wb, ext_F, ext_T, ws, w_tmp, acc, alpha, f_c,
-                dq, dwb):
-    """RK4's right-hand side in body-frame ω: (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α)."""
-    n = x.shape[0]
-    for i in range(n):
-        w_tmp[i, 0], w_tmp[i, 1], w_tmp[i, 2] = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3],
-                                                       wb[i, 0], wb[i, 1], wb[i, 2])
-    if not _accelerations(M, A, row, x, q, v, w_tmp, ext_F, ext_T, ws, acc, alpha, f_c):
-        return False
-    for i in range(n):
-        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-        b0, b1, b2 = wb[i, 0], wb[i, 1], wb[i, 2]
-        d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, b0, b1, b2, 0.0)
-        dq[i, 0], dq[i, 1], dq[i, 2], dq[i, 3] = 0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3
-        dwb[i, 0], dwb[i, 1], dwb[i, 2] = _qrot(-qx, -qy, -qz, qw, alpha[i, 0], alpha[i, 1],
-                                                alpha[i, 2])
-    return True
+            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
 
 
 @_jit
@@ -420,52 +537,63 @@ def _rk4_workspace(n):
             np.empty((n, 3)), np.empty((n, 3)))
 
 
-@_jit
+@_inline
+def _rk4_sum(s, weight, total, d):
+    """RK4's d₁ + 2 d₂ + 2 d₃ + d₄, summed as the stage derivatives ``d`` come (``s`` =
+    0..3)."""
+    return d if s == 0 else total + weight * d
+
+
+@_inline
 def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside.
-    The stage derivatives d_s are summed as they come (d1 + 2 d2 + 2 d3 + d4, in that
-    order), so no stage is stored."""
+
+    The right-hand side is (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α), with a, α from
+    ``_accelerations`` at the stage's world ω = R ω_b (``w_s``). The stage derivatives are
+    summed as they come (d1 + 2 d2 + 2 d3 + d4, in that order), so no stage is stored; each
+    segment's derivative, sums and next stage are done in one pass."""
     n = x.shape[0]
-    wb, w_tmp, xs, qs, vs, wbs, dv, dq, dwb, sx, sv, sq, swb, alpha = rws
+    wb, w_s, xs, qs, vs, wbs, acc, _, _, sx, sv, sq, swb, alpha = rws
     for i in range(n):
-        wb[i, 0], wb[i, 1], wb[i, 2] = _qrot(-q[i, 0], -q[i, 1], -q[i, 2], q[i, 3],
-                                             w[i, 0], w[i, 1], w[i, 2])
+        qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w[i, 0], w[i, 1], w[i, 2])
+        wb[i, 0], wb[i, 1], wb[i, 2] = b0, b1, b2
         for a in range(3):
             xs[i, a] = x[i, a]
             vs[i, a] = v[i, a]
-            wbs[i, a] = wb[i, a]
-        for a in range(4):
-            qs[i, a] = q[i, a]
+        wbs[i, 0], wbs[i, 1], wbs[i, 2] = b0, b1, b2
+        qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3] = qx, qy, qz, qw
+        w_s[i, 0], w_s[i, 1], w_s[i, 2] = _qrot(qx, qy, qz, qw, b0, b1, b2)
     hh = 0.5 * h
     for s in range(4):
         row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
-        if not _rk4_derivs(M, A, row, xs, qs, vs, wbs, ext_F, ext_T, ws, w_tmp, dv, alpha,
-                           f_c, dq, dwb):
+        if not _accelerations(M, A, row, xs, qs, vs, w_s, ext_F, ext_T, ws, acc, alpha, f_c):
             return False
         weight = 1.0 if (s == 0 or s == 3) else 2.0
         c = hh if s < 2 else h            # the next stage's offset
         for i in range(n):
+            qx, qy, qz, qw = qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]
+            d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, wbs[i, 0], wbs[i, 1], wbs[i, 2], 0.0)
+            e0, e1, e2 = _qrot(-qx, -qy, -qz, qw, alpha[i, 0], alpha[i, 1], alpha[i, 2])
+            dx = (vs[i, 0], vs[i, 1], vs[i, 2])            # ẋ = v
+            dv = (acc[i, 0], acc[i, 1], acc[i, 2])
+            dwb = (e0, e1, e2)
+            dq = (0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3)
             for a in range(3):
-                dx = vs[i, a]               # ẋ = v at this stage
-                if s == 0:
-                    sx[i, a] = dx
-                    sv[i, a] = dv[i, a]
-                    swb[i, a] = dwb[i, a]
-                else:
-                    sx[i, a] += weight * dx
-                    sv[i, a] += weight * dv[i, a]
-                    swb[i, a] += weight * dwb[i, a]
-                if s < 3:
-                    xs[i, a] = x[i, a] + c * dx
-                    vs[i, a] = v[i, a] + c * dv[i, a]
-                    wbs[i, a] = wb[i, a] + c * dwb[i, a]
+                sx[i, a] = _rk4_sum(s, weight, sx[i, a], dx[a])
+                sv[i, a] = _rk4_sum(s, weight, sv[i, a], dv[a])
+                swb[i, a] = _rk4_sum(s, weight, swb[i, a], dwb[a])
             for a in range(4):
-                if s == 0:
-                    sq[i, a] = dq[i, a]
-                else:
-                    sq[i, a] += weight * dq[i, a]
-                if s < 3:
-                    qs[i, a] = q[i, a] + c * dq[i, a]
+                sq[i, a] = _rk4_sum(s, weight, sq[i, a], dq[a])
+            if s < 3:                     # the next stage's state
+                for a in range(3):
+                    xs[i, a] = x[i, a] + c * dx[a]
+                    vs[i, a] = v[i, a] + c * dv[a]
+                    wbs[i, a] = wb[i, a] + c * dwb[a]
+                for a in range(4):
+                    qs[i, a] = q[i, a] + c * dq[a]
+                w_s[i, 0], w_s[i, 1], w_s[i, 2] = _qrot(qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3],
+                                                        wbs[i, 0], wbs[i, 1], wbs[i, 2])
     sixth = h / 6.0
     for i in range(n):
         for a in range(3):
@@ -678,13 +806,13 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
     """One symplectic Euler or RATTLE step (``integrators.symplectic_euler`` /
     ``integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
     ``ws`` are those of q, left by the previous step's projection). False if a solve fails."""
-    F, T, e, hv, Iinv, D, L, C, Lo, tmp = ws
+    F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]
     r0, r1 = 2 * k, 2 * k + 2
     rattle = M.integrator == RATTLE
     if fresh:
         _inertia_terms(M, q, e, hv, Iinv)
-        if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
+        if not _factor_joints(M, hv, Iinv, C, Lo):
             return False
     _applied(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
     kick = 0.5 * h if rattle else h
@@ -721,7 +849,7 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
         return True
     # A at the step's end (kept for the next step: the projection does not turn segments).
     _inertia_terms(M, q, e, hv, Iinv)
-    if not _factor_joints(M, hv, Iinv, D, L, C, Lo):
+    if not _factor_joints(M, hv, Iinv, C, Lo):
         return False
     if rattle:
         # Second half kick with the forces at the end; velocity-dependent terms at u½
@@ -923,7 +1051,7 @@ def _band_solve(ab, b, kl):
 
 
 # -- stabilisation -----------------------------------------------------------------------------
-@_jit
+@_inline
 def _project(M, A, row, x, q, v, w, velocities):
     """Centres rebuilt so every joint closes exactly from the anchor outward, and for RK4
     (``velocities``) the centre velocities from the anchor point's velocity and the ω above
@@ -1001,8 +1129,7 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
         s = starts[c]
         e = starts[c + 1] if c + 1 < starts.shape[0] else n
         m = e - s
-        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
-              W[7][:m], W[8][:m], W[9][:m])
+        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
         rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
                R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
         status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
@@ -1060,8 +1187,7 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         for c in range(starts.shape[0]):
             s, e = starts[c], ends[c]
             m = e - s
-            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m],
-                  W[7][:m], W[8][:m], W[9][:m])
+            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
             rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
                    R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
             status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
