@@ -97,10 +97,10 @@ def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
 
 
 @njit(cache=True)
-def general_terms(qi, hi, inv_inertia, i, inv_I, G):
+def general_terms(qi, hi, inv_inertia, i, inv_I, G, R, SI):
     """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
-    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column."""
-    R = np.empty((3, 3))
+    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column (``R``, ``SI``: 3×3
+    scratch)."""
     qmatrix(qi, R)
     for a in range(3):
         for b in range(3):
@@ -108,7 +108,6 @@ def general_terms(qi, hi, inv_inertia, i, inv_I, G):
             for c in range(3):
                 s += R[a, c] * inv_inertia[i, c] * R[b, c]
             inv_I[i, a, b] = s
-    SI = np.empty((3, 3))
     for b in range(3):
         col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
         for a in range(3):
@@ -141,9 +140,17 @@ def factor_chain(q, model, h, inv_I, C, Lo):
     inertias ``inv_I`` ``(n, 3, 3)`` and the factors (``C``, ``Lo``, ``chain_solve``) of
     A = J M⁻¹ Jᵀ (``joint_blocks``), G = [h]× I⁻¹ [h]× (``solver``). False if A is not
     positive definite."""
+    n = q.shape[0]
+    return factor_chain_into(q, model, h, inv_I, C, Lo, np.empty((n, 3, 3)),
+                             np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((2, 3, 3)))
+
+
+@njit(cache=True)
+def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
+    """``factor_chain`` with its scratch given: the blocks ``G``, ``D``, ``L`` ``(n, 3, 3)``
+    and two 3×3 matrices ``R3`` ``(2, 3, 3)``."""
     length, inv_inertia = model[LENGTH], model[INV_INERTIA]
     n = q.shape[0]
-    G = np.empty((n, 3, 3))
     for i in range(n):
         half = 0.5 * length[i]
         hi = scale(half, qaxis_x(q4(q, i)))
@@ -152,9 +159,7 @@ def factor_chain(q, model, h, inv_I, C, Lo):
         if model[AXISYMMETRIC]:
             axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G)
         else:
-            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G)
-    D = np.empty((n, 3, 3))
-    L = np.empty((n, 3, 3))
+            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G, R3[0], R3[1])
     joint_blocks(G, model[INV_MASS], model[IS_FIRST], D, L)
     return _chain_factor(D, L, model[IS_FIRST], C, Lo)
 
@@ -175,12 +180,12 @@ def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
 
 
 @njit(cache=True)
-def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
+def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, dw):
     """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
-    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's)."""
+    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's).
+    ``c_dot``, ``dv``, ``dw`` ``(n, 3)``: scratch."""
     is_first, chain_of = model[IS_FIRST], model[CHAIN_OF]
     n = v.shape[0]
-    c_dot = np.empty((n, 3))
     for i in range(n):
         child = sub(v3(v, i), cross(v3(w, i), v3(h, i)))
         if is_first[i]:
@@ -191,8 +196,8 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
         for a in range(3):
             c_dot[i, a] = d[a]
     _chain_solve(C, Lo, is_first, c_dot)
-    dv = np.zeros((n, 3))
-    dw = np.zeros((n, 3))
+    dv[:] = 0.0
+    dw[:] = 0.0
     apply_joint_impulses(c_dot, h, inv_I, model, 0, n, dv, dw)
     for i in range(n):
         for a in range(3):
@@ -406,6 +411,87 @@ def near(anchor_position, pose, v, w, det, dt):
     return False
 
 
+# -- the workspace of one ``resolve`` call -------------------------------------------------------
+# Every array the stages need, as views into three flat buffers (one heap allocation each:
+# numba's allocations cost ~100 ns apiece, and the stages would otherwise make ~100 a step).
+# Sizes: n segments, k_max = m K + 2 n_l candidate rows (m colliding segments, K colliders,
+# n_l limited joints). Indices into the tuple ``workspace`` returns:
+(WS_H, WS_INV_I, WS_PIVOTS, WS_LO, WS_G, WS_D, WS_L, WS_R3, WS_ROWS, WS_ROW_IDS, WS_SEL,
+ WS_SEL_IDS, WS_FRIC, WS_FRIC_IDS, WS_DEPTH, WS_S, WS_T, WS_OWN, WS_N0, WS_N1, WS_N2, WS_N3,
+ WS_Q, WS_AXIS, WS_GAP, WS_SEP, WS_B, WS_LAM, WS_SPEED, WS_BOUND, WS_KEEP) = range(31)
+
+
+@njit(cache=True)
+def carve(buf, o, size):
+    """``buf[o:o + size]`` and the next offset."""
+    return buf[o:o + size], o + size
+
+
+@njit(cache=True)
+def workspace(n, m, K, nl):
+    """The workspace of ``resolve`` (indices ``WS_*``): the factorisation (``h``, I⁻¹, pivots,
+    ``Lo``: ``factor_chain``) and its blocks (G, D, L, two 3×3), three row tables (all rows,
+    a selection, friction rows: ``(k_max, NCOL)`` floats and ``(k_max, 3)`` integers), the
+    detection's ``(m, K)`` tables, four ``(n, 3)`` vectors and one ``(n, 4)``, the limits'
+    axes, gaps and rates ``(2 n_l)``, per-row vectors ``(k_max)`` (right-hand side, impulses,
+    slip speeds, friction bounds) and a per-row mask."""
+    k_max = m * K + 2 * nl
+    nf = (3 * n + 6 * 9 * n + 18 + 3 * k_max * NCOL + 3 * m * K + 4 * 3 * n + 4 * n
+          + 3 * 2 * nl + 2 * 2 * nl + 4 * k_max)
+    fb = np.empty(nf)
+    ib = np.empty(3 * k_max * 3, dtype=np.int64)
+    bb = np.empty(m * K + k_max, dtype=np.bool_)
+    o = 0
+    h, o = carve(fb, o, 3 * n)
+    inv_I, o = carve(fb, o, 9 * n)
+    C, o = carve(fb, o, 9 * n)
+    Lo, o = carve(fb, o, 9 * n)
+    G, o = carve(fb, o, 9 * n)
+    D, o = carve(fb, o, 9 * n)
+    L, o = carve(fb, o, 9 * n)
+    R3, o = carve(fb, o, 18)
+    rows, o = carve(fb, o, k_max * NCOL)
+    sel, o = carve(fb, o, k_max * NCOL)
+    fric, o = carve(fb, o, k_max * NCOL)
+    depth, o = carve(fb, o, m * K)
+    s, o = carve(fb, o, m * K)
+    t, o = carve(fb, o, m * K)
+    n0, o = carve(fb, o, 3 * n)
+    n1, o = carve(fb, o, 3 * n)
+    n2, o = carve(fb, o, 3 * n)
+    n3, o = carve(fb, o, 3 * n)
+    qs, o = carve(fb, o, 4 * n)
+    axis, o = carve(fb, o, 6 * nl)
+    gap, o = carve(fb, o, 2 * nl)
+    sep, o = carve(fb, o, 2 * nl)
+    b, o = carve(fb, o, k_max)
+    lam, o = carve(fb, o, k_max)
+    speed, o = carve(fb, o, k_max)
+    bound, o = carve(fb, o, k_max)
+    o = 0
+    row_ids, o = carve(ib, o, 3 * k_max)
+    sel_ids, o = carve(ib, o, 3 * k_max)
+    fric_ids, o = carve(ib, o, 3 * k_max)
+    own, o = carve(bb, 0, m * K)
+    keep, o = carve(bb, o, k_max)
+    return (h.reshape((n, 3)), inv_I.reshape((n, 3, 3)), C.reshape((n, 3, 3)),
+            Lo.reshape((n, 3, 3)), G.reshape((n, 3, 3)), D.reshape((n, 3, 3)),
+            L.reshape((n, 3, 3)), R3.reshape((2, 3, 3)), rows.reshape((k_max, NCOL)),
+            row_ids.reshape((k_max, 3)), sel.reshape((k_max, NCOL)), sel_ids.reshape((k_max, 3)),
+            fric.reshape((k_max, NCOL)), fric_ids.reshape((k_max, 3)), depth.reshape((m, K)),
+            s.reshape((m, K)), t.reshape((m, K)), own.reshape((m, K)), n0.reshape((n, 3)),
+            n1.reshape((n, 3)), n2.reshape((n, 3)), n3.reshape((n, 3)), qs.reshape((n, 4)),
+            axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep)
+
+
+@njit(cache=True)
+def resolve_workspace(n, model, det, pose, has_colliders):
+    """``workspace`` for a model (``n`` segments) and its colliders."""
+    m = det[D_SEG].shape[0] if has_colliders else 0
+    K = pose[P_A0].shape[0] if has_colliders else 0
+    return workspace(n, m, K, model[LIMITED].shape[0])
+
+
 # -- rows ----------------------------------------------------------------------------------------
 @njit(cache=True)
 def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
@@ -431,16 +517,17 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
 
 
 @njit(cache=True)
-def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
-    """The contact rows into ``R``, ``I`` (segment-major); returns their number."""
+def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
+    """The contact rows into ``R``, ``I`` (segment-major, from row 0); returns their number.
+    ``ws``: the workspace (its half-vectors and detection tables are overwritten)."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
     origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
                                           pose[P_SPEED])
-    n, m, K = x.shape[0], seg.shape[0], pose[P_A0].shape[0]
-    h = np.empty((n, 3))
+    m, K = seg.shape[0], pose[P_A0].shape[0]
+    # The workspace's second (n, 3) vector: build_rows' callers keep nothing there.
+    h = ws[WS_N1]
     half_vectors(model[LENGTH], q, h)
-    depth, s, t = np.empty((m, K)), np.empty((m, K)), np.empty((m, K))
-    own = np.empty((m, K), dtype=np.bool_)
+    depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
     detect(x, h, anchor_position, pose, det, False, depth, s, t, own)
     skin = max(POSITION_SKIN + 4.0 * max(np.max(depth), 0.0), VELOCITY_SKIN)
     k = 0
@@ -457,6 +544,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
             v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
             rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
             ang = cross(arm, nrm)
+            R[k, :] = 0.0
             for a in range(3):
                 R[k, LIN + a] = nrm[a]
                 R[k, ANG + a] = ang[a]
@@ -473,16 +561,14 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
 
 
 @njit(cache=True)
-def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
+def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     """The limit rows (swing rows, then twist rows) into ``R``, ``I`` from row ``k`` on;
     returns the new number of rows. A limit is kept if violated, within ``ANGLE_SKIN`` plus
     4× the deepest violation (so that a correction does not push a neighbouring joint past
-    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps."""
+    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps. ``axis`` ``(2 n_l, 3)``,
+    ``gap``, ``sep`` ``(2 n_l)``: scratch (``limit_terms``)."""
     lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
     nl = lim_idx.shape[0]
-    axis = np.empty((2 * nl, 3))
-    gap = np.empty(2 * nl)
-    sep = np.empty(2 * nl)
     limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
                 swing_limit, twist_limit, axis, gap, sep)
     skin = ANGLE_SKIN + 4.0 * max(-np.min(gap), 0.0)
@@ -492,6 +578,7 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
         closing = sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r]
         if not (np.isfinite(limit) and (gap[r] < skin or closing)):
             continue
+        R[k, :] = 0.0
         for a in range(3):
             R[k, ANG + a] = -axis[r, a]
             R[k, APAR + a] = axis[r, a]
@@ -505,41 +592,43 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
 
 
 @njit(cache=True)
+def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws):
+    """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it, valid until
+    the next call."""
+    nl = model[LIMITED].shape[0]
+    R, I = ws[WS_ROWS], ws[WS_ROW_IDS]
+    k = 0
+    if has_colliders and near(anchor[0], pose, v, w, det, dt):
+        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
+    if nl:
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_GAP],
+                       ws[WS_SEP])
+    return R[:k], I[:k]
+
+
+@njit(cache=True)
 def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
-    """Contact and limit rows within reach of this step's stages: ``(R, I)``.
+    """Contact and limit rows within reach of this step's stages: ``(R, I)`` (new arrays).
 
     A pair is a candidate if it is inside, within the position skin, or could close within
     ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds (after the broad
     phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
     """
-    nl = model[LIMITED].shape[0]
-    m = det[D_SEG].shape[0] if has_colliders else 0
-    K = pose[P_A0].shape[0] if has_colliders else 0
-    R = np.zeros((m * K + 2 * nl, NCOL))
-    I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
-    k = 0
-    if has_colliders and near(anchor[0], pose, v, w, det, dt):
-        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I)
-    if nl:
-        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k)
-    return R[:k].copy(), I[:k].copy()
+    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
+    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
+    return R.copy(), I.copy()
 
 
 @njit(cache=True)
-def take(R, I, keep):
-    """The rows where ``keep``."""
-    k = 0
-    for r in range(keep.shape[0]):
-        k += keep[r]
-    R2 = np.empty((k, NCOL))
-    I2 = np.empty((k, 3), dtype=np.int64)
+def take(R, I, keep, R2, I2):
+    """The rows where ``keep``, into ``R2``, ``I2``: views of their first rows."""
     k = 0
     for r in range(keep.shape[0]):
         if keep[r]:
             R2[k] = R[r]
             I2[k] = I[r]
             k += 1
-    return R2, I2
+    return R2[:k], I2[:k]
 
 
 @njit(cache=True)
@@ -578,11 +667,12 @@ def refresh_sep(R, I, v, w, anchor_omega, chain_of):
 
 # -- small dense problems ------------------------------------------------------------------------
 @njit(cache=True)
-def lu_solve(A, b):
-    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept."""
+def lu_solve_into(A, b, M, x):
+    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept,
+    ``M`` (like A) receives the factors."""
     n = b.shape[0]
-    M = A.copy()
-    x = b.copy()
+    M[:] = A
+    x[:] = b
     for c in range(n):
         p = c
         for r in range(c + 1, n):
@@ -603,14 +693,49 @@ def lu_solve(A, b):
         for j in range(c + 1, n):
             s -= M[c, j] * x[j]
         x[c] = s / M[c, c]
-    return x
 
 
 @njit(cache=True)
-def solve_active(Ws, bs, active, lam):
-    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+def lu_solve(A, b):
+    """x with A x = b (``lu_solve_into``, new arrays)."""
+    x = np.empty(b.shape[0])
+    lu_solve_into(A, b, np.empty_like(A), x)
+    return x
+
+
+# Scratch of the dense problems of one chain's k rows (``dense_scratch``), by index: four
+# flat k² buffers, seven k-vectors, two k-indices and two k-masks. Used by ``lcp_into``
+# (squares 1-3, vectors 0-3, index 0, masks), ``friction_step_into`` (squares 1-2) and
+# ``chain_impulses`` (square 0, vectors 4-6, index 1).
+(DS_SQ0, DS_SQ1, DS_SQ2, DS_SQ3, DS_V0, DS_V1, DS_V2, DS_V3, DS_V4, DS_V5, DS_V6, DS_IDX0,
+ DS_IDX1, DS_M0, DS_M1) = range(15)
+
+
+@njit(cache=True)
+def dense_scratch(k):
+    """Fresh scratch for dense problems of up to k rows (indices ``DS_*``): three
+    allocations."""
+    f = np.empty(4 * k * k + 7 * k)
+    ib = np.empty(2 * k, dtype=np.int64)
+    bb = np.empty(2 * k, dtype=np.bool_)
+    q = k * k
+    v = 4 * q
+    return (f[:q], f[q:2 * q], f[2 * q:3 * q], f[3 * q:v], f[v:v + k], f[v + k:v + 2 * k],
+            f[v + 2 * k:v + 3 * k], f[v + 3 * k:v + 4 * k], f[v + 4 * k:v + 5 * k],
+            f[v + 5 * k:v + 6 * k], f[v + 6 * k:v + 7 * k], ib[:k], ib[k:], bb[:k], bb[k:])
+
+
+@njit(cache=True)
+def square(buf, k):
+    """The k×k matrix at the start of the flat buffer ``buf``."""
+    return buf[:k * k].reshape((k, k))
+
+
+@njit(cache=True)
+def solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, idx):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``); ``sq_a``,
+    ``sq_m`` (flat, ≥ k²), ``rhs``, ``sol``, ``idx`` (≥ k): scratch."""
     k = bs.shape[0]
-    idx = np.empty(k, dtype=np.int64)
     na = 0
     for i in range(k):
         lam[i] = 0.0
@@ -619,15 +744,22 @@ def solve_active(Ws, bs, active, lam):
             na += 1
     if na == 0:
         return
-    A = np.empty((na, na))
-    rhs = np.empty(na)
+    A = square(sq_a, na)
     for a in range(na):
         rhs[a] = -bs[idx[a]]
         for b in range(na):
             A[a, b] = Ws[idx[a], idx[b]]
-    sol = lu_solve(A, rhs)
+    lu_solve_into(A, rhs[:na], square(sq_m, na), sol[:na])
     for a in range(na):
         lam[idx[a]] = sol[a]
+
+
+@njit(cache=True)
+def solve_active(Ws, bs, active, lam):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+    k = bs.shape[0]
+    solve_active_into(Ws, bs, active, lam, np.empty(k * k), np.empty(k * k), np.empty(k),
+                      np.empty(k), np.empty(k, dtype=np.int64))
 
 
 @njit(cache=True)
@@ -705,6 +837,53 @@ def sign_violations(Ws, bs, active, lam, bad):
 
 
 @njit(cache=True)
+def lcp_into(W, b, out, ds, Ws):
+    """``lcp`` into ``out`` (k,), with the scratch ``ds`` (``dense_scratch`` of ≥ k rows;
+    ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix."""
+    k = b.shape[0]
+    any_closing = False
+    for i in range(k):
+        any_closing = any_closing or b[i] < 0.0
+    if not any_closing:
+        out[:] = 0.0
+        return
+    if k == 1:
+        out[0] = max(-b[0] / W[0, 0], 0.0)
+        return
+    d, bs, lam = ds[DS_V0][:k], ds[DS_V1][:k], out
+    active, bad = ds[DS_M0][:k], ds[DS_M1][:k]
+    for i in range(k):
+        d[i] = 1.0 / np.sqrt(W[i, i])
+    for i in range(k):
+        for j in range(k):
+            Ws[i, j] = W[i, j] * d[i] * d[j]
+        Ws[i, i] += REG
+    for i in range(k):
+        bs[i] = b[i] * d[i]
+        active[i] = bs[i] < 0.0
+        lam[i] = 0.0
+        bad[i] = False
+    # The active-set solve's scratch: two k² buffers, its right-hand side and solution.
+    sq_a, sq_m, rhs, sol = ds[DS_SQ1], ds[DS_SQ2], ds[DS_V2], ds[DS_V3]
+    for it in range(4 * k + 8):
+        solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, ds[DS_IDX0])
+        first = sign_violations(Ws, bs, active, lam, bad)
+        if first < 0:
+            for i in range(k):
+                # max(λ, 0) as np.maximum has it (NaN kept), then unscaled.
+                out[i] = (0.0 if lam[i] < 0.0 else lam[i]) * d[i]
+            return
+        if it < 4:
+            for i in range(k):
+                active[i] ^= bad[i]
+        else:
+            active[first] = not active[first]
+    lam_fb = nnls_quadratic(Ws, bs)
+    for i in range(k):
+        out[i] = lam_fb[i] * d[i]
+
+
+@njit(cache=True)
 def lcp(W, b):
     """λ ≥ 0 with Wλ + b ≥ 0 and λ·(Wλ + b) = 0, W symmetric positive semi-definite.
 
@@ -714,45 +893,25 @@ def lcp(W, b):
     lowest index: Murty's rule, which terminates for positive definite W). Falls back to
     Lawson–Hanson (``nnls_quadratic``) if it ever stalls."""
     k = b.shape[0]
-    if not np.any(b < 0.0):
-        return np.zeros(k)
-    if k == 1:
-        return np.array([max(-b[0] / W[0, 0], 0.0)])
-    d = 1.0 / np.sqrt(np.diag(W))
-    Ws = np.empty((k, k))
-    for i in range(k):
-        for j in range(k):
-            Ws[i, j] = W[i, j] * d[i] * d[j]
-        Ws[i, i] += REG
-    bs = b * d
-    active = bs < 0.0
-    lam = np.zeros(k)
-    bad = np.zeros(k, dtype=np.bool_)
-    for it in range(4 * k + 8):
-        solve_active(Ws, bs, active, lam)
-        first = sign_violations(Ws, bs, active, lam, bad)
-        if first < 0:
-            return np.maximum(lam, 0.0) * d
-        if it < 4:
-            active ^= bad
-        else:
-            active[first] = not active[first]
-    return nnls_quadratic(Ws, bs) * d
+    out = np.empty(k)
+    ds = dense_scratch(k)
+    lcp_into(W, b, out, ds, square(ds[DS_SQ3], k))
+    return out
 
 
 @njit(cache=True)
-def friction_step(W, slip, bound):
-    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
-    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
-    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+def friction_step_into(W, slip, bound, lam, ds):
+    """``friction_step`` into ``lam`` (k,), with the scratch ``ds`` (``dense_scratch`` of
+    ≥ k rows)."""
     k = slip.shape[0]
     tr = 0.0
     for i in range(k):
         tr += W[i, i]
-    A = W.copy()
+    A = square(ds[DS_SQ1], k)
+    A[:] = W
     for i in range(k):
         A[i, i] += REG * tr / k
-    lam = lu_solve(A, slip)
+    lu_solve_into(A, slip, square(ds[DS_SQ2], k), lam)
     work = 0.0
     for i in range(k):
         lam[i] = min(max(lam[i], 0.0), bound[i])
@@ -764,18 +923,29 @@ def friction_step(W, slip, bound):
             s += lam[j] * W[j, i]
         quad += s * lam[i]
     if work <= 0.0 or quad <= 0.0:
-        return np.zeros(k)
+        lam[:] = 0.0
+        return
     alpha = min(1.0, work / quad)
     for i in range(k):
         lam[i] *= alpha
+
+
+@njit(cache=True)
+def friction_step(W, slip, bound):
+    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
+    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
+    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+    lam = np.empty(slip.shape[0])
+    friction_step_into(W, slip, bound, lam, dense_scratch(slip.shape[0]))
     return lam
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
 @njit(cache=True)
-def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
+def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
-    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ."""
+    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
+    ``c_dot`` ``(e - s, 3)``: scratch."""
     inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
     nc = e - s
     g, p = I[r, SEG], I[r, PAR]
@@ -791,7 +961,6 @@ def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
         for a in range(3):
             dw[p - s, a] = dwp[a]
     # Joint velocity error: parent's distal point minus child's proximal point.
-    c_dot = np.empty((nc, 3))
     for i in range(nc):
         d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
         if i > 0:
@@ -838,25 +1007,91 @@ def delassus(R, I, members, s, rv, rw, model, W, mobile):
 
 
 @njit(cache=True)
-def chain_impulses(W, mobile, b, bound, members):
-    """λ of one chain's rows (index into ``members``): the mobile rows' LCP on the
-    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others."""
-    sel = np.flatnonzero(mobile)
-    nm = sel.shape[0]
+def chain_impulses(W, mobile, b, bound, members, lam, ds):
+    """λ ``(kg,)`` of one chain's rows (index into ``members``): the mobile rows' LCP on the
+    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others.
+    ``ds``: ``dense_scratch`` of ≥ kg rows."""
+    kg = W.shape[0]
+    sel = ds[DS_IDX1]
+    nm = 0
+    for a in range(kg):
+        if mobile[a]:
+            sel[nm] = a
+            nm += 1
     friction = bound.shape[0] > 0
-    Wc = np.empty((nm, nm))
-    bc = np.empty(nm)
-    bnd = np.empty(nm)
+    Wc = square(ds[DS_SQ0], nm)
+    bc, bnd, lc = ds[DS_V4][:nm], ds[DS_V5][:nm], ds[DS_V6][:nm]
     for a in range(nm):
         bc[a] = b[members[sel[a]]]
         bnd[a] = bound[members[sel[a]]] if friction else 0.0
         for bb in range(nm):
             Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
-    lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
-    lam = np.zeros(W.shape[0])
+    if friction:
+        friction_step_into(Wc, bc, bnd, lc, ds)
+    else:
+        lcp_into(Wc, bc, lc, ds, square(ds[DS_SQ3], nm))
+    lam[:] = 0.0
     for a in range(nm):
         lam[sel[a]] = lc[a]
-    return lam
+
+
+@njit(cache=True)
+def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
+    """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
+    rows of this call (six allocations, whatever the number of chains and rows)."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    k = R.shape[0]
+    if k == 0:
+        return
+    # The rows grouped by chain, in the order of each chain's first row (group g:
+    # members[start[g]:start[g + 1]]), and the largest group's sizes.
+    ib = np.empty(2 * k + 1, dtype=np.int64)
+    members, start = ib[:k], ib[k:]
+    flags = np.zeros(2 * k, dtype=np.bool_)
+    done, mobile = flags[:k], flags[k:]
+    n_groups, o, kg_max, nc_max, resp_max = 0, 0, 0, 0, 0
+    for r0 in range(k):
+        if done[r0]:
+            continue
+        kg = gather_chain(I, chain_of, r0, done, members[o:])
+        c = chain_of[I[r0, SEG]]
+        nc = chain_end[c] - chain_start[c]
+        start[n_groups] = o
+        n_groups += 1
+        o += kg
+        kg_max, nc_max = max(kg_max, kg), max(nc_max, nc)
+        resp_max = max(resp_max, 3 * kg * nc)
+    start[n_groups] = o
+    # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
+    fb = np.empty(2 * resp_max + 3 * nc_max + kg_max * kg_max + kg_max)
+    ds = dense_scratch(kg_max)
+    for gi in range(n_groups):
+        mem = members[start[gi]:start[gi + 1]]
+        kg = mem.shape[0]
+        c = chain_of[I[mem[0], SEG]]
+        s, e = chain_start[c], chain_end[c]
+        nc = e - s
+        o = 0
+        rv, o = carve(fb, o, 3 * kg * nc)
+        rw, o = carve(fb, resp_max, 3 * kg * nc)
+        o = 2 * resp_max
+        c_dot, o = carve(fb, o, 3 * nc)
+        Wg, o = carve(fb, o, kg * kg)
+        lc, o = carve(fb, o, kg)
+        rv, rw = rv.reshape((kg, nc, 3)), rw.reshape((kg, nc, 3))
+        c_dot, W = c_dot.reshape((nc, 3)), Wg.reshape((kg, kg))
+        for a in range(kg):
+            row_response(R, I, mem[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a], c_dot)
+        delassus(R, I, mem, s, rv, rw, model, W, mobile[:kg])
+        chain_impulses(W, mobile[:kg], b, bound, mem, lc, ds)
+        for a in range(kg):
+            la = lc[a]
+            lam[mem[a]] = la
+            if la != 0.0:
+                for i in range(nc):
+                    for d in range(3):
+                        dv_out[s + i, d] += la * rv[a, i, d]
+                        dw_out[s + i, d] += la * rw[a, i, d]
 
 
 @njit(cache=True)
@@ -870,51 +1105,29 @@ def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
     mobility (a contact at the anchor) takes no impulse.
     """
-    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
-    k = R.shape[0]
-    lam = np.zeros(k)
-    done = np.zeros(k, dtype=np.bool_)
-    members = np.empty(k, dtype=np.int64)
-    for r0 in range(k):
-        if done[r0]:
-            continue
-        kg = gather_chain(I, chain_of, r0, done, members)
-        c = chain_of[I[r0, SEG]]
-        s, e = chain_start[c], chain_end[c]
-        rv = np.empty((kg, e - s, 3))
-        rw = np.empty((kg, e - s, 3))
-        for a in range(kg):
-            row_response(R, I, members[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a])
-        W = np.empty((kg, kg))
-        mobile = np.empty(kg, dtype=np.bool_)
-        delassus(R, I, members, s, rv, rw, model, W, mobile)
-        lc = chain_impulses(W, mobile, b, bound, members)
-        for a in range(kg):
-            lam[members[a]] = lc[a]
-            if lc[a] != 0.0:
-                dv_out[s:e] += lc[a] * rv[a]
-                dw_out[s:e] += lc[a] * rw[a]
+    lam = np.zeros(R.shape[0])
+    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
     return lam
 
 
 @njit(cache=True)
-def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
+def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
-    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place."""
+    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:
+    the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
     n = v.shape[0]
-    dv = np.zeros((n, 3))
-    dw = np.zeros((n, 3))
-    lam = solve_rows(R, I, b, np.zeros(0), h, inv_I, C, Lo, model, dv, dw)
+    k = R.shape[0]
+    dv, dw = ws[WS_N2], ws[WS_N3]
+    dv[:] = 0.0
+    dw[:] = 0.0
+    lam = ws[WS_LAM][:k]
+    solve_rows_into(R, I, b, ws[WS_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
             w[i, a] += dw[i, a]
-    k = R.shape[0]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
-    Rf = np.zeros((k, NCOL))
-    If = np.zeros((k, 3), dtype=np.int64)
-    speed = np.empty(k)
-    bound = np.empty(k)
+    Rf, If, speed, bound = ws[WS_FRIC], ws[WS_FRIC_IDS], ws[WS_SPEED], ws[WS_BOUND]
     kf = 0
     for r in range(k):
         if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
@@ -929,6 +1142,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
             continue
         t = (slip[0] / sp, slip[1] / sp, slip[2] / sp)
         ang = cross(arm, t)
+        Rf[kf, :] = 0.0
         for a in range(3):
             Rf[kf, LIN + a] = -t[a]
             Rf[kf, ANG + a] = -ang[a]
@@ -942,7 +1156,9 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
         return
     dv[:] = 0.0
     dw[:] = 0.0
-    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw)
+    # The normal impulses are spent: their buffer takes the friction impulses.
+    solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
+                    lam[:kf])
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -983,17 +1199,23 @@ def rotate_segments(q, dth, length):
 
 
 @njit(cache=True)
-def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, fac,
-                   stats):
+def factor_ws(q, model, ws):
+    """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
+    return factor_chain_into(q, model, ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO],
+                             ws[WS_G], ws[WS_D], ws[WS_L], ws[WS_R3])
+
+
+@njit(cache=True)
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
     rows and those within the skin (plus 4× the deepest violation), each displacement
     ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
     contact is deeper than ``POSITION_TOLERANCE`` (limits: the first pass). ``x``, ``q`` in
-    place. Returns ``(status, moved, R, I)``: the rows at the final pose."""
+    place. Returns ``(status, moved, R, I)``: the rows at the final pose (views of the
+    workspace ``ws``)."""
     length = model[LENGTH]
-    h, inv_I, C, Lo = fac
-    n = x.shape[0]
-    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
+    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
     moved = False
     for passes in range(POSITION_ITERATIONS):
         if R.shape[0] == 0:
@@ -1001,88 +1223,139 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         worst = deepest(R, I, passes == 0)
         if worst <= POSITION_TOLERANCE:
             break
-        active = np.empty(R.shape[0], dtype=np.bool_)
+        active = ws[WS_KEEP][:R.shape[0]]
         for r in range(R.shape[0]):
             skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
             active[r] = R[r, DEPTH] > -skin - 4.0 * worst
-        Rs, Is = take(R, I, active)
-        if not factor_chain(q, model, h, inv_I, C, Lo):
+        Rs, Is = take(R, I, active, ws[WS_SEL], ws[WS_SEL_IDS])
+        if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE, moved, R, I
-        b = -Rs[:, DEPTH]
-        dx = np.zeros((n, 3))
-        dth = np.zeros((n, 3))
-        solve_rows(Rs, Is, b, np.zeros(0), h, inv_I, C, Lo, model, dx, dth)
+        ks = Rs.shape[0]
+        b = ws[WS_B][:ks]
+        for r in range(ks):
+            b[r] = -Rs[r, DEPTH]
+        # The displacements (centres unused: positions are rebuilt from the rotations).
+        dx, dth = ws[WS_N2], ws[WS_N3]
+        dx[:] = 0.0
+        dth[:] = 0.0
+        solve_rows_into(Rs, Is, b, ws[WS_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
+                        ws[WS_LAM][:ks])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
-        x_old = x.copy()
+        x_old = ws[WS_N0]
+        x_old[:] = x
         half_vectors(length, q, h)
         project_positions(anchor[0], h, model, x)
         if small:
             # The predicted depths stand (error ~ l θ²), no second detection.
-            moved_rows(R, I, x - x_old, dth)
+            for i in range(x.shape[0]):
+                for a in range(3):
+                    dx[i, a] = x[i, a] - x_old[i, a]
+            moved_rows(R, I, dx, dth)
             break
-        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+        R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                               dt, ws)
     return OK, moved, R, I
 
 
 @njit(cache=True)
-def limit_stage(x, q, anchor, q_rest, model):
+def limit_stage(x, q, anchor, q_rest, model, ws):
     """The limits' exact projection (``project_limits``) for what the linearisation of their
     cones left; ``x``, ``q`` in place. Returns whether anything moved."""
-    n = q.shape[0]
-    q_lim = np.empty((n, 4))
+    q_lim = ws[WS_Q]
     if not project_limits(q, anchor[2], q_rest, model[IS_FIRST], model[CHAIN_OF],
                           model[CHAIN_START], model[CHAIN_END], model[LIMITED],
                           model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
         return False
     q[:] = q_lim
-    h = np.empty((n, 3))
+    h = ws[WS_N1]
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, x)
     return True
 
 
 @njit(cache=True)
-def unprojected_positions(x0, q0, q, anchor, model, x):
+def unprojected_positions(x0, q0, q, anchor, model, x, h, p0, p1):
     """Without projection the centres move by the rotations about the joints only:
-    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0)."""
-    n = x.shape[0]
-    h = np.empty((n, 3))
-    p0 = np.empty((n, 3))
+    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0). ``h``, ``p0``,
+    ``p1`` ``(n, 3)``: scratch."""
     half_vectors(model[LENGTH], q0, h)
     project_positions(anchor[0], h, model, p0)
-    p1 = np.empty((n, 3))
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, p1)
-    x[:] = x0 + (p1 - p0)
+    for i in range(x.shape[0]):
+        for a in range(3):
+            x[i, a] = x0[i, a] + (p1[i, a] - p0[i, a])
 
 
 @njit(cache=True)
-def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, fac, stats):
+def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, stats):
     """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
     steps at its current rate, gets the inelastic impulse of the LCP
     ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
     status (the chain is factorised here if it was not yet)."""
-    h, inv_I, C, Lo = fac
+    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
     k = R.shape[0]
-    keep = np.empty(k, dtype=np.bool_)
+    keep = ws[WS_KEEP][:k]
     for r in range(k):
         gap = -R[r, DEPTH]
         sep = R[r, SEP]
         skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
         keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
-    Rv, Iv = take(R, I, keep)
-    b = np.empty(Rv.shape[0])
-    for r in range(Rv.shape[0]):
+    Rv, Iv = take(R, I, keep, ws[WS_SEL], ws[WS_SEL_IDS])
+    kv = Rv.shape[0]
+    b = ws[WS_B][:kv]
+    closing = False
+    for r in range(kv):
         stats[0 if Iv[r, CONTACT] else 1] += 1
         b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
-    if not np.any(b < 0.0):
+        closing = closing or b[r] < 0.0
+    if not closing:
         return OK
-    if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
+    if not have_factor and not factor_ws(q, model, ws):
         return NOT_POSITIVE_DEFINITE
-    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
+    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w, ws)
     if project:
+        project_velocities(anchor[1], w, h, model, v)
+    return OK
+
+
+@njit(cache=True)
+def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                     project, dt, stats):
+    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state);
+    ``x0``, ``q0``: a copy of the step's positions (read only without ``project``; they must
+    not be ``x``, ``q`` themselves). Returns the status."""
+    n = x.shape[0]
+    stats[:] = 0
+    ws = resolve_workspace(n, model, det, pose, has_colliders)
+    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
+    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
+                                         has_colliders, dt, ws, stats)
+    if status != OK:
+        return status
+    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model, ws)
+    moved = moved or stale
+    if moved:
+        if not project:
+            unprojected_positions(x0, q0, q, anchor, model, x, ws[WS_N1], ws[WS_N0],
+                                  ws[WS_N2])
+        if not factor_ws(q, model, ws):
+            return NOT_POSITIVE_DEFINITE
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, ws[WS_N0], ws[WS_N2],
+                         ws[WS_N3])
+        if stale:
+            R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                                   dt, ws)
+        else:
+            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
+    if R.shape[0]:
+        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, ws, stats)
+        if status != OK:
+            return status
+    if moved and project:
+        half_vectors(model[LENGTH], q, h)
         project_velocities(anchor[1], w, h, model, v)
     return OK
 
@@ -1101,35 +1374,11 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
 
     Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
     unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
-    energy), ``velocity_stage``, and the centre velocities rebuilt from ω.
+    energy), ``velocity_stage``, and the centre velocities rebuilt from ω. All scratch is one
+    workspace (``workspace``), a few allocations per call (``resolve_in_place``: the same
+    without the four copies).
     """
-    n = x.shape[0]
-    x0, q0 = x, q
-    x, q, v, w = x.copy(), q.copy(), v.copy(), w.copy()
-    stats[:] = 0
-    fac = (np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
-    h, inv_I, C, Lo = fac
-    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
-                                         has_colliders, dt, fac, stats)
-    if status != OK:
-        return status, x, q, v, w
-    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model)
-    moved = moved or stale
-    if moved:
-        if not project:
-            unprojected_positions(x0, q0, q, anchor, model, x)
-        if not factor_chain(q, model, h, inv_I, C, Lo):
-            return NOT_POSITIVE_DEFINITE, x, q, v, w
-        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model)
-        if stale:
-            R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
-        else:
-            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
-    if R.shape[0]:
-        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, fac, stats)
-        if status != OK:
-            return status, x, q, v, w
-    if moved and project:
-        half_vectors(model[LENGTH], q, h)
-        project_velocities(anchor[1], w, h, model, v)
-    return OK, x, q, v, w
+    x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
+    status = resolve_in_place(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
+                              has_colliders, project, dt, stats)
+    return status, x1, q1, v1, w1
