@@ -421,13 +421,13 @@ def near(anchor_position, pose, v, w, det, dt):
  WS_Q, WS_AXIS, WS_GAP, WS_SEP, WS_B, WS_LAM, WS_SPEED, WS_BOUND, WS_KEEP) = range(31)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def carve(buf, o, size):
     """``buf[o:o + size]`` and the next offset."""
     return buf[o:o + size], o + size
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def workspace(n, m, K, nl):
     """The workspace of ``resolve`` (indices ``WS_*``): the factorisation (``h``, I⁻¹, pivots,
     ``Lo``: ``factor_chain``) and its blocks (G, D, L, two 3×3), three row tables (all rows,
@@ -484,7 +484,7 @@ def workspace(n, m, K, nl):
             axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def resolve_workspace(n, model, det, pose, has_colliders):
     """``workspace`` for a model (``n`` segments) and its colliders."""
     m = det[D_SEG].shape[0] if has_colliders else 0
@@ -516,7 +516,7 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
     return nrm, sub(ps, scale(radius, nrm))
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     """The contact rows into ``R``, ``I`` (segment-major, from row 0); returns their number.
     ``ws``: the workspace (its half-vectors and detection tables are overwritten)."""
@@ -591,7 +591,7 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws):
     """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it, valid until
     the next call."""
@@ -725,7 +725,7 @@ def dense_scratch(k):
             f[v + 5 * k:v + 6 * k], f[v + 6 * k:v + 7 * k], ib[:k], ib[k:], bb[:k], bb[k:])
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def square(buf, k):
     """The k×k matrix at the start of the flat buffer ``buf``."""
     return buf[:k * k].reshape((k, k))
@@ -1110,7 +1110,7 @@ def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     return lam
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
     then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:
@@ -1198,14 +1198,14 @@ def rotate_segments(q, dth, length):
     return unclamped and small < 0.1 * POSITION_TOLERANCE
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def factor_ws(q, model, ws):
     """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
     return factor_chain_into(q, model, ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO],
                              ws[WS_G], ws[WS_D], ws[WS_L], ws[WS_R3])
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
     rows and those within the skin (plus 4× the deepest violation), each displacement
@@ -1259,7 +1259,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     return OK, moved, R, I
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def limit_stage(x, q, anchor, q_rest, model, ws):
     """The limits' exact projection (``project_limits``) for what the linearisation of their
     cones left; ``x``, ``q`` in place. Returns whether anything moved."""
@@ -1289,7 +1289,7 @@ def unprojected_positions(x0, q0, q, anchor, model, x, h, p0, p1):
             x[i, a] = x0[i, a] + (p1[i, a] - p0[i, a])
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, stats):
     """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
     steps at its current rate, gets the inelastic impulse of the LCP
