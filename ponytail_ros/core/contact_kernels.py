@@ -46,6 +46,8 @@ MOBILITY = 1e-8              # a row the jointed chain moves less than this frac
                              # free segment's mobility (a contact at the anchor) is left out
 REG = 1e-9                   # relative regularisation of the (unit-diagonal) Delassus matrix
 PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
+PAIR_MARGIN = 1e-3           # m: the per-pair broad phase keeps pairs this much farther out
+                             # (rounding, and joints not exactly closed)
 
 # Columns of a row.
 LIN, ANG, APAR, ARM, VOTH, DEPTH, SEP, MU, NCOL = 0, 3, 6, 9, 12, 15, 16, 17, 18
@@ -320,6 +322,50 @@ def closest_segment_segment(p0, d1, a0, d2):
     return s, clip01(t)
 
 
+@njit(cache=True, inline='always')
+def detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out, own):
+    """``detect`` for colliding segment m (core ``p0 + s d1``, proximal to distal joint) and
+    collider j: entry ``[m, j]`` of each table."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    seg_radius, seg_length, inner = det[D_RADIUS], det[D_LENGTH], det[D_INNER]
+    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
+    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
+    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
+    f = first_of[m]
+    if j >= n_round:
+        nn = v3(normal, j)
+        off = dot(v3(a0, j), nn)
+        s1 = dot(add(p0, d1), nn) - off
+        if report:
+            s1 = min(s1, dot(p0, nn) - off)
+        depth[m, j] = seg_radius[m] - s1
+        s_out[m, j] = 1.0
+        t_out[m, j] = 0.0
+        own[m, j] = True
+        return
+    aj, dj = v3(a0, j), v3(d2, j)
+    if j < n_sphere:
+        s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
+        t = 0.0
+    else:
+        s, t = closest_segment_segment(p0, d1, aj, dj)
+    if f >= 0:
+        if root_fixed[f, j]:
+            is_rooted = rooted_fixed[f, j]
+        else:
+            is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
+                               sum_radius[m, j], seg_length[m])
+        if is_rooted:
+            e2 = max(dot(dj, dj), 1e-300)
+            s = max(s, ROOT_LEVER)
+            t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
+    diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
+    depth[m, j] = sum_radius[m, j] - norm(diff)
+    s_out[m, j] = s
+    t_out[m, j] = t
+    own[m, j] = not (inner[m] and s <= 0.0)
+
+
 @njit(cache=True)
 def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
@@ -331,82 +377,59 @@ def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
     first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
     """
-    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
-    seg, seg_radius, seg_length, inner = det[D_SEG], det[D_RADIUS], det[D_LENGTH], det[D_INNER]
-    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
-    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
-    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
-    K = a0.shape[0]
+    seg = det[D_SEG]
+    K = pose[P_A0].shape[0]
     for m in range(seg.shape[0]):
         g = seg[m]
         hg = v3(h, g)
         p0 = sub(v3(x, g), hg)
         d1 = scale(2.0, hg)
-        f = first_of[m]
         for j in range(K):
-            if j >= n_round:
-                nn = v3(normal, j)
-                off = dot(v3(a0, j), nn)
-                s1 = dot(add(p0, d1), nn) - off
-                if report:
-                    s1 = min(s1, dot(p0, nn) - off)
-                depth[m, j] = seg_radius[m] - s1
-                s_out[m, j] = 1.0
-                t_out[m, j] = 0.0
-                own[m, j] = True
-                continue
-            aj, dj = v3(a0, j), v3(d2, j)
-            if j < n_sphere:
-                s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
-                t = 0.0
-            else:
-                s, t = closest_segment_segment(p0, d1, aj, dj)
-            if f >= 0:
-                if root_fixed[f, j]:
-                    is_rooted = rooted_fixed[f, j]
-                else:
-                    is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
-                                       sum_radius[m, j], seg_length[m])
-                if is_rooted:
-                    e2 = max(dot(dj, dj), 1e-300)
-                    s = max(s, ROOT_LEVER)
-                    t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
-            diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
-            depth[m, j] = sum_radius[m, j] - norm(diff)
-            s_out[m, j] = s
-            t_out[m, j] = t
-            own[m, j] = not (inner[m] and s <= 0.0)
+            detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out,
+                        own)
 
 
-@njit(cache=True)
-def near(anchor_position, pose, v, w, det, dt):
-    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
-    its length (plus radius) about its anchor; its surface moves at most at its fastest
-    centre's speed plus its fastest spin times the longest half segment."""
-    a0, d2, normal, speed_col = pose[P_A0], pose[P_D2], pose[P_NORMAL], pose[P_SPEED]
-    det_chains, chain_reach, max_half_length, n_round, col_radius = (
-        det[D_CHAINS], det[D_CHAIN_REACH], det[D_MAX_HALF], det[D_N_ROUND], det[D_COL_RADIUS])
+@njit(cache=True, inline='always')
+def anchor_distance(anchor_position, pose, det, c, j):
+    """Distance (m) from colliding chain c's anchor (``det[D_CHAINS][c]``) to collider j's
+    surface: to a round collider's core minus its radius, a plane's signed height."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    p = v3(anchor_position, det[D_CHAINS][c])
+    aj = v3(a0, j)
+    if j < det[D_N_ROUND]:
+        dj = v3(d2, j)
+        rel = sub(p, aj)
+        e2 = max(dot(dj, dj), 1e-300)
+        t = clip01(dot(rel, dj) / e2)
+        return norm(sub(rel, scale(t, dj))) - det[D_COL_RADIUS][j]
+    nn = v3(normal, j)
+    return dot(p, nn) - dot(aj, nn)
+
+
+@njit(cache=True, inline='always')
+def surface_speed(pose, v, w, det):
+    """A bound (m/s) on how fast any colliding segment's surface nears any collider: the
+    fastest centre's speed, plus the fastest spin times the longest half segment, plus the
+    fastest collider's surface speed."""
     v2 = 0.0
     w2 = 0.0
     for i in range(v.shape[0]):
         v2 = max(v2, dot(v3(v, i), v3(v, i)))
         w2 = max(w2, dot(v3(w, i), v3(w, i)))
-    speed = math.sqrt(v2) + math.sqrt(w2) * max_half_length + np.max(speed_col)
+    return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + np.max(pose[P_SPEED])
+
+
+@njit(cache=True)
+def near(anchor_position, pose, v, w, det, dt):
+    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
+    its length (plus radius) about its anchor; its surface moves at most at
+    ``surface_speed``."""
+    det_chains, chain_reach = det[D_CHAINS], det[D_CHAIN_REACH]
+    speed = surface_speed(pose, v, w, det)
     for c in range(det_chains.shape[0]):
-        p = v3(anchor_position, det_chains[c])
         reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
-        for j in range(a0.shape[0]):
-            aj = v3(a0, j)
-            if j < n_round:
-                dj = v3(d2, j)
-                rel = sub(p, aj)
-                e2 = max(dot(dj, dj), 1e-300)
-                t = clip01(dot(rel, dj) / e2)
-                dist = norm(sub(rel, scale(t, dj))) - col_radius[j]
-            else:
-                nn = v3(normal, j)
-                dist = dot(p, nn) - dot(aj, nn)
-            if dist < reach:
+        for j in range(pose[P_A0].shape[0]):
+            if anchor_distance(anchor_position, pose, det, c, j) < reach:
                 return True
     return False
 
@@ -418,7 +441,8 @@ def near(anchor_position, pose, v, w, det, dt):
 # n_l limited joints). Indices into the tuple ``workspace`` returns:
 (WS_H, WS_INV_I, WS_PIVOTS, WS_LO, WS_G, WS_D, WS_L, WS_R3, WS_ROWS, WS_ROW_IDS, WS_SEL,
  WS_SEL_IDS, WS_FRIC, WS_FRIC_IDS, WS_DEPTH, WS_S, WS_T, WS_OWN, WS_N0, WS_N1, WS_N2, WS_N3,
- WS_Q, WS_AXIS, WS_GAP, WS_SEP, WS_B, WS_LAM, WS_SPEED, WS_BOUND, WS_KEEP) = range(31)
+ WS_Q, WS_AXIS, WS_GAP, WS_SEP, WS_B, WS_LAM, WS_SPEED, WS_BOUND, WS_KEEP, WS_PAIR_STATE,
+ WS_PAIR_LIST, WS_PAIR_COUNT, WS_SLOT_FIRST, WS_SLOT_END, WS_CHAIN_SLOT) = range(37)
 
 
 @njit(cache=True, inline='always')
@@ -428,18 +452,20 @@ def carve(buf, o, size):
 
 
 @njit(cache=True, inline='always')
-def workspace(n, m, K, nl):
+def workspace(n, m, K, nl, nd, n_chains):
     """The workspace of ``resolve`` (indices ``WS_*``): the factorisation (``h``, I⁻¹, pivots,
     ``Lo``: ``factor_chain``) and its blocks (G, D, L, two 3×3), three row tables (all rows,
     a selection, friction rows: ``(k_max, NCOL)`` floats and ``(k_max, 3)`` integers), the
     detection's ``(m, K)`` tables, four ``(n, 3)`` vectors and one ``(n, 4)``, the limits'
     axes, gaps and rates ``(2 n_l)``, per-row vectors ``(k_max)`` (right-hand side, impulses,
-    slip speeds, friction bounds) and a per-row mask."""
+    slip speeds, friction bounds), a per-row mask, and the per-pair broad phase's tables
+    (``near_pairs``: ``(nd, K)`` states and lists, per chain slot counts and segment ranges,
+    each chain's slot; nd colliding chains of n_chains)."""
     k_max = m * K + 2 * nl
     nf = (3 * n + 6 * 9 * n + 18 + 3 * k_max * NCOL + 3 * m * K + 4 * 3 * n + 4 * n
           + 3 * 2 * nl + 2 * 2 * nl + 4 * k_max)
     fb = np.empty(nf)
-    ib = np.empty(3 * k_max * 3, dtype=np.int64)
+    ib = np.empty(3 * k_max * 3 + 2 * nd * K + 3 * nd + n_chains, dtype=np.int64)
     bb = np.empty(m * K + k_max, dtype=np.bool_)
     o = 0
     h, o = carve(fb, o, 3 * n)
@@ -472,6 +498,12 @@ def workspace(n, m, K, nl):
     row_ids, o = carve(ib, o, 3 * k_max)
     sel_ids, o = carve(ib, o, 3 * k_max)
     fric_ids, o = carve(ib, o, 3 * k_max)
+    pair_state, o = carve(ib, o, nd * K)
+    pair_list, o = carve(ib, o, nd * K)
+    pair_count, o = carve(ib, o, nd)
+    slot_first, o = carve(ib, o, nd)
+    slot_end, o = carve(ib, o, nd)
+    chain_slot, o = carve(ib, o, n_chains)
     own, o = carve(bb, 0, m * K)
     keep, o = carve(bb, o, k_max)
     return (h.reshape((n, 3)), inv_I.reshape((n, 3, 3)), C.reshape((n, 3, 3)),
@@ -481,7 +513,9 @@ def workspace(n, m, K, nl):
             fric.reshape((k_max, NCOL)), fric_ids.reshape((k_max, 3)), depth.reshape((m, K)),
             s.reshape((m, K)), t.reshape((m, K)), own.reshape((m, K)), n0.reshape((n, 3)),
             n1.reshape((n, 3)), n2.reshape((n, 3)), n3.reshape((n, 3)), qs.reshape((n, 4)),
-            axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep)
+            axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep,
+            pair_state.reshape((nd, K)), pair_list.reshape((nd, K)), pair_count, slot_first,
+            slot_end, chain_slot)
 
 
 @njit(cache=True, inline='always')
@@ -489,7 +523,8 @@ def resolve_workspace(n, model, det, pose, has_colliders):
     """``workspace`` for a model (``n`` segments) and its colliders."""
     m = det[D_SEG].shape[0] if has_colliders else 0
     K = pose[P_A0].shape[0] if has_colliders else 0
-    return workspace(n, m, K, model[LIMITED].shape[0])
+    nd = det[D_CHAINS].shape[0] if has_colliders else 0
+    return workspace(n, m, K, model[LIMITED].shape[0], nd, model[CHAIN_START].shape[0])
 
 
 # -- rows ----------------------------------------------------------------------------------------
@@ -517,24 +552,91 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
 
 
 @njit(cache=True, inline='always')
+def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
+    """Broad phase per (colliding chain, collider) pair, then detection (``detect_pair``) of
+    every segment of the pairs kept; returns the position skin (``POSITION_SKIN`` plus 4×
+    the deepest violation, at least ``VELOCITY_SKIN``), as if every pair had been detected.
+
+    A pair is kept when the collider's surface is within the chain's reach (its length plus
+    radius about its anchor, ``near``) plus the skin, ``2 SPECULATIVE_STEPS dt`` times
+    ``surface_speed`` and ``PAIR_MARGIN``: a pair left out is then deeper outside than any
+    row could reach (its depth ≤ -(distance - reach)), so it would make no row and no depth
+    of it could raise the skin. Kept pairs can raise the skin, which can keep more pairs:
+    repeated until the skin stands. Pairs kept, per chain slot c (``det[D_CHAINS][c]``):
+    colliders ``ws[WS_PAIR_LIST][c, :ws[WS_PAIR_COUNT][c]]``, in column order."""
+    seg, det_chains, chain_reach = det[D_SEG], det[D_CHAINS], det[D_CHAIN_REACH]
+    chain_of = model[CHAIN_OF]
+    depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
+    state, pair_list, count = ws[WS_PAIR_STATE], ws[WS_PAIR_LIST], ws[WS_PAIR_COUNT]
+    first_seg, end_seg, slot = ws[WS_SLOT_FIRST], ws[WS_SLOT_END], ws[WS_CHAIN_SLOT]
+    nd, K = state.shape
+    # Each chain's colliding segments are consecutive in det[D_SEG].
+    for c in range(nd):
+        slot[det_chains[c]] = c
+        first_seg[c] = seg.shape[0]
+        end_seg[c] = 0
+    for i in range(seg.shape[0]):
+        c = slot[chain_of[seg[i]]]
+        first_seg[c] = min(first_seg[c], i)
+        end_seg[c] = i + 1
+    state[:] = 0            # 0: left out, 1: kept in this pass, 2: detected
+    speed = surface_speed(pose, v, w, det)
+    deepest = 0.0
+    skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
+    tested = -1.0
+    while skin > tested:
+        tested = skin
+        for c in range(nd):
+            reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
+                     + PAIR_MARGIN)
+            for j in range(K):
+                if state[c, j] == 0 and anchor_distance(anchor_position, pose, det, c,
+                                                        j) < reach:
+                    state[c, j] = 1
+        for c in range(nd):
+            for j in range(K):
+                if state[c, j] != 1:
+                    continue
+                state[c, j] = 2
+                for i in range(first_seg[c], end_seg[c]):
+                    g = seg[i]
+                    hg = v3(h, g)
+                    detect_pair(sub(v3(x, g), hg), scale(2.0, hg), anchor_position, pose, det,
+                                False, i, j, depth, s, t, own)
+                    deepest = max(deepest, depth[i, j])
+        skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
+    for c in range(nd):
+        count[c] = 0
+        for j in range(K):
+            if state[c, j] == 2:
+                pair_list[c, count[c]] = j
+                count[c] += 1
+    return skin
+
+
+@njit(cache=True, inline='always')
 def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     """The contact rows into ``R``, ``I`` (segment-major, from row 0); returns their number.
-    ``ws``: the workspace (its half-vectors and detection tables are overwritten)."""
+    ``ws``: the workspace (its half-vectors and detection tables are overwritten); only the
+    pairs ``near_pairs`` keeps are detected."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
     origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
                                           pose[P_SPEED])
-    m, K = seg.shape[0], pose[P_A0].shape[0]
+    chain_of = model[CHAIN_OF]
+    m = seg.shape[0]
     # The workspace's second (n, 3) vector: build_rows' callers keep nothing there.
     h = ws[WS_N1]
     half_vectors(model[LENGTH], q, h)
     depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
-    detect(x, h, anchor_position, pose, det, False, depth, s, t, own)
-    skin = max(POSITION_SKIN + 4.0 * max(np.max(depth), 0.0), VELOCITY_SKIN)
+    skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
+    pair_list, count, slot = ws[WS_PAIR_LIST], ws[WS_PAIR_COUNT], ws[WS_CHAIN_SLOT]
     k = 0
     for i in range(m):
         g = seg[i]
         speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
-        for j in range(K):
+        c = slot[chain_of[g]]
+        for jj in range(count[c]):
+            j = pair_list[c, jj]
             reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
             if not (own[i, j] and depth[i, j] > -reach):
                 continue
