@@ -46,6 +46,8 @@ MOBILITY = 1e-8              # a row the jointed chain moves less than this frac
                              # free segment's mobility (a contact at the anchor) is left out
 REG = 1e-9                   # relative regularisation of the (unit-diagonal) Delassus matrix
 PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
+ROW_COLLIDERS = 8            # the row tables hold m × min(K, this) + 2 n_l rows (m colliding
+                             # segments, K colliders, n_l limited joints); more are allocated
 PAIR_MARGIN = 1e-3           # m: the per-pair broad phase keeps pairs this much farther out
                              # (rounding, and joints not exactly closed)
 
@@ -407,6 +409,20 @@ def anchor_distance(anchor_position, pose, det, c, j):
 
 
 @njit(cache=True, inline='always')
+def outside_box(anchor_position, pose, det, c, j, reach):
+    """Is chain slot c's anchor farther than ``reach`` (m) along some axis from the box around
+    round collider j (its core's box grown by its radius)? Then it is farther than that from
+    the collider (a cheap test before ``anchor_distance``: no square root)."""
+    p = v3(anchor_position, det[D_CHAINS][c])
+    a0, d2, r = pose[P_A0], pose[P_D2], det[D_COL_RADIUS][j]
+    for a in range(3):
+        e = a0[j, a] + d2[j, a]
+        if p[a] < min(a0[j, a], e) - r - reach or p[a] > max(a0[j, a], e) + r + reach:
+            return True
+    return False
+
+
+@njit(cache=True, inline='always')
 def surface_speed(pose, v, w, det):
     """A bound (m/s) on how fast any colliding segment's surface nears any collider: the
     fastest centre's speed, plus the fastest spin times the longest half segment, plus the
@@ -455,17 +471,21 @@ def carve(buf, o, size):
 def workspace(n, m, K, nl, nd, n_chains):
     """The workspace of ``resolve`` (indices ``WS_*``): the factorisation (``h``, I⁻¹, pivots,
     ``Lo``: ``factor_chain``) and its blocks (G, D, L, two 3×3), three row tables (all rows,
-    a selection, friction rows: ``(k_max, NCOL)`` floats and ``(k_max, 3)`` integers), the
+    a selection, friction rows: ``(cap, NCOL)`` floats and ``(cap, 3)`` integers, see
+    ``ROW_COLLIDERS``; ``rows_room`` gives larger ones when needed), the
     detection's ``(m, K)`` tables, four ``(n, 3)`` vectors and one ``(n, 4)``, the limits'
     axes, gaps and rates ``(2 n_l)``, per-row vectors ``(k_max)`` (right-hand side, impulses,
     slip speeds, friction bounds), a per-row mask, and the per-pair broad phase's tables
     (``near_pairs``: ``(nd, K)`` states and lists, per chain slot counts and segment ranges,
     each chain's slot; nd colliding chains of n_chains)."""
     k_max = m * K + 2 * nl
-    nf = (3 * n + 6 * 9 * n + 18 + 3 * k_max * NCOL + 3 * m * K + 4 * 3 * n + 4 * n
+    # The row tables' capacity: a crowd's segments each near a few colliders of many (a
+    # workspace this small is reused by malloc, not mapped and faulted in at every call).
+    cap = m * min(K, ROW_COLLIDERS) + 2 * nl
+    nf = (3 * n + 6 * 9 * n + 18 + 3 * cap * NCOL + 3 * m * K + 4 * 3 * n + 4 * n
           + 3 * 2 * nl + 2 * 2 * nl + 4 * k_max)
     fb = np.empty(nf)
-    ib = np.empty(3 * k_max * 3 + 2 * nd * K + 3 * nd + n_chains, dtype=np.int64)
+    ib = np.empty(3 * cap * 3 + 2 * nd * K + 3 * nd + n_chains, dtype=np.int64)
     bb = np.empty(m * K + k_max, dtype=np.bool_)
     o = 0
     h, o = carve(fb, o, 3 * n)
@@ -476,9 +496,9 @@ def workspace(n, m, K, nl, nd, n_chains):
     D, o = carve(fb, o, 9 * n)
     L, o = carve(fb, o, 9 * n)
     R3, o = carve(fb, o, 18)
-    rows, o = carve(fb, o, k_max * NCOL)
-    sel, o = carve(fb, o, k_max * NCOL)
-    fric, o = carve(fb, o, k_max * NCOL)
+    rows, o = carve(fb, o, cap * NCOL)
+    sel, o = carve(fb, o, cap * NCOL)
+    fric, o = carve(fb, o, cap * NCOL)
     depth, o = carve(fb, o, m * K)
     s, o = carve(fb, o, m * K)
     t, o = carve(fb, o, m * K)
@@ -495,9 +515,9 @@ def workspace(n, m, K, nl, nd, n_chains):
     speed, o = carve(fb, o, k_max)
     bound, o = carve(fb, o, k_max)
     o = 0
-    row_ids, o = carve(ib, o, 3 * k_max)
-    sel_ids, o = carve(ib, o, 3 * k_max)
-    fric_ids, o = carve(ib, o, 3 * k_max)
+    row_ids, o = carve(ib, o, 3 * cap)
+    sel_ids, o = carve(ib, o, 3 * cap)
+    fric_ids, o = carve(ib, o, 3 * cap)
     pair_state, o = carve(ib, o, nd * K)
     pair_list, o = carve(ib, o, nd * K)
     pair_count, o = carve(ib, o, nd)
@@ -508,14 +528,22 @@ def workspace(n, m, K, nl, nd, n_chains):
     keep, o = carve(bb, o, k_max)
     return (h.reshape((n, 3)), inv_I.reshape((n, 3, 3)), C.reshape((n, 3, 3)),
             Lo.reshape((n, 3, 3)), G.reshape((n, 3, 3)), D.reshape((n, 3, 3)),
-            L.reshape((n, 3, 3)), R3.reshape((2, 3, 3)), rows.reshape((k_max, NCOL)),
-            row_ids.reshape((k_max, 3)), sel.reshape((k_max, NCOL)), sel_ids.reshape((k_max, 3)),
-            fric.reshape((k_max, NCOL)), fric_ids.reshape((k_max, 3)), depth.reshape((m, K)),
+            L.reshape((n, 3, 3)), R3.reshape((2, 3, 3)), rows.reshape((cap, NCOL)),
+            row_ids.reshape((cap, 3)), sel.reshape((cap, NCOL)), sel_ids.reshape((cap, 3)),
+            fric.reshape((cap, NCOL)), fric_ids.reshape((cap, 3)), depth.reshape((m, K)),
             s.reshape((m, K)), t.reshape((m, K)), own.reshape((m, K)), n0.reshape((n, 3)),
             n1.reshape((n, 3)), n2.reshape((n, 3)), n3.reshape((n, 3)), qs.reshape((n, 4)),
             axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep,
             pair_state.reshape((nd, K)), pair_list.reshape((nd, K)), pair_count, slot_first,
             slot_end, chain_slot)
+
+
+@njit(cache=True)
+def rows_room(R, I, k):
+    """``R``, ``I`` if they hold k rows, else new tables of k rows."""
+    if k <= R.shape[0]:
+        return R, I
+    return np.empty((k, NCOL)), np.empty((k, 3), dtype=np.int64)
 
 
 @njit(cache=True, inline='always')
@@ -590,8 +618,11 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
             reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
                      + PAIR_MARGIN)
             for j in range(K):
-                if state[c, j] == 0 and anchor_distance(anchor_position, pose, det, c,
-                                                        j) < reach:
+                if state[c, j] != 0:
+                    continue
+                if j < det[D_N_ROUND] and outside_box(anchor_position, pose, det, c, j, reach):
+                    continue
+                if anchor_distance(anchor_position, pose, det, c, j) < reach:
                     state[c, j] = 1
         for c in range(nd):
             for j in range(K):
@@ -616,7 +647,8 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
 
 @njit(cache=True, inline='always')
 def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
-    """The contact rows into ``R``, ``I`` (segment-major, from row 0); returns their number.
+    """The contact rows into ``R``, ``I`` (segment-major, from row 0; new tables if they could
+    be too small, with room for the limit rows): returns ``(number, R, I)``.
     ``ws``: the workspace (its half-vectors and detection tables are overwritten); only the
     pairs ``near_pairs`` keeps are detected."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
@@ -630,6 +662,12 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
     skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
     pair_list, count, slot = ws[WS_PAIR_LIST], ws[WS_PAIR_COUNT], ws[WS_CHAIN_SLOT]
+    first_seg, end_seg = ws[WS_SLOT_FIRST], ws[WS_SLOT_END]
+    # Room for every kept pair's segments, and for the limit rows after them.
+    most = 2 * model[LIMITED].shape[0]
+    for c in range(count.shape[0]):
+        most += (end_seg[c] - first_seg[c]) * count[c]
+    R, I = rows_room(R, I, most)
     k = 0
     for i in range(m):
         g = seg[i]
@@ -659,7 +697,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
             I[k, PAR] = -1
             I[k, CONTACT] = 1
             k += 1
-    return k
+    return k, R, I
 
 
 @njit(cache=True)
@@ -695,13 +733,13 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
 
 @njit(cache=True, inline='always')
 def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws):
-    """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it, valid until
-    the next call."""
+    """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it (or of new
+    tables if it is too small), valid until the next call."""
     nl = model[LIMITED].shape[0]
     R, I = ws[WS_ROWS], ws[WS_ROW_IDS]
     k = 0
     if has_colliders and near(anchor[0], pose, v, w, det, dt):
-        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
+        k, R, I = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
     if nl:
         k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_GAP],
                        ws[WS_SEP])
@@ -723,7 +761,9 @@ def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
 
 @njit(cache=True)
 def take(R, I, keep, R2, I2):
-    """The rows where ``keep``, into ``R2``, ``I2``: views of their first rows."""
+    """The rows where ``keep``, into ``R2``, ``I2`` (or new tables if they are too small):
+    views of their first rows."""
+    R2, I2 = rows_room(R2, I2, R.shape[0])
     k = 0
     for r in range(keep.shape[0]):
         if keep[r]:
@@ -1229,7 +1269,8 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
             v[i, a] += dv[i, a]
             w[i, a] += dw[i, a]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
-    Rf, If, speed, bound = ws[WS_FRIC], ws[WS_FRIC_IDS], ws[WS_SPEED], ws[WS_BOUND]
+    Rf, If = rows_room(ws[WS_FRIC], ws[WS_FRIC_IDS], k)
+    speed, bound = ws[WS_SPEED], ws[WS_BOUND]
     kf = 0
     for r in range(k):
         if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
