@@ -451,91 +451,48 @@ def near(anchor_position, pose, v, w, det, dt):
 
 
 # -- the workspace of one ``resolve`` call -------------------------------------------------------
-# Every array the stages need, as views into three flat buffers (one heap allocation each:
-# numba's allocations cost ~100 ns apiece, and the stages would otherwise make ~100 a step).
-# Sizes: n segments, k_max = m K + 2 n_l candidate rows (m colliding segments, K colliders,
-# n_l limited joints). Indices into the tuple ``workspace`` returns:
-(WS_H, WS_INV_I, WS_PIVOTS, WS_LO, WS_G, WS_D, WS_L, WS_R3, WS_ROWS, WS_ROW_IDS, WS_SEL,
- WS_SEL_IDS, WS_FRIC, WS_FRIC_IDS, WS_DEPTH, WS_S, WS_T, WS_OWN, WS_N0, WS_N1, WS_N2, WS_N3,
- WS_Q, WS_AXIS, WS_GAP, WS_SEP, WS_B, WS_LAM, WS_SPEED, WS_BOUND, WS_KEEP, WS_PAIR_STATE,
- WS_PAIR_LIST, WS_PAIR_COUNT, WS_SLOT_FIRST, WS_SLOT_END, WS_CHAIN_SLOT) = range(37)
-
-
-@njit(cache=True, inline='always')
-def carve(buf, o, size):
-    """``buf[o:o + size]`` and the next offset."""
-    return buf[o:o + size], o + size
+# Every array the stages need, allocated once per call (~100 allocations a step otherwise), as
+# few arrays as possible: each array in the tuple costs a reference-count increment and
+# decrement wherever the tuple is bound, and the stages bind it several times a step. Sizes:
+# n segments, m colliding segments, K colliders, n_l limited joints, k_max = m K + 2 n_l
+# candidate rows, cap the row tables' rows (``ROW_COLLIDERS``). Indices into the tuple, and
+# into the first axis of its stacked arrays:
+(WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
+ WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT) = range(15)
+# WS_VEC (5, n, 3): the half-vectors of the factorisation, then four scratch vectors.
+V_H, V_N0, V_N1, V_N2, V_N3 = range(5)
+# WS_MAT (6, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``factor_chain``), its blocks.
+M_INV_I, M_PIVOTS, M_LO, M_G, M_D, M_L = range(6)
+# WS_TABLES (3, cap, NCOL) floats and WS_IDS (3, cap, 3) integers: the row tables.
+T_ROWS, T_SEL, T_FRIC = range(3)
+# WS_DET (3, m, K): detection (``detect``); WS_LIM (2, 2 n_l): the limits' gaps and rates.
+DT_DEPTH, DT_S, DT_T = range(3)
+L_GAP, L_SEP = range(2)
+# WS_ROWVEC (4, k_max): per-row right-hand side, impulses, slip speeds, friction bounds.
+R_B, R_LAM, R_SPEED, R_BOUND = range(4)
+# WS_PAIRS (2, nd, K) and WS_SLOTS (3, nd) integers: the per-pair broad phase (``near_pairs``).
+PR_STATE, PR_LIST = range(2)
+S_COUNT, S_FIRST, S_END = range(3)
 
 
 @njit(cache=True, inline='always')
 def workspace(n, m, K, nl, nd, n_chains):
-    """The workspace of ``resolve`` (indices ``WS_*``): the factorisation (``h``, I⁻¹, pivots,
-    ``Lo``: ``factor_chain``) and its blocks (G, D, L, two 3×3), three row tables (all rows,
-    a selection, friction rows: ``(cap, NCOL)`` floats and ``(cap, 3)`` integers, see
-    ``ROW_COLLIDERS``; ``rows_room`` gives larger ones when needed), the
-    detection's ``(m, K)`` tables, four ``(n, 3)`` vectors and one ``(n, 4)``, the limits'
-    axes, gaps and rates ``(2 n_l)``, per-row vectors ``(k_max)`` (right-hand side, impulses,
-    slip speeds, friction bounds), a per-row mask, and the per-pair broad phase's tables
-    (``near_pairs``: ``(nd, K)`` states and lists, per chain slot counts and segment ranges,
-    each chain's slot; nd colliding chains of n_chains)."""
+    """The workspace of ``resolve`` (indices ``WS_*`` and, within the stacked arrays, the
+    names above): half-vectors and scratch vectors, the factorisation and its blocks, two 3×3,
+    the row tables (all rows, a selection, friction rows; ``rows_room`` gives larger ones when
+    needed), detection tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
+    gaps and rates, per-row vectors and a mask ``(k_max)``, and the per-pair broad phase's
+    tables (nd colliding chains of n_chains)."""
     k_max = m * K + 2 * nl
     # The row tables' capacity: a crowd's segments each near a few colliders of many (a
     # workspace this small is reused by malloc, not mapped and faulted in at every call).
     cap = m * min(K, ROW_COLLIDERS) + 2 * nl
-    nf = (3 * n + 6 * 9 * n + 18 + 3 * cap * NCOL + 3 * m * K + 4 * 3 * n + 4 * n
-          + 3 * 2 * nl + 2 * 2 * nl + 4 * k_max)
-    fb = np.empty(nf)
-    ib = np.empty(3 * cap * 3 + 2 * nd * K + 3 * nd + n_chains, dtype=np.int64)
-    bb = np.empty(m * K + k_max, dtype=np.bool_)
-    o = 0
-    h, o = carve(fb, o, 3 * n)
-    inv_I, o = carve(fb, o, 9 * n)
-    C, o = carve(fb, o, 9 * n)
-    Lo, o = carve(fb, o, 9 * n)
-    G, o = carve(fb, o, 9 * n)
-    D, o = carve(fb, o, 9 * n)
-    L, o = carve(fb, o, 9 * n)
-    R3, o = carve(fb, o, 18)
-    rows, o = carve(fb, o, cap * NCOL)
-    sel, o = carve(fb, o, cap * NCOL)
-    fric, o = carve(fb, o, cap * NCOL)
-    depth, o = carve(fb, o, m * K)
-    s, o = carve(fb, o, m * K)
-    t, o = carve(fb, o, m * K)
-    n0, o = carve(fb, o, 3 * n)
-    n1, o = carve(fb, o, 3 * n)
-    n2, o = carve(fb, o, 3 * n)
-    n3, o = carve(fb, o, 3 * n)
-    qs, o = carve(fb, o, 4 * n)
-    axis, o = carve(fb, o, 6 * nl)
-    gap, o = carve(fb, o, 2 * nl)
-    sep, o = carve(fb, o, 2 * nl)
-    b, o = carve(fb, o, k_max)
-    lam, o = carve(fb, o, k_max)
-    speed, o = carve(fb, o, k_max)
-    bound, o = carve(fb, o, k_max)
-    o = 0
-    row_ids, o = carve(ib, o, 3 * cap)
-    sel_ids, o = carve(ib, o, 3 * cap)
-    fric_ids, o = carve(ib, o, 3 * cap)
-    pair_state, o = carve(ib, o, nd * K)
-    pair_list, o = carve(ib, o, nd * K)
-    pair_count, o = carve(ib, o, nd)
-    slot_first, o = carve(ib, o, nd)
-    slot_end, o = carve(ib, o, nd)
-    chain_slot, o = carve(ib, o, n_chains)
-    own, o = carve(bb, 0, m * K)
-    keep, o = carve(bb, o, k_max)
-    return (h.reshape((n, 3)), inv_I.reshape((n, 3, 3)), C.reshape((n, 3, 3)),
-            Lo.reshape((n, 3, 3)), G.reshape((n, 3, 3)), D.reshape((n, 3, 3)),
-            L.reshape((n, 3, 3)), R3.reshape((2, 3, 3)), rows.reshape((cap, NCOL)),
-            row_ids.reshape((cap, 3)), sel.reshape((cap, NCOL)), sel_ids.reshape((cap, 3)),
-            fric.reshape((cap, NCOL)), fric_ids.reshape((cap, 3)), depth.reshape((m, K)),
-            s.reshape((m, K)), t.reshape((m, K)), own.reshape((m, K)), n0.reshape((n, 3)),
-            n1.reshape((n, 3)), n2.reshape((n, 3)), n3.reshape((n, 3)), qs.reshape((n, 4)),
-            axis.reshape((2 * nl, 3)), gap, sep, b, lam, speed, bound, keep,
-            pair_state.reshape((nd, K)), pair_list.reshape((nd, K)), pair_count, slot_first,
-            slot_end, chain_slot)
+    return (np.empty((5, n, 3)), np.empty((6, n, 3, 3)), np.empty((2, 3, 3)),
+            np.empty((3, cap, NCOL)), np.empty((3, cap, 3), dtype=np.int64),
+            np.empty((3, m, K)), np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
+            np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
+            np.empty(k_max, dtype=np.bool_), np.empty((2, nd, K), dtype=np.int64),
+            np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64))
 
 
 @njit(cache=True)
@@ -591,12 +548,12 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
     row could reach (its depth ≤ -(distance - reach)), so it would make no row and no depth
     of it could raise the skin. Kept pairs can raise the skin, which can keep more pairs:
     repeated until the skin stands. Pairs kept, per chain slot c (``det[D_CHAINS][c]``):
-    colliders ``ws[WS_PAIR_LIST][c, :ws[WS_PAIR_COUNT][c]]``, in column order."""
+    colliders ``ws[WS_PAIRS][PR_LIST][c, :ws[WS_SLOTS][S_COUNT][c]]``, in column order."""
     seg, det_chains, chain_reach = det[D_SEG], det[D_CHAINS], det[D_CHAIN_REACH]
     chain_of = model[CHAIN_OF]
-    depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
-    state, pair_list, count = ws[WS_PAIR_STATE], ws[WS_PAIR_LIST], ws[WS_PAIR_COUNT]
-    first_seg, end_seg, slot = ws[WS_SLOT_FIRST], ws[WS_SLOT_END], ws[WS_CHAIN_SLOT]
+    depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
+    state, pair_list, count = ws[WS_PAIRS][PR_STATE], ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT]
+    first_seg, end_seg, slot = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END], ws[WS_CHAIN_SLOT]
     nd, K = state.shape
     # Each chain's colliding segments are consecutive in det[D_SEG].
     for c in range(nd):
@@ -657,12 +614,12 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     chain_of = model[CHAIN_OF]
     m = seg.shape[0]
     # The workspace's second (n, 3) vector: build_rows' callers keep nothing there.
-    h = ws[WS_N1]
+    h = ws[WS_VEC][V_N1]
     half_vectors(model[LENGTH], q, h)
-    depth, s, t, own = ws[WS_DEPTH], ws[WS_S], ws[WS_T], ws[WS_OWN]
+    depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
     skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
-    pair_list, count, slot = ws[WS_PAIR_LIST], ws[WS_PAIR_COUNT], ws[WS_CHAIN_SLOT]
-    first_seg, end_seg = ws[WS_SLOT_FIRST], ws[WS_SLOT_END]
+    pair_list, count, slot = ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT], ws[WS_CHAIN_SLOT]
+    first_seg, end_seg = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END]
     # Room for every kept pair's segments, and for the limit rows after them.
     most = 2 * model[LIMITED].shape[0]
     for c in range(count.shape[0]):
@@ -736,13 +693,13 @@ def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
     """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it (or of new
     tables if it is too small), valid until the next call."""
     nl = model[LIMITED].shape[0]
-    R, I = ws[WS_ROWS], ws[WS_ROW_IDS]
+    R, I = ws[WS_TABLES][T_ROWS], ws[WS_IDS][T_ROWS]
     k = 0
     if has_colliders and near(anchor[0], pose, v, w, det, dt):
         k, R, I = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
     if nl:
-        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_GAP],
-                       ws[WS_SEP])
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_LIM][L_GAP],
+                       ws[WS_LIM][L_SEP])
     return R[:k], I[:k]
 
 
@@ -846,37 +803,29 @@ def lu_solve(A, b):
 
 
 # Scratch of the dense problems of one chain's k rows (``dense_scratch``), by index: four
-# flat k² buffers, seven k-vectors, two k-indices and two k-masks. Used by ``lcp_into``
-# (squares 1-3, vectors 0-3, index 0, masks), ``friction_step_into`` (squares 1-2) and
-# ``chain_impulses`` (square 0, vectors 4-6, index 1).
-(DS_SQ0, DS_SQ1, DS_SQ2, DS_SQ3, DS_V0, DS_V1, DS_V2, DS_V3, DS_V4, DS_V5, DS_V6, DS_IDX0,
- DS_IDX1, DS_M0, DS_M1) = range(15)
+# k×k matrices, seven k-vectors, two k-indices and two k-masks (stacked: four arrays). Used by
+# ``lcp_into`` (matrices 1-3, vectors 0-3, index 0, masks), ``friction_step_into`` (matrices
+# 1-2) and ``chain_impulses`` (matrix 0, vectors 4-6, index 1).
+DS_SQ, DS_VEC, DS_IDX, DS_MASK = range(4)
 
 
 @njit(cache=True)
 def dense_scratch(k):
-    """Fresh scratch for dense problems of up to k rows (indices ``DS_*``): three
-    allocations."""
-    f = np.empty(4 * k * k + 7 * k)
-    ib = np.empty(2 * k, dtype=np.int64)
-    bb = np.empty(2 * k, dtype=np.bool_)
-    q = k * k
-    v = 4 * q
-    return (f[:q], f[q:2 * q], f[2 * q:3 * q], f[3 * q:v], f[v:v + k], f[v + k:v + 2 * k],
-            f[v + 2 * k:v + 3 * k], f[v + 3 * k:v + 4 * k], f[v + 4 * k:v + 5 * k],
-            f[v + 5 * k:v + 6 * k], f[v + 6 * k:v + 7 * k], ib[:k], ib[k:], bb[:k], bb[k:])
+    """Fresh scratch for dense problems of up to k rows (indices ``DS_*``)."""
+    return (np.empty((4, k, k)), np.empty((7, k)), np.empty((2, k), dtype=np.int64),
+            np.empty((2, k), dtype=np.bool_))
 
 
 @njit(cache=True, inline='always')
-def square(buf, k):
-    """The k×k matrix at the start of the flat buffer ``buf``."""
-    return buf[:k * k].reshape((k, k))
+def square(A, k):
+    """The leading k×k block of the matrix ``A``."""
+    return A[:k, :k]
 
 
 @njit(cache=True)
 def solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, idx):
     """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``); ``sq_a``,
-    ``sq_m`` (flat, ≥ k²), ``rhs``, ``sol``, ``idx`` (≥ k): scratch."""
+    ``sq_m`` (≥ k×k), ``rhs``, ``sol``, ``idx`` (≥ k): scratch."""
     k = bs.shape[0]
     na = 0
     for i in range(k):
@@ -900,7 +849,7 @@ def solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, idx):
 def solve_active(Ws, bs, active, lam):
     """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
     k = bs.shape[0]
-    solve_active_into(Ws, bs, active, lam, np.empty(k * k), np.empty(k * k), np.empty(k),
+    solve_active_into(Ws, bs, active, lam, np.empty((k, k)), np.empty((k, k)), np.empty(k),
                       np.empty(k), np.empty(k, dtype=np.int64))
 
 
@@ -992,8 +941,8 @@ def lcp_into(W, b, out, ds, Ws):
     if k == 1:
         out[0] = max(-b[0] / W[0, 0], 0.0)
         return
-    d, bs, lam = ds[DS_V0][:k], ds[DS_V1][:k], out
-    active, bad = ds[DS_M0][:k], ds[DS_M1][:k]
+    d, bs, lam = ds[DS_VEC][0][:k], ds[DS_VEC][1][:k], out
+    active, bad = ds[DS_MASK][0][:k], ds[DS_MASK][1][:k]
     for i in range(k):
         d[i] = 1.0 / np.sqrt(W[i, i])
     for i in range(k):
@@ -1006,9 +955,9 @@ def lcp_into(W, b, out, ds, Ws):
         lam[i] = 0.0
         bad[i] = False
     # The active-set solve's scratch: two k² buffers, its right-hand side and solution.
-    sq_a, sq_m, rhs, sol = ds[DS_SQ1], ds[DS_SQ2], ds[DS_V2], ds[DS_V3]
+    sq_a, sq_m, rhs, sol = ds[DS_SQ][1], ds[DS_SQ][2], ds[DS_VEC][2], ds[DS_VEC][3]
     for it in range(4 * k + 8):
-        solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, ds[DS_IDX0])
+        solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, ds[DS_IDX][0])
         first = sign_violations(Ws, bs, active, lam, bad)
         if first < 0:
             for i in range(k):
@@ -1037,7 +986,7 @@ def lcp(W, b):
     k = b.shape[0]
     out = np.empty(k)
     ds = dense_scratch(k)
-    lcp_into(W, b, out, ds, square(ds[DS_SQ3], k))
+    lcp_into(W, b, out, ds, square(ds[DS_SQ][3], k))
     return out
 
 
@@ -1049,11 +998,11 @@ def friction_step_into(W, slip, bound, lam, ds):
     tr = 0.0
     for i in range(k):
         tr += W[i, i]
-    A = square(ds[DS_SQ1], k)
+    A = square(ds[DS_SQ][1], k)
     A[:] = W
     for i in range(k):
         A[i, i] += REG * tr / k
-    lu_solve_into(A, slip, square(ds[DS_SQ2], k), lam)
+    lu_solve_into(A, slip, square(ds[DS_SQ][2], k), lam)
     work = 0.0
     for i in range(k):
         lam[i] = min(max(lam[i], 0.0), bound[i])
@@ -1154,15 +1103,15 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
     symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others.
     ``ds``: ``dense_scratch`` of ≥ kg rows."""
     kg = W.shape[0]
-    sel = ds[DS_IDX1]
+    sel = ds[DS_IDX][1]
     nm = 0
     for a in range(kg):
         if mobile[a]:
             sel[nm] = a
             nm += 1
     friction = bound.shape[0] > 0
-    Wc = square(ds[DS_SQ0], nm)
-    bc, bnd, lc = ds[DS_V4][:nm], ds[DS_V5][:nm], ds[DS_V6][:nm]
+    Wc = square(ds[DS_SQ][0], nm)
+    bc, bnd, lc = ds[DS_VEC][4][:nm], ds[DS_VEC][5][:nm], ds[DS_VEC][6][:nm]
     for a in range(nm):
         bc[a] = b[members[sel[a]]]
         bnd[a] = bound[members[sel[a]]] if friction else 0.0
@@ -1171,7 +1120,7 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
     if friction:
         friction_step_into(Wc, bc, bnd, lc, ds)
     else:
-        lcp_into(Wc, bc, lc, ds, square(ds[DS_SQ3], nm))
+        lcp_into(Wc, bc, lc, ds, square(ds[DS_SQ][3], nm))
     lam[:] = 0.0
     for a in range(nm):
         lam[sel[a]] = lc[a]
@@ -1191,7 +1140,7 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
     members, start = ib[:k], ib[k:]
     flags = np.zeros(2 * k, dtype=np.bool_)
     done, mobile = flags[:k], flags[k:]
-    n_groups, o, kg_max, nc_max, resp_max = 0, 0, 0, 0, 0
+    n_groups, o, kg_max, nc_max = 0, 0, 0, 0
     for r0 in range(k):
         if done[r0]:
             continue
@@ -1202,10 +1151,10 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
         n_groups += 1
         o += kg
         kg_max, nc_max = max(kg_max, kg), max(nc_max, nc)
-        resp_max = max(resp_max, 3 * kg * nc)
     start[n_groups] = o
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
-    fb = np.empty(2 * resp_max + 3 * nc_max + kg_max * kg_max + kg_max)
+    rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
+    c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
     ds = dense_scratch(kg_max)
     for gi in range(n_groups):
         mem = members[start[gi]:start[gi + 1]]
@@ -1213,15 +1162,8 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
         c = chain_of[I[mem[0], SEG]]
         s, e = chain_start[c], chain_end[c]
         nc = e - s
-        o = 0
-        rv, o = carve(fb, o, 3 * kg * nc)
-        rw, o = carve(fb, resp_max, 3 * kg * nc)
-        o = 2 * resp_max
-        c_dot, o = carve(fb, o, 3 * nc)
-        Wg, o = carve(fb, o, kg * kg)
-        lc, o = carve(fb, o, kg)
-        rv, rw = rv.reshape((kg, nc, 3)), rw.reshape((kg, nc, 3))
-        c_dot, W = c_dot.reshape((nc, 3)), Wg.reshape((kg, kg))
+        rv, rw = rv_all[:kg, :nc], rw_all[:kg, :nc]
+        c_dot, W, lc = c_dot_all[:nc], W_all[:kg, :kg], lc_all[:kg]
         for a in range(kg):
             row_response(R, I, mem[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a], c_dot)
         delassus(R, I, mem, s, rv, rw, model, W, mobile[:kg])
@@ -1259,18 +1201,18 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
     n = v.shape[0]
     k = R.shape[0]
-    dv, dw = ws[WS_N2], ws[WS_N3]
+    dv, dw = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
     dv[:] = 0.0
     dw[:] = 0.0
-    lam = ws[WS_LAM][:k]
-    solve_rows_into(R, I, b, ws[WS_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam)
+    lam = ws[WS_ROWVEC][R_LAM][:k]
+    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
             w[i, a] += dw[i, a]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
-    Rf, If = rows_room(ws[WS_FRIC], ws[WS_FRIC_IDS], k)
-    speed, bound = ws[WS_SPEED], ws[WS_BOUND]
+    Rf, If = rows_room(ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC], k)
+    speed, bound = ws[WS_ROWVEC][R_SPEED], ws[WS_ROWVEC][R_BOUND]
     kf = 0
     for r in range(k):
         if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
@@ -1344,8 +1286,8 @@ def rotate_segments(q, dth, length):
 @njit(cache=True, inline='always')
 def factor_ws(q, model, ws):
     """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
-    return factor_chain_into(q, model, ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO],
-                             ws[WS_G], ws[WS_D], ws[WS_L], ws[WS_R3])
+    return factor_chain_into(q, model, ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO],
+                             ws[WS_MAT][M_G], ws[WS_MAT][M_D], ws[WS_MAT][M_L], ws[WS_R3])
 
 
 @njit(cache=True, inline='always')
@@ -1357,7 +1299,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     place. Returns ``(status, moved, R, I)``: the rows at the final pose (views of the
     workspace ``ws``)."""
     length = model[LENGTH]
-    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
     moved = False
     for passes in range(POSITION_ITERATIONS):
@@ -1370,23 +1312,23 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         for r in range(R.shape[0]):
             skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
             active[r] = R[r, DEPTH] > -skin - 4.0 * worst
-        Rs, Is = take(R, I, active, ws[WS_SEL], ws[WS_SEL_IDS])
+        Rs, Is = take(R, I, active, ws[WS_TABLES][T_SEL], ws[WS_IDS][T_SEL])
         if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE, moved, R, I
         ks = Rs.shape[0]
-        b = ws[WS_B][:ks]
+        b = ws[WS_ROWVEC][R_B][:ks]
         for r in range(ks):
             b[r] = -Rs[r, DEPTH]
         # The displacements (centres unused: positions are rebuilt from the rotations).
-        dx, dth = ws[WS_N2], ws[WS_N3]
+        dx, dth = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
         dx[:] = 0.0
         dth[:] = 0.0
-        solve_rows_into(Rs, Is, b, ws[WS_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
-                        ws[WS_LAM][:ks])
+        solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
+                        ws[WS_ROWVEC][R_LAM][:ks])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
-        x_old = ws[WS_N0]
+        x_old = ws[WS_VEC][V_N0]
         x_old[:] = x
         half_vectors(length, q, h)
         project_positions(anchor[0], h, model, x)
@@ -1412,7 +1354,7 @@ def limit_stage(x, q, anchor, q_rest, model, ws):
                           model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
         return False
     q[:] = q_lim
-    h = ws[WS_N1]
+    h = ws[WS_VEC][V_N1]
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, x)
     return True
@@ -1438,7 +1380,7 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
     steps at its current rate, gets the inelastic impulse of the LCP
     ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
     status (the chain is factorised here if it was not yet)."""
-    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     k = R.shape[0]
     keep = ws[WS_KEEP][:k]
     for r in range(k):
@@ -1446,9 +1388,9 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
         sep = R[r, SEP]
         skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
         keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
-    Rv, Iv = take(R, I, keep, ws[WS_SEL], ws[WS_SEL_IDS])
+    Rv, Iv = take(R, I, keep, ws[WS_TABLES][T_SEL], ws[WS_IDS][T_SEL])
     kv = Rv.shape[0]
-    b = ws[WS_B][:kv]
+    b = ws[WS_ROWVEC][R_B][:kv]
     closing = False
     for r in range(kv):
         stats[0 if Iv[r, CONTACT] else 1] += 1
@@ -1473,7 +1415,7 @@ def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_c
     n = x.shape[0]
     stats[:] = 0
     ws = resolve_workspace(n, model, det, pose, has_colliders)
-    h, inv_I, C, Lo = ws[WS_H], ws[WS_INV_I], ws[WS_PIVOTS], ws[WS_LO]
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws, stats)
     if status != OK:
@@ -1482,12 +1424,12 @@ def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_c
     moved = moved or stale
     if moved:
         if not project:
-            unprojected_positions(x0, q0, q, anchor, model, x, ws[WS_N1], ws[WS_N0],
-                                  ws[WS_N2])
+            unprojected_positions(x0, q0, q, anchor, model, x, ws[WS_VEC][V_N1], ws[WS_VEC][V_N0],
+                                  ws[WS_VEC][V_N2])
         if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE
-        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, ws[WS_N0], ws[WS_N2],
-                         ws[WS_N3])
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, ws[WS_VEC][V_N0], ws[WS_VEC][V_N2],
+                         ws[WS_VEC][V_N3])
         if stale:
             R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
                                    dt, ws)
