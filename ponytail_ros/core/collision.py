@@ -54,9 +54,11 @@ the result back into arrays and ``last``.
 Cost. Rows couple only within a chain: each row's response is one O(chain length) block
 solve, so a chain with k rows costs O(n_chain · k), and its k×k LCP is solved exactly
 (principal pivoting on the unit-diagonal W with dense exact solves; Lawson–Hanson as the
-fall-back). Per step: nothing without colliders or limits; one detection (O(n × colliders))
-when nothing is near; with contacts about two detections, two factorisations and one
-response per row.
+fall-back). Per step: nothing without colliders or limits; one broad phase per chain and
+collider, then detection only of the segments of the (chain, collider) pairs within reach
+(``contact_kernels.near_pairs``: a crowd's detection is O(n), not O(n × colliders)); with
+contacts about two detections, two factorisations and one response per row. The scratch of
+a call is one workspace (``contact_kernels.workspace``), a few allocations per call.
 """
 from dataclasses import dataclass
 

@@ -46,6 +46,10 @@ MOBILITY = 1e-8              # a row the jointed chain moves less than this frac
                              # free segment's mobility (a contact at the anchor) is left out
 REG = 1e-9                   # relative regularisation of the (unit-diagonal) Delassus matrix
 PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
+ROW_COLLIDERS = 8            # the row tables hold m × min(K, this) + 2 n_l rows (m colliding
+                             # segments, K colliders, n_l limited joints); more are allocated
+PAIR_MARGIN = 1e-3           # m: the per-pair broad phase keeps pairs this much farther out
+                             # (rounding, and joints not exactly closed)
 
 # Columns of a row.
 LIN, ANG, APAR, ARM, VOTH, DEPTH, SEP, MU, NCOL = 0, 3, 6, 9, 12, 15, 16, 17, 18
@@ -97,10 +101,10 @@ def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
 
 
 @njit(cache=True)
-def general_terms(qi, hi, inv_inertia, i, inv_I, G):
+def general_terms(qi, hi, inv_inertia, i, inv_I, G, R, SI):
     """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
-    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column."""
-    R = np.empty((3, 3))
+    G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column (``R``, ``SI``: 3×3
+    scratch)."""
     qmatrix(qi, R)
     for a in range(3):
         for b in range(3):
@@ -108,7 +112,6 @@ def general_terms(qi, hi, inv_inertia, i, inv_I, G):
             for c in range(3):
                 s += R[a, c] * inv_inertia[i, c] * R[b, c]
             inv_I[i, a, b] = s
-    SI = np.empty((3, 3))
     for b in range(3):
         col = cross(hi, (inv_I[i, 0, b], inv_I[i, 1, b], inv_I[i, 2, b]))
         for a in range(3):
@@ -141,9 +144,17 @@ def factor_chain(q, model, h, inv_I, C, Lo):
     inertias ``inv_I`` ``(n, 3, 3)`` and the factors (``C``, ``Lo``, ``chain_solve``) of
     A = J M⁻¹ Jᵀ (``joint_blocks``), G = [h]× I⁻¹ [h]× (``solver``). False if A is not
     positive definite."""
+    n = q.shape[0]
+    return factor_chain_into(q, model, h, inv_I, C, Lo, np.empty((n, 3, 3)),
+                             np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((2, 3, 3)))
+
+
+@njit(cache=True)
+def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
+    """``factor_chain`` with its scratch given: the blocks ``G``, ``D``, ``L`` ``(n, 3, 3)``
+    and two 3×3 matrices ``R3`` ``(2, 3, 3)``."""
     length, inv_inertia = model[LENGTH], model[INV_INERTIA]
     n = q.shape[0]
-    G = np.empty((n, 3, 3))
     for i in range(n):
         half = 0.5 * length[i]
         hi = scale(half, qaxis_x(q4(q, i)))
@@ -152,9 +163,7 @@ def factor_chain(q, model, h, inv_I, C, Lo):
         if model[AXISYMMETRIC]:
             axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G)
         else:
-            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G)
-    D = np.empty((n, 3, 3))
-    L = np.empty((n, 3, 3))
+            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G, R3[0], R3[1])
     joint_blocks(G, model[INV_MASS], model[IS_FIRST], D, L)
     return _chain_factor(D, L, model[IS_FIRST], C, Lo)
 
@@ -175,12 +184,12 @@ def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
 
 
 @njit(cache=True)
-def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
+def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, dw):
     """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
-    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's)."""
+    place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's).
+    ``c_dot``, ``dv``, ``dw`` ``(n, 3)``: scratch."""
     is_first, chain_of = model[IS_FIRST], model[CHAIN_OF]
     n = v.shape[0]
-    c_dot = np.empty((n, 3))
     for i in range(n):
         child = sub(v3(v, i), cross(v3(w, i), v3(h, i)))
         if is_first[i]:
@@ -191,8 +200,8 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model):
         for a in range(3):
             c_dot[i, a] = d[a]
     _chain_solve(C, Lo, is_first, c_dot)
-    dv = np.zeros((n, 3))
-    dw = np.zeros((n, 3))
+    dv[:] = 0.0
+    dw[:] = 0.0
     apply_joint_impulses(c_dot, h, inv_I, model, 0, n, dv, dw)
     for i in range(n):
         for a in range(3):
@@ -315,6 +324,50 @@ def closest_segment_segment(p0, d1, a0, d2):
     return s, clip01(t)
 
 
+@njit(cache=True, inline='always')
+def detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out, own):
+    """``detect`` for colliding segment m (core ``p0 + s d1``, proximal to distal joint) and
+    collider j: entry ``[m, j]`` of each table."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    seg_radius, seg_length, inner = det[D_RADIUS], det[D_LENGTH], det[D_INNER]
+    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
+    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
+    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
+    f = first_of[m]
+    if j >= n_round:
+        nn = v3(normal, j)
+        off = dot(v3(a0, j), nn)
+        s1 = dot(add(p0, d1), nn) - off
+        if report:
+            s1 = min(s1, dot(p0, nn) - off)
+        depth[m, j] = seg_radius[m] - s1
+        s_out[m, j] = 1.0
+        t_out[m, j] = 0.0
+        own[m, j] = True
+        return
+    aj, dj = v3(a0, j), v3(d2, j)
+    if j < n_sphere:
+        s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
+        t = 0.0
+    else:
+        s, t = closest_segment_segment(p0, d1, aj, dj)
+    if f >= 0:
+        if root_fixed[f, j]:
+            is_rooted = rooted_fixed[f, j]
+        else:
+            is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
+                               sum_radius[m, j], seg_length[m])
+        if is_rooted:
+            e2 = max(dot(dj, dj), 1e-300)
+            s = max(s, ROOT_LEVER)
+            t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
+    diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
+    depth[m, j] = sum_radius[m, j] - norm(diff)
+    s_out[m, j] = s
+    t_out[m, j] = t
+    own[m, j] = not (inner[m] and s <= 0.0)
+
+
 @njit(cache=True)
 def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
@@ -326,84 +379,137 @@ def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
     first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
     """
-    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
-    seg, seg_radius, seg_length, inner = det[D_SEG], det[D_RADIUS], det[D_LENGTH], det[D_INNER]
-    first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
-    root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
-    sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
-    K = a0.shape[0]
+    seg = det[D_SEG]
+    K = pose[P_A0].shape[0]
     for m in range(seg.shape[0]):
         g = seg[m]
         hg = v3(h, g)
         p0 = sub(v3(x, g), hg)
         d1 = scale(2.0, hg)
-        f = first_of[m]
         for j in range(K):
-            if j >= n_round:
-                nn = v3(normal, j)
-                off = dot(v3(a0, j), nn)
-                s1 = dot(add(p0, d1), nn) - off
-                if report:
-                    s1 = min(s1, dot(p0, nn) - off)
-                depth[m, j] = seg_radius[m] - s1
-                s_out[m, j] = 1.0
-                t_out[m, j] = 0.0
-                own[m, j] = True
-                continue
-            aj, dj = v3(a0, j), v3(d2, j)
-            if j < n_sphere:
-                s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
-                t = 0.0
-            else:
-                s, t = closest_segment_segment(p0, d1, aj, dj)
-            if f >= 0:
-                if root_fixed[f, j]:
-                    is_rooted = rooted_fixed[f, j]
-                else:
-                    is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
-                                       sum_radius[m, j], seg_length[m])
-                if is_rooted:
-                    e2 = max(dot(dj, dj), 1e-300)
-                    s = max(s, ROOT_LEVER)
-                    t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
-            diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
-            depth[m, j] = sum_radius[m, j] - norm(diff)
-            s_out[m, j] = s
-            t_out[m, j] = t
-            own[m, j] = not (inner[m] and s <= 0.0)
+            detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out,
+                        own)
 
 
-@njit(cache=True)
-def near(anchor_position, pose, v, w, det, dt):
-    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
-    its length (plus radius) about its anchor; its surface moves at most at its fastest
-    centre's speed plus its fastest spin times the longest half segment."""
-    a0, d2, normal, speed_col = pose[P_A0], pose[P_D2], pose[P_NORMAL], pose[P_SPEED]
-    det_chains, chain_reach, max_half_length, n_round, col_radius = (
-        det[D_CHAINS], det[D_CHAIN_REACH], det[D_MAX_HALF], det[D_N_ROUND], det[D_COL_RADIUS])
+@njit(cache=True, inline='always')
+def anchor_distance(anchor_position, pose, det, c, j):
+    """Distance (m) from colliding chain c's anchor (``det[D_CHAINS][c]``) to collider j's
+    surface: to a round collider's core minus its radius, a plane's signed height."""
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    p = v3(anchor_position, det[D_CHAINS][c])
+    aj = v3(a0, j)
+    if j < det[D_N_ROUND]:
+        dj = v3(d2, j)
+        rel = sub(p, aj)
+        e2 = max(dot(dj, dj), 1e-300)
+        t = clip01(dot(rel, dj) / e2)
+        return norm(sub(rel, scale(t, dj))) - det[D_COL_RADIUS][j]
+    nn = v3(normal, j)
+    return dot(p, nn) - dot(aj, nn)
+
+
+@njit(cache=True, inline='always')
+def outside_box(anchor_position, pose, det, c, j, reach):
+    """Is chain slot c's anchor farther than ``reach`` (m) along some axis from the box around
+    round collider j (its core's box grown by its radius)? Then it is farther than that from
+    the collider (a cheap test before ``anchor_distance``: no square root)."""
+    p = v3(anchor_position, det[D_CHAINS][c])
+    a0, d2, r = pose[P_A0], pose[P_D2], det[D_COL_RADIUS][j]
+    for a in range(3):
+        e = a0[j, a] + d2[j, a]
+        if p[a] < min(a0[j, a], e) - r - reach or p[a] > max(a0[j, a], e) + r + reach:
+            return True
+    return False
+
+
+@njit(cache=True, inline='always')
+def surface_speed(pose, v, w, det):
+    """A bound (m/s) on how fast any colliding segment's surface nears any collider: the
+    fastest centre's speed, plus the fastest spin times the longest half segment, plus the
+    fastest collider's surface speed."""
     v2 = 0.0
     w2 = 0.0
     for i in range(v.shape[0]):
         v2 = max(v2, dot(v3(v, i), v3(v, i)))
         w2 = max(w2, dot(v3(w, i), v3(w, i)))
-    speed = math.sqrt(v2) + math.sqrt(w2) * max_half_length + np.max(speed_col)
+    return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + np.max(pose[P_SPEED])
+
+
+@njit(cache=True)
+def near(anchor_position, pose, v, w, det, dt):
+    """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
+    its length (plus radius) about its anchor; its surface moves at most at
+    ``surface_speed``."""
+    det_chains, chain_reach = det[D_CHAINS], det[D_CHAIN_REACH]
+    speed = surface_speed(pose, v, w, det)
     for c in range(det_chains.shape[0]):
-        p = v3(anchor_position, det_chains[c])
         reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
-        for j in range(a0.shape[0]):
-            aj = v3(a0, j)
-            if j < n_round:
-                dj = v3(d2, j)
-                rel = sub(p, aj)
-                e2 = max(dot(dj, dj), 1e-300)
-                t = clip01(dot(rel, dj) / e2)
-                dist = norm(sub(rel, scale(t, dj))) - col_radius[j]
-            else:
-                nn = v3(normal, j)
-                dist = dot(p, nn) - dot(aj, nn)
-            if dist < reach:
+        for j in range(pose[P_A0].shape[0]):
+            if anchor_distance(anchor_position, pose, det, c, j) < reach:
                 return True
     return False
+
+
+# -- the workspace of one ``resolve`` call -------------------------------------------------------
+# Every array the stages need, allocated once per call (~100 allocations a step otherwise), as
+# few arrays as possible: each array in the tuple costs a reference-count increment and
+# decrement wherever the tuple is bound, and the stages bind it several times a step. Sizes:
+# n segments, m colliding segments, K colliders, n_l limited joints, k_max = m K + 2 n_l
+# candidate rows, cap the row tables' rows (``ROW_COLLIDERS``). Indices into the tuple, and
+# into the first axis of its stacked arrays:
+(WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
+ WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT) = range(15)
+# WS_VEC (5, n, 3): the half-vectors of the factorisation, then four scratch vectors.
+V_H, V_N0, V_N1, V_N2, V_N3 = range(5)
+# WS_MAT (6, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``factor_chain``), its blocks.
+M_INV_I, M_PIVOTS, M_LO, M_G, M_D, M_L = range(6)
+# WS_TABLES (3, cap, NCOL) floats and WS_IDS (3, cap, 3) integers: the row tables.
+T_ROWS, T_SEL, T_FRIC = range(3)
+# WS_DET (3, m, K): detection (``detect``); WS_LIM (2, 2 n_l): the limits' gaps and rates.
+DT_DEPTH, DT_S, DT_T = range(3)
+L_GAP, L_SEP = range(2)
+# WS_ROWVEC (4, k_max): per-row right-hand side, impulses, slip speeds, friction bounds.
+R_B, R_LAM, R_SPEED, R_BOUND = range(4)
+# WS_PAIRS (2, nd, K) and WS_SLOTS (3, nd) integers: the per-pair broad phase (``near_pairs``).
+PR_STATE, PR_LIST = range(2)
+S_COUNT, S_FIRST, S_END = range(3)
+
+
+@njit(cache=True, inline='always')
+def workspace(n, m, K, nl, nd, n_chains):
+    """The workspace of ``resolve`` (indices ``WS_*`` and, within the stacked arrays, the
+    names above): half-vectors and scratch vectors, the factorisation and its blocks, two 3×3,
+    the row tables (all rows, a selection, friction rows; ``rows_room`` gives larger ones when
+    needed), detection tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
+    gaps and rates, per-row vectors and a mask ``(k_max)``, and the per-pair broad phase's
+    tables (nd colliding chains of n_chains)."""
+    k_max = m * K + 2 * nl
+    # The row tables' capacity: a crowd's segments each near a few colliders of many (a
+    # workspace this small is reused by malloc, not mapped and faulted in at every call).
+    cap = m * min(K, ROW_COLLIDERS) + 2 * nl
+    return (np.empty((5, n, 3)), np.empty((6, n, 3, 3)), np.empty((2, 3, 3)),
+            np.empty((3, cap, NCOL)), np.empty((3, cap, 3), dtype=np.int64),
+            np.empty((3, m, K)), np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
+            np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
+            np.empty(k_max, dtype=np.bool_), np.empty((2, nd, K), dtype=np.int64),
+            np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64))
+
+
+@njit(cache=True)
+def rows_room(R, I, k):
+    """``R``, ``I`` if they hold k rows, else new tables of k rows."""
+    if k <= R.shape[0]:
+        return R, I
+    return np.empty((k, NCOL)), np.empty((k, 3), dtype=np.int64)
+
+
+@njit(cache=True, inline='always')
+def resolve_workspace(n, model, det, pose, has_colliders):
+    """``workspace`` for a model (``n`` segments) and its colliders."""
+    m = det[D_SEG].shape[0] if has_colliders else 0
+    K = pose[P_A0].shape[0] if has_colliders else 0
+    nd = det[D_CHAINS].shape[0] if has_colliders else 0
+    return workspace(n, m, K, model[LIMITED].shape[0], nd, model[CHAIN_START].shape[0])
 
 
 # -- rows ----------------------------------------------------------------------------------------
@@ -430,24 +536,102 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
     return nrm, sub(ps, scale(radius, nrm))
 
 
-@njit(cache=True)
-def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
-    """The contact rows into ``R``, ``I`` (segment-major); returns their number."""
+@njit(cache=True, inline='always')
+def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
+    """Broad phase per (colliding chain, collider) pair, then detection (``detect_pair``) of
+    every segment of the pairs kept; returns the position skin (``POSITION_SKIN`` plus 4×
+    the deepest violation, at least ``VELOCITY_SKIN``), as if every pair had been detected.
+
+    A pair is kept when the collider's surface is within the chain's reach (its length plus
+    radius about its anchor, ``near``) plus the skin, ``2 SPECULATIVE_STEPS dt`` times
+    ``surface_speed`` and ``PAIR_MARGIN``: a pair left out is then deeper outside than any
+    row could reach (its depth ≤ -(distance - reach)), so it would make no row and no depth
+    of it could raise the skin. Kept pairs can raise the skin, which can keep more pairs:
+    repeated until the skin stands. Pairs kept, per chain slot c (``det[D_CHAINS][c]``):
+    colliders ``ws[WS_PAIRS][PR_LIST][c, :ws[WS_SLOTS][S_COUNT][c]]``, in column order."""
+    seg, det_chains, chain_reach = det[D_SEG], det[D_CHAINS], det[D_CHAIN_REACH]
+    chain_of = model[CHAIN_OF]
+    depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
+    state, pair_list, count = ws[WS_PAIRS][PR_STATE], ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT]
+    first_seg, end_seg, slot = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END], ws[WS_CHAIN_SLOT]
+    nd, K = state.shape
+    # Each chain's colliding segments are consecutive in det[D_SEG].
+    for c in range(nd):
+        slot[det_chains[c]] = c
+        first_seg[c] = seg.shape[0]
+        end_seg[c] = 0
+    for i in range(seg.shape[0]):
+        c = slot[chain_of[seg[i]]]
+        first_seg[c] = min(first_seg[c], i)
+        end_seg[c] = i + 1
+    state[:] = 0            # 0: left out, 1: kept in this pass, 2: detected
+    speed = surface_speed(pose, v, w, det)
+    deepest = 0.0
+    skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
+    tested = -1.0
+    while skin > tested:
+        tested = skin
+        for c in range(nd):
+            reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
+                     + PAIR_MARGIN)
+            for j in range(K):
+                if state[c, j] != 0:
+                    continue
+                if j < det[D_N_ROUND] and outside_box(anchor_position, pose, det, c, j, reach):
+                    continue
+                if anchor_distance(anchor_position, pose, det, c, j) < reach:
+                    state[c, j] = 1
+        for c in range(nd):
+            for j in range(K):
+                if state[c, j] != 1:
+                    continue
+                state[c, j] = 2
+                for i in range(first_seg[c], end_seg[c]):
+                    g = seg[i]
+                    hg = v3(h, g)
+                    detect_pair(sub(v3(x, g), hg), scale(2.0, hg), anchor_position, pose, det,
+                                False, i, j, depth, s, t, own)
+                    deepest = max(deepest, depth[i, j])
+        skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
+    for c in range(nd):
+        count[c] = 0
+        for j in range(K):
+            if state[c, j] == 2:
+                pair_list[c, count[c]] = j
+                count[c] += 1
+    return skin
+
+
+@njit(cache=True, inline='always')
+def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
+    """The contact rows into ``R``, ``I`` (segment-major, from row 0; new tables if they could
+    be too small, with room for the limit rows): returns ``(number, R, I)``.
+    ``ws``: the workspace (its half-vectors and detection tables are overwritten); only the
+    pairs ``near_pairs`` keeps are detected."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
     origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
                                           pose[P_SPEED])
-    n, m, K = x.shape[0], seg.shape[0], pose[P_A0].shape[0]
-    h = np.empty((n, 3))
+    chain_of = model[CHAIN_OF]
+    m = seg.shape[0]
+    # The workspace's second (n, 3) vector: build_rows' callers keep nothing there.
+    h = ws[WS_VEC][V_N1]
     half_vectors(model[LENGTH], q, h)
-    depth, s, t = np.empty((m, K)), np.empty((m, K)), np.empty((m, K))
-    own = np.empty((m, K), dtype=np.bool_)
-    detect(x, h, anchor_position, pose, det, False, depth, s, t, own)
-    skin = max(POSITION_SKIN + 4.0 * max(np.max(depth), 0.0), VELOCITY_SKIN)
+    depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
+    skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
+    pair_list, count, slot = ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT], ws[WS_CHAIN_SLOT]
+    first_seg, end_seg = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END]
+    # Room for every kept pair's segments, and for the limit rows after them.
+    most = 2 * model[LIMITED].shape[0]
+    for c in range(count.shape[0]):
+        most += (end_seg[c] - first_seg[c]) * count[c]
+    R, I = rows_room(R, I, most)
     k = 0
     for i in range(m):
         g = seg[i]
         speed = norm(v3(v, g)) + norm(v3(w, g)) * 0.5 * seg_length[i]
-        for j in range(K):
+        c = slot[chain_of[g]]
+        for jj in range(count[c]):
+            j = pair_list[c, jj]
             reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
             if not (own[i, j] and depth[i, j] > -reach):
                 continue
@@ -457,6 +641,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
             v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
             rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
             ang = cross(arm, nrm)
+            R[k, :] = 0.0
             for a in range(3):
                 R[k, LIN + a] = nrm[a]
                 R[k, ANG + a] = ang[a]
@@ -469,20 +654,18 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I):
             I[k, PAR] = -1
             I[k, CONTACT] = 1
             k += 1
-    return k
+    return k, R, I
 
 
 @njit(cache=True)
-def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
+def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     """The limit rows (swing rows, then twist rows) into ``R``, ``I`` from row ``k`` on;
     returns the new number of rows. A limit is kept if violated, within ``ANGLE_SKIN`` plus
     4× the deepest violation (so that a correction does not push a neighbouring joint past
-    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps."""
+    its limit unseen), or closing within ``SPECULATIVE_STEPS`` steps. ``axis`` ``(2 n_l, 3)``,
+    ``gap``, ``sep`` ``(2 n_l)``: scratch (``limit_terms``)."""
     lim_idx, swing_limit, twist_limit = model[LIMITED], model[SWING_LIMIT], model[TWIST_LIMIT]
     nl = lim_idx.shape[0]
-    axis = np.empty((2 * nl, 3))
-    gap = np.empty(2 * nl)
-    sep = np.empty(2 * nl)
     limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
                 swing_limit, twist_limit, axis, gap, sep)
     skin = ANGLE_SKIN + 4.0 * max(-np.min(gap), 0.0)
@@ -492,6 +675,7 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
         closing = sep[r] < 0.0 and gap[r] < -SPECULATIVE_STEPS * dt * sep[r]
         if not (np.isfinite(limit) and (gap[r] < skin or closing)):
             continue
+        R[k, :] = 0.0
         for a in range(3):
             R[k, ANG + a] = -axis[r, a]
             R[k, APAR + a] = axis[r, a]
@@ -504,42 +688,46 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k):
     return k
 
 
+@njit(cache=True, inline='always')
+def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws):
+    """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it (or of new
+    tables if it is too small), valid until the next call."""
+    nl = model[LIMITED].shape[0]
+    R, I = ws[WS_TABLES][T_ROWS], ws[WS_IDS][T_ROWS]
+    k = 0
+    if has_colliders and near(anchor[0], pose, v, w, det, dt):
+        k, R, I = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
+    if nl:
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_LIM][L_GAP],
+                       ws[WS_LIM][L_SEP])
+    return R[:k], I[:k]
+
+
 @njit(cache=True)
 def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
-    """Contact and limit rows within reach of this step's stages: ``(R, I)``.
+    """Contact and limit rows within reach of this step's stages: ``(R, I)`` (new arrays).
 
     A pair is a candidate if it is inside, within the position skin, or could close within
     ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds (after the broad
     phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
     """
-    nl = model[LIMITED].shape[0]
-    m = det[D_SEG].shape[0] if has_colliders else 0
-    K = pose[P_A0].shape[0] if has_colliders else 0
-    R = np.zeros((m * K + 2 * nl, NCOL))
-    I = np.zeros((m * K + 2 * nl, 3), dtype=np.int64)
-    k = 0
-    if has_colliders and near(anchor[0], pose, v, w, det, dt):
-        k = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I)
-    if nl:
-        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k)
-    return R[:k].copy(), I[:k].copy()
+    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
+    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
+    return R.copy(), I.copy()
 
 
 @njit(cache=True)
-def take(R, I, keep):
-    """The rows where ``keep``."""
-    k = 0
-    for r in range(keep.shape[0]):
-        k += keep[r]
-    R2 = np.empty((k, NCOL))
-    I2 = np.empty((k, 3), dtype=np.int64)
+def take(R, I, keep, R2, I2):
+    """The rows where ``keep``, into ``R2``, ``I2`` (or new tables if they are too small):
+    views of their first rows."""
+    R2, I2 = rows_room(R2, I2, R.shape[0])
     k = 0
     for r in range(keep.shape[0]):
         if keep[r]:
             R2[k] = R[r]
             I2[k] = I[r]
             k += 1
-    return R2, I2
+    return R2[:k], I2[:k]
 
 
 @njit(cache=True)
@@ -578,11 +766,12 @@ def refresh_sep(R, I, v, w, anchor_omega, chain_of):
 
 # -- small dense problems ------------------------------------------------------------------------
 @njit(cache=True)
-def lu_solve(A, b):
-    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept."""
+def lu_solve_into(A, b, M, x):
+    """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept,
+    ``M`` (like A) receives the factors."""
     n = b.shape[0]
-    M = A.copy()
-    x = b.copy()
+    M[:] = A
+    x[:] = b
     for c in range(n):
         p = c
         for r in range(c + 1, n):
@@ -603,14 +792,41 @@ def lu_solve(A, b):
         for j in range(c + 1, n):
             s -= M[c, j] * x[j]
         x[c] = s / M[c, c]
-    return x
 
 
 @njit(cache=True)
-def solve_active(Ws, bs, active, lam):
-    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+def lu_solve(A, b):
+    """x with A x = b (``lu_solve_into``, new arrays)."""
+    x = np.empty(b.shape[0])
+    lu_solve_into(A, b, np.empty_like(A), x)
+    return x
+
+
+# Scratch of the dense problems of one chain's k rows (``dense_scratch``), by index: four
+# k×k matrices, seven k-vectors, two k-indices and two k-masks (stacked: four arrays). Used by
+# ``lcp_into`` (matrices 1-3, vectors 0-3, index 0, masks), ``friction_step_into`` (matrices
+# 1-2) and ``chain_impulses`` (matrix 0, vectors 4-6, index 1).
+DS_SQ, DS_VEC, DS_IDX, DS_MASK = range(4)
+
+
+@njit(cache=True)
+def dense_scratch(k):
+    """Fresh scratch for dense problems of up to k rows (indices ``DS_*``)."""
+    return (np.empty((4, k, k)), np.empty((7, k)), np.empty((2, k), dtype=np.int64),
+            np.empty((2, k), dtype=np.bool_))
+
+
+@njit(cache=True, inline='always')
+def square(A, k):
+    """The leading k×k block of the matrix ``A``."""
+    return A[:k, :k]
+
+
+@njit(cache=True)
+def solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, idx):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``); ``sq_a``,
+    ``sq_m`` (≥ k×k), ``rhs``, ``sol``, ``idx`` (≥ k): scratch."""
     k = bs.shape[0]
-    idx = np.empty(k, dtype=np.int64)
     na = 0
     for i in range(k):
         lam[i] = 0.0
@@ -619,15 +835,22 @@ def solve_active(Ws, bs, active, lam):
             na += 1
     if na == 0:
         return
-    A = np.empty((na, na))
-    rhs = np.empty(na)
+    A = square(sq_a, na)
     for a in range(na):
         rhs[a] = -bs[idx[a]]
         for b in range(na):
             A[a, b] = Ws[idx[a], idx[b]]
-    sol = lu_solve(A, rhs)
+    lu_solve_into(A, rhs[:na], square(sq_m, na), sol[:na])
     for a in range(na):
         lam[idx[a]] = sol[a]
+
+
+@njit(cache=True)
+def solve_active(Ws, bs, active, lam):
+    """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``)."""
+    k = bs.shape[0]
+    solve_active_into(Ws, bs, active, lam, np.empty((k, k)), np.empty((k, k)), np.empty(k),
+                      np.empty(k), np.empty(k, dtype=np.int64))
 
 
 @njit(cache=True)
@@ -705,6 +928,53 @@ def sign_violations(Ws, bs, active, lam, bad):
 
 
 @njit(cache=True)
+def lcp_into(W, b, out, ds, Ws):
+    """``lcp`` into ``out`` (k,), with the scratch ``ds`` (``dense_scratch`` of ≥ k rows;
+    ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix."""
+    k = b.shape[0]
+    any_closing = False
+    for i in range(k):
+        any_closing = any_closing or b[i] < 0.0
+    if not any_closing:
+        out[:] = 0.0
+        return
+    if k == 1:
+        out[0] = max(-b[0] / W[0, 0], 0.0)
+        return
+    d, bs, lam = ds[DS_VEC][0][:k], ds[DS_VEC][1][:k], out
+    active, bad = ds[DS_MASK][0][:k], ds[DS_MASK][1][:k]
+    for i in range(k):
+        d[i] = 1.0 / np.sqrt(W[i, i])
+    for i in range(k):
+        for j in range(k):
+            Ws[i, j] = W[i, j] * d[i] * d[j]
+        Ws[i, i] += REG
+    for i in range(k):
+        bs[i] = b[i] * d[i]
+        active[i] = bs[i] < 0.0
+        lam[i] = 0.0
+        bad[i] = False
+    # The active-set solve's scratch: two k² buffers, its right-hand side and solution.
+    sq_a, sq_m, rhs, sol = ds[DS_SQ][1], ds[DS_SQ][2], ds[DS_VEC][2], ds[DS_VEC][3]
+    for it in range(4 * k + 8):
+        solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, ds[DS_IDX][0])
+        first = sign_violations(Ws, bs, active, lam, bad)
+        if first < 0:
+            for i in range(k):
+                # max(λ, 0) as np.maximum has it (NaN kept), then unscaled.
+                out[i] = (0.0 if lam[i] < 0.0 else lam[i]) * d[i]
+            return
+        if it < 4:
+            for i in range(k):
+                active[i] ^= bad[i]
+        else:
+            active[first] = not active[first]
+    lam_fb = nnls_quadratic(Ws, bs)
+    for i in range(k):
+        out[i] = lam_fb[i] * d[i]
+
+
+@njit(cache=True)
 def lcp(W, b):
     """λ ≥ 0 with Wλ + b ≥ 0 and λ·(Wλ + b) = 0, W symmetric positive semi-definite.
 
@@ -714,45 +984,25 @@ def lcp(W, b):
     lowest index: Murty's rule, which terminates for positive definite W). Falls back to
     Lawson–Hanson (``nnls_quadratic``) if it ever stalls."""
     k = b.shape[0]
-    if not np.any(b < 0.0):
-        return np.zeros(k)
-    if k == 1:
-        return np.array([max(-b[0] / W[0, 0], 0.0)])
-    d = 1.0 / np.sqrt(np.diag(W))
-    Ws = np.empty((k, k))
-    for i in range(k):
-        for j in range(k):
-            Ws[i, j] = W[i, j] * d[i] * d[j]
-        Ws[i, i] += REG
-    bs = b * d
-    active = bs < 0.0
-    lam = np.zeros(k)
-    bad = np.zeros(k, dtype=np.bool_)
-    for it in range(4 * k + 8):
-        solve_active(Ws, bs, active, lam)
-        first = sign_violations(Ws, bs, active, lam, bad)
-        if first < 0:
-            return np.maximum(lam, 0.0) * d
-        if it < 4:
-            active ^= bad
-        else:
-            active[first] = not active[first]
-    return nnls_quadratic(Ws, bs) * d
+    out = np.empty(k)
+    ds = dense_scratch(k)
+    lcp_into(W, b, out, ds, square(ds[DS_SQ][3], k))
+    return out
 
 
 @njit(cache=True)
-def friction_step(W, slip, bound):
-    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
-    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
-    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+def friction_step_into(W, slip, bound, lam, ds):
+    """``friction_step`` into ``lam`` (k,), with the scratch ``ds`` (``dense_scratch`` of
+    ≥ k rows)."""
     k = slip.shape[0]
     tr = 0.0
     for i in range(k):
         tr += W[i, i]
-    A = W.copy()
+    A = square(ds[DS_SQ][1], k)
+    A[:] = W
     for i in range(k):
         A[i, i] += REG * tr / k
-    lam = lu_solve(A, slip)
+    lu_solve_into(A, slip, square(ds[DS_SQ][2], k), lam)
     work = 0.0
     for i in range(k):
         lam[i] = min(max(lam[i], 0.0), bound[i])
@@ -764,18 +1014,29 @@ def friction_step(W, slip, bound):
             s += lam[j] * W[j, i]
         quad += s * lam[i]
     if work <= 0.0 or quad <= 0.0:
-        return np.zeros(k)
+        lam[:] = 0.0
+        return
     alpha = min(1.0, work / quad)
     for i in range(k):
         lam[i] *= alpha
+
+
+@njit(cache=True)
+def friction_step(W, slip, bound):
+    """Friction impulses 0 ≤ λ ≤ bound against sliding speeds ``slip``: the impulse that would
+    stop all of them, clipped to the Coulomb bound, then scaled by α ∈ [0, 1] with
+    α ≤ λ·slip / λᵀWλ, so that ΔKE = -αλ·slip + ½α²λᵀWλ ≤ 0."""
+    lam = np.empty(slip.shape[0])
+    friction_step_into(W, slip, bound, lam, dense_scratch(slip.shape[0]))
     return lam
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
 @njit(cache=True)
-def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
+def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
-    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ."""
+    impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
+    ``c_dot`` ``(e - s, 3)``: scratch."""
     inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
     nc = e - s
     g, p = I[r, SEG], I[r, PAR]
@@ -791,7 +1052,6 @@ def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw):
         for a in range(3):
             dw[p - s, a] = dwp[a]
     # Joint velocity error: parent's distal point minus child's proximal point.
-    c_dot = np.empty((nc, 3))
     for i in range(nc):
         d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
         if i > 0:
@@ -838,25 +1098,84 @@ def delassus(R, I, members, s, rv, rw, model, W, mobile):
 
 
 @njit(cache=True)
-def chain_impulses(W, mobile, b, bound, members):
-    """λ of one chain's rows (index into ``members``): the mobile rows' LCP on the
-    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others."""
-    sel = np.flatnonzero(mobile)
-    nm = sel.shape[0]
+def chain_impulses(W, mobile, b, bound, members, lam, ds):
+    """λ ``(kg,)`` of one chain's rows (index into ``members``): the mobile rows' LCP on the
+    symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others.
+    ``ds``: ``dense_scratch`` of ≥ kg rows."""
+    kg = W.shape[0]
+    sel = ds[DS_IDX][1]
+    nm = 0
+    for a in range(kg):
+        if mobile[a]:
+            sel[nm] = a
+            nm += 1
     friction = bound.shape[0] > 0
-    Wc = np.empty((nm, nm))
-    bc = np.empty(nm)
-    bnd = np.empty(nm)
+    Wc = square(ds[DS_SQ][0], nm)
+    bc, bnd, lc = ds[DS_VEC][4][:nm], ds[DS_VEC][5][:nm], ds[DS_VEC][6][:nm]
     for a in range(nm):
         bc[a] = b[members[sel[a]]]
         bnd[a] = bound[members[sel[a]]] if friction else 0.0
         for bb in range(nm):
             Wc[a, bb] = 0.5 * (W[sel[a], sel[bb]] + W[sel[bb], sel[a]])
-    lc = friction_step(Wc, bc, bnd) if friction else lcp(Wc, bc)
-    lam = np.zeros(W.shape[0])
+    if friction:
+        friction_step_into(Wc, bc, bnd, lc, ds)
+    else:
+        lcp_into(Wc, bc, lc, ds, square(ds[DS_SQ][3], nm))
+    lam[:] = 0.0
     for a in range(nm):
         lam[sel[a]] = lc[a]
-    return lam
+
+
+@njit(cache=True)
+def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
+    """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
+    rows of this call (six allocations, whatever the number of chains and rows)."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    k = R.shape[0]
+    if k == 0:
+        return
+    # The rows grouped by chain, in the order of each chain's first row (group g:
+    # members[start[g]:start[g + 1]]), and the largest group's sizes.
+    ib = np.empty(2 * k + 1, dtype=np.int64)
+    members, start = ib[:k], ib[k:]
+    flags = np.zeros(2 * k, dtype=np.bool_)
+    done, mobile = flags[:k], flags[k:]
+    n_groups, o, kg_max, nc_max = 0, 0, 0, 0
+    for r0 in range(k):
+        if done[r0]:
+            continue
+        kg = gather_chain(I, chain_of, r0, done, members[o:])
+        c = chain_of[I[r0, SEG]]
+        nc = chain_end[c] - chain_start[c]
+        start[n_groups] = o
+        n_groups += 1
+        o += kg
+        kg_max, nc_max = max(kg_max, kg), max(nc_max, nc)
+    start[n_groups] = o
+    # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
+    rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
+    c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
+    ds = dense_scratch(kg_max)
+    for gi in range(n_groups):
+        mem = members[start[gi]:start[gi + 1]]
+        kg = mem.shape[0]
+        c = chain_of[I[mem[0], SEG]]
+        s, e = chain_start[c], chain_end[c]
+        nc = e - s
+        rv, rw = rv_all[:kg, :nc], rw_all[:kg, :nc]
+        c_dot, W, lc = c_dot_all[:nc], W_all[:kg, :kg], lc_all[:kg]
+        for a in range(kg):
+            row_response(R, I, mem[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a], c_dot)
+        delassus(R, I, mem, s, rv, rw, model, W, mobile[:kg])
+        chain_impulses(W, mobile[:kg], b, bound, mem, lc, ds)
+        for a in range(kg):
+            la = lc[a]
+            lam[mem[a]] = la
+            if la != 0.0:
+                for i in range(nc):
+                    for d in range(3):
+                        dv_out[s + i, d] += la * rv[a, i, d]
+                        dw_out[s + i, d] += la * rw[a, i, d]
 
 
 @njit(cache=True)
@@ -870,51 +1189,30 @@ def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     a row that the jointed chain moves less than ``MOBILITY`` times its free segment's
     mobility (a contact at the anchor) takes no impulse.
     """
-    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
-    k = R.shape[0]
-    lam = np.zeros(k)
-    done = np.zeros(k, dtype=np.bool_)
-    members = np.empty(k, dtype=np.int64)
-    for r0 in range(k):
-        if done[r0]:
-            continue
-        kg = gather_chain(I, chain_of, r0, done, members)
-        c = chain_of[I[r0, SEG]]
-        s, e = chain_start[c], chain_end[c]
-        rv = np.empty((kg, e - s, 3))
-        rw = np.empty((kg, e - s, 3))
-        for a in range(kg):
-            row_response(R, I, members[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a])
-        W = np.empty((kg, kg))
-        mobile = np.empty(kg, dtype=np.bool_)
-        delassus(R, I, members, s, rv, rw, model, W, mobile)
-        lc = chain_impulses(W, mobile, b, bound, members)
-        for a in range(kg):
-            lam[members[a]] = lc[a]
-            if lc[a] != 0.0:
-                dv_out[s:e] += lc[a] * rv[a]
-                dw_out[s:e] += lc[a] * rw[a]
+    lam = np.zeros(R.shape[0])
+    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
     return lam
 
 
-@njit(cache=True)
-def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
+@njit(cache=True, inline='always')
+def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
-    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place."""
+    then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:
+    the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
     n = v.shape[0]
-    dv = np.zeros((n, 3))
-    dw = np.zeros((n, 3))
-    lam = solve_rows(R, I, b, np.zeros(0), h, inv_I, C, Lo, model, dv, dw)
+    k = R.shape[0]
+    dv, dw = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
+    dv[:] = 0.0
+    dw[:] = 0.0
+    lam = ws[WS_ROWVEC][R_LAM][:k]
+    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
             w[i, a] += dw[i, a]
-    k = R.shape[0]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
-    Rf = np.zeros((k, NCOL))
-    If = np.zeros((k, 3), dtype=np.int64)
-    speed = np.empty(k)
-    bound = np.empty(k)
+    Rf, If = rows_room(ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC], k)
+    speed, bound = ws[WS_ROWVEC][R_SPEED], ws[WS_ROWVEC][R_BOUND]
     kf = 0
     for r in range(k):
         if not (I[r, CONTACT] and lam[r] > 0.0 and R[r, MU] > 0.0):
@@ -929,6 +1227,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
             continue
         t = (slip[0] / sp, slip[1] / sp, slip[2] / sp)
         ang = cross(arm, t)
+        Rf[kf, :] = 0.0
         for a in range(3):
             Rf[kf, LIN + a] = -t[a]
             Rf[kf, ANG + a] = -ang[a]
@@ -942,7 +1241,9 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w):
         return
     dv[:] = 0.0
     dw[:] = 0.0
-    solve_rows(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw)
+    # The normal impulses are spent: their buffer takes the friction impulses.
+    solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
+                    lam[:kf])
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -982,18 +1283,24 @@ def rotate_segments(q, dth, length):
     return unclamped and small < 0.1 * POSITION_TOLERANCE
 
 
-@njit(cache=True)
-def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, fac,
-                   stats):
+@njit(cache=True, inline='always')
+def factor_ws(q, model, ws):
+    """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
+    return factor_chain_into(q, model, ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO],
+                             ws[WS_MAT][M_G], ws[WS_MAT][M_D], ws[WS_MAT][M_L], ws[WS_R3])
+
+
+@njit(cache=True, inline='always')
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
     rows and those within the skin (plus 4× the deepest violation), each displacement
     ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
     contact is deeper than ``POSITION_TOLERANCE`` (limits: the first pass). ``x``, ``q`` in
-    place. Returns ``(status, moved, R, I)``: the rows at the final pose."""
+    place. Returns ``(status, moved, R, I)``: the rows at the final pose (views of the
+    workspace ``ws``)."""
     length = model[LENGTH]
-    h, inv_I, C, Lo = fac
-    n = x.shape[0]
-    R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
+    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
     moved = False
     for passes in range(POSITION_ITERATIONS):
         if R.shape[0] == 0:
@@ -1001,88 +1308,139 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         worst = deepest(R, I, passes == 0)
         if worst <= POSITION_TOLERANCE:
             break
-        active = np.empty(R.shape[0], dtype=np.bool_)
+        active = ws[WS_KEEP][:R.shape[0]]
         for r in range(R.shape[0]):
             skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
             active[r] = R[r, DEPTH] > -skin - 4.0 * worst
-        Rs, Is = take(R, I, active)
-        if not factor_chain(q, model, h, inv_I, C, Lo):
+        Rs, Is = take(R, I, active, ws[WS_TABLES][T_SEL], ws[WS_IDS][T_SEL])
+        if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE, moved, R, I
-        b = -Rs[:, DEPTH]
-        dx = np.zeros((n, 3))
-        dth = np.zeros((n, 3))
-        solve_rows(Rs, Is, b, np.zeros(0), h, inv_I, C, Lo, model, dx, dth)
+        ks = Rs.shape[0]
+        b = ws[WS_ROWVEC][R_B][:ks]
+        for r in range(ks):
+            b[r] = -Rs[r, DEPTH]
+        # The displacements (centres unused: positions are rebuilt from the rotations).
+        dx, dth = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
+        dx[:] = 0.0
+        dth[:] = 0.0
+        solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
+                        ws[WS_ROWVEC][R_LAM][:ks])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
-        x_old = x.copy()
+        x_old = ws[WS_VEC][V_N0]
+        x_old[:] = x
         half_vectors(length, q, h)
         project_positions(anchor[0], h, model, x)
         if small:
             # The predicted depths stand (error ~ l θ²), no second detection.
-            moved_rows(R, I, x - x_old, dth)
+            for i in range(x.shape[0]):
+                for a in range(3):
+                    dx[i, a] = x[i, a] - x_old[i, a]
+            moved_rows(R, I, dx, dth)
             break
-        R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
+        R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                               dt, ws)
     return OK, moved, R, I
 
 
-@njit(cache=True)
-def limit_stage(x, q, anchor, q_rest, model):
+@njit(cache=True, inline='always')
+def limit_stage(x, q, anchor, q_rest, model, ws):
     """The limits' exact projection (``project_limits``) for what the linearisation of their
     cones left; ``x``, ``q`` in place. Returns whether anything moved."""
-    n = q.shape[0]
-    q_lim = np.empty((n, 4))
+    q_lim = ws[WS_Q]
     if not project_limits(q, anchor[2], q_rest, model[IS_FIRST], model[CHAIN_OF],
                           model[CHAIN_START], model[CHAIN_END], model[LIMITED],
                           model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
         return False
     q[:] = q_lim
-    h = np.empty((n, 3))
+    h = ws[WS_VEC][V_N1]
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, x)
     return True
 
 
 @njit(cache=True)
-def unprojected_positions(x0, q0, q, anchor, model, x):
+def unprojected_positions(x0, q0, q, anchor, model, x, h, p0, p1):
     """Without projection the centres move by the rotations about the joints only:
-    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0)."""
-    n = x.shape[0]
-    h = np.empty((n, 3))
-    p0 = np.empty((n, 3))
+    x = x0 + (joint-closed centres at q) - (joint-closed centres at q0). ``h``, ``p0``,
+    ``p1`` ``(n, 3)``: scratch."""
     half_vectors(model[LENGTH], q0, h)
     project_positions(anchor[0], h, model, p0)
-    p1 = np.empty((n, 3))
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, p1)
-    x[:] = x0 + (p1 - p0)
+    for i in range(x.shape[0]):
+        for a in range(3):
+            x[i, a] = x0[i, a] + (p1[i, a] - p0[i, a])
 
 
-@njit(cache=True)
-def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, fac, stats):
+@njit(cache=True, inline='always')
+def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, stats):
     """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
     steps at its current rate, gets the inelastic impulse of the LCP
     ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
     status (the chain is factorised here if it was not yet)."""
-    h, inv_I, C, Lo = fac
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     k = R.shape[0]
-    keep = np.empty(k, dtype=np.bool_)
+    keep = ws[WS_KEEP][:k]
     for r in range(k):
         gap = -R[r, DEPTH]
         sep = R[r, SEP]
         skin = VELOCITY_SKIN if I[r, CONTACT] else ANGLE_SKIN
         keep[r] = gap < skin or (sep < 0.0 and gap < -SPECULATIVE_STEPS * dt * sep)
-    Rv, Iv = take(R, I, keep)
-    b = np.empty(Rv.shape[0])
-    for r in range(Rv.shape[0]):
+    Rv, Iv = take(R, I, keep, ws[WS_TABLES][T_SEL], ws[WS_IDS][T_SEL])
+    kv = Rv.shape[0]
+    b = ws[WS_ROWVEC][R_B][:kv]
+    closing = False
+    for r in range(kv):
         stats[0 if Iv[r, CONTACT] else 1] += 1
         b[r] = Rv[r, SEP] + max(-Rv[r, DEPTH], 0.0) / dt
-    if not np.any(b < 0.0):
+        closing = closing or b[r] < 0.0
+    if not closing:
         return OK
-    if not have_factor and not factor_chain(q, model, h, inv_I, C, Lo):
+    if not have_factor and not factor_ws(q, model, ws):
         return NOT_POSITIVE_DEFINITE
-    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w)
+    velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w, ws)
     if project:
+        project_velocities(anchor[1], w, h, model, v)
+    return OK
+
+
+@njit(cache=True)
+def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                     project, dt, stats):
+    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state);
+    ``x0``, ``q0``: a copy of the step's positions (read only without ``project``; they must
+    not be ``x``, ``q`` themselves). Returns the status."""
+    n = x.shape[0]
+    stats[:] = 0
+    ws = resolve_workspace(n, model, det, pose, has_colliders)
+    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
+    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
+                                         has_colliders, dt, ws, stats)
+    if status != OK:
+        return status
+    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model, ws)
+    moved = moved or stale
+    if moved:
+        if not project:
+            unprojected_positions(x0, q0, q, anchor, model, x, ws[WS_VEC][V_N1], ws[WS_VEC][V_N0],
+                                  ws[WS_VEC][V_N2])
+        if not factor_ws(q, model, ws):
+            return NOT_POSITIVE_DEFINITE
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, ws[WS_VEC][V_N0], ws[WS_VEC][V_N2],
+                         ws[WS_VEC][V_N3])
+        if stale:
+            R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                                   dt, ws)
+        else:
+            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
+    if R.shape[0]:
+        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, ws, stats)
+        if status != OK:
+            return status
+    if moved and project:
+        half_vectors(model[LENGTH], q, h)
         project_velocities(anchor[1], w, h, model, v)
     return OK
 
@@ -1101,35 +1459,11 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
 
     Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
     unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
-    energy), ``velocity_stage``, and the centre velocities rebuilt from ω.
+    energy), ``velocity_stage``, and the centre velocities rebuilt from ω. All scratch is one
+    workspace (``workspace``), a few allocations per call (``resolve_in_place``: the same
+    without the four copies).
     """
-    n = x.shape[0]
-    x0, q0 = x, q
-    x, q, v, w = x.copy(), q.copy(), v.copy(), w.copy()
-    stats[:] = 0
-    fac = (np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
-    h, inv_I, C, Lo = fac
-    status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
-                                         has_colliders, dt, fac, stats)
-    if status != OK:
-        return status, x, q, v, w
-    stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model)
-    moved = moved or stale
-    if moved:
-        if not project:
-            unprojected_positions(x0, q0, q, anchor, model, x)
-        if not factor_chain(q, model, h, inv_I, C, Lo):
-            return NOT_POSITIVE_DEFINITE, x, q, v, w
-        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model)
-        if stale:
-            R, I = build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt)
-        else:
-            refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
-    if R.shape[0]:
-        status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, fac, stats)
-        if status != OK:
-            return status, x, q, v, w
-    if moved and project:
-        half_vectors(model[LENGTH], q, h)
-        project_velocities(anchor[1], w, h, model, v)
-    return OK, x, q, v, w
+    x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
+    status = resolve_in_place(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
+                              has_colliders, project, dt, stats)
+    return status, x1, q1, v1, w1
