@@ -103,8 +103,12 @@ def test_two_namespaced_nodes_side_by_side_and_clean_shutdown(ros_context, proce
     assert np.linalg.norm(ob[0] - attach_point(p_bob, q_bob, ATTACH)) < 1e-6
     assert a.header.frame_id == 'map' and b.header.frame_id == 'odom'
     assert got['unqualified'] == []          # relative names: nothing outside the namespaces
-    names = node.get_node_names_and_namespaces()
-    assert ('ponytail', '/alice') in names and ('ponytail', '/bob') in names
+    # The graph is eventually consistent: a node's name may reach us after its messages.
+    want = {('ponytail', '/alice'), ('ponytail', '/bob')}
+    end = time.monotonic() + 10.0
+    while not want <= set(node.get_node_names_and_namespaces()) and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    assert want <= set(node.get_node_names_and_namespaces())
     ex.shutdown()
     node.destroy_node()
 

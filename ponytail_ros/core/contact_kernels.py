@@ -537,7 +537,7 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
 
 
 @njit(cache=True, inline='always')
-def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):
+def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: C901 (kernel loops)
     """Broad phase per (colliding chain, collider) pair, then detection (``detect_pair``) of
     every segment of the pairs kept; returns the position skin (``POSITION_SKIN`` plus 4×
     the deepest violation, at least ``VELOCITY_SKIN``), as if every pair had been detected.
@@ -928,7 +928,7 @@ def sign_violations(Ws, bs, active, lam, bad):
 
 
 @njit(cache=True)
-def lcp_into(W, b, out, ds, Ws):
+def lcp_into(W, b, out, ds, Ws):  # noqa: C901 - the pivoting loop reads as the algorithm
     """``lcp`` into ``out`` (k,), with the scratch ``ds`` (``dense_scratch`` of ≥ k rows;
     ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix."""
     k = b.shape[0]
@@ -1286,8 +1286,9 @@ def rotate_segments(q, dth, length):
 @njit(cache=True, inline='always')
 def factor_ws(q, model, ws):
     """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
-    return factor_chain_into(q, model, ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO],
-                             ws[WS_MAT][M_G], ws[WS_MAT][M_D], ws[WS_MAT][M_L], ws[WS_R3])
+    mat = ws[WS_MAT]
+    return factor_chain_into(q, model, ws[WS_VEC][V_H], mat[M_INV_I], mat[M_PIVOTS], mat[M_LO],
+                             mat[M_G], mat[M_D], mat[M_L], ws[WS_R3])
 
 
 @njit(cache=True, inline='always')
@@ -1428,8 +1429,9 @@ def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_c
                                   ws[WS_VEC][V_N2])
         if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE
-        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, ws[WS_VEC][V_N0], ws[WS_VEC][V_N2],
-                         ws[WS_VEC][V_N3])
+        vec = ws[WS_VEC]
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec[V_N0], vec[V_N2],
+                         vec[V_N3])
         if stale:
             R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
                                    dt, ws)
