@@ -10,7 +10,6 @@ contacts, limits and position passes the calls reported. ``--max-colliding`` lif
 ``scene.MAX_COLLIDING_SEGMENTS`` for the measurement (e.g. 1024 colliding segments).
 """
 import argparse
-import dataclasses
 import time
 
 import numpy as np
@@ -18,33 +17,18 @@ from numba import njit
 
 from ponytail_ros.core import contact_kernels as K
 from ponytail_ros.core import scene as scene_module
-from ponytail_ros.core.head import KinematicState, SwayYawMotion
-from ponytail_ros.core.scene import Scene
+from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.testing import load_config
+
+from .tick_cost import crowd_scene
 
 __all__ = ['record', 'replay_cost', 'main']
 
 
 def _crowd(params, n):
     """``tick_cost.crowd``'s scene and heads: n characters 1 m apart."""
-    base = load_config(params).scene
-    chains = [dataclasses.replace(c, anchor_body=k) for k in range(n) for c in base.chains]
-    colliders = [dataclasses.replace(c, body=k) for k in range(n) for c in base.colliders]
-    scene = Scene(chains=chains, colliders=colliders, n_kinematic_bodies=n,
-                  gravity=base.gravity, wind=base.wind, solver=base.solver)
-    motion = SwayYawMotion()
-    offsets = np.stack([np.zeros(n), np.arange(n, dtype=float), np.zeros(n)], axis=1)
-
-    def heads(t):
-        one = motion.state_at(t)
-        return KinematicState(one.position + offsets, *(np.repeat(getattr(one, f), n, axis=0)
-                                                         for f in ('orientation',
-                                                                   'linear_velocity',
-                                                                   'angular_velocity',
-                                                                   'linear_acceleration',
-                                                                   'angular_acceleration')))
-    return scene, heads
+    return crowd_scene(params, n)
 
 
 def record(scene, heads, ticks, rate=120.0):

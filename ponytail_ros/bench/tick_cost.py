@@ -46,10 +46,11 @@ def measure(params, chain, n_segments, collide, ticks):
     return float(np.median(wall)), float(max(wall)), resets
 
 
-def crowd(params, n, ticks):
-    """``(median s, max s, reset reasons)`` per tick of ``n`` characters in one scene."""
-    cfg = load_config(params)
-    base = cfg.scene
+def crowd_scene(params, n):
+    """``(scene, heads)``: ``n`` copies of the params file's characters (chains and colliders)
+    in one scene, character k on its own head ``k`` 1 m apart along Y, every head the same
+    sway-and-yaw motion; ``heads(t)`` is their ``KinematicState``."""
+    base = load_config(params).scene
     chains = [dataclasses.replace(c, anchor_body=k) for k in range(n) for c in base.chains]
     colliders = [dataclasses.replace(c, body=k) for k in range(n) for c in base.colliders]
     scene = Scene(chains=chains, colliders=colliders, n_kinematic_bodies=n,
@@ -65,6 +66,13 @@ def crowd(params, n, ticks):
                                                                    'angular_velocity',
                                                                    'linear_acceleration',
                                                                    'angular_acceleration')))
+    return scene, heads
+
+
+def crowd(params, n, ticks):
+    """``(median s, max s, reset reasons)`` per tick of ``n`` characters in one scene."""
+    cfg = load_config(params)
+    scene, heads = crowd_scene(params, n)
     rate = cfg.values['rate']
     sim = Simulator(scene, heads(0.0))
     wall, resets = [], []
