@@ -231,7 +231,7 @@ class SwayYawMotion(HeadMotion):
         z = np.zeros((t.shape[0], 1, 3))
         p = np.broadcast_to(self.p0, z.shape) + z
         p[:, 0, 0] = self.p0[0] + self.A * np.sin(w * t)
-        q = z[:, :, [0, 0, 0, 0]]
+        q = np.zeros((t.shape[0], 1, 4))
         q[:, 0, 2] = np.sin(0.5 * yaw)
         q[:, 0, 3] = np.cos(0.5 * yaw)
         v, om, a, al = z.copy(), z.copy(), z.copy(), z.copy()

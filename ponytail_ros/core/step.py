@@ -136,10 +136,9 @@ _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @_inline
-def _rotation_matrix(q, i):
-    """Rows of R(q_i), body to world (the arithmetic of ``limit_kernels.qmatrix``, as
+def _rotation_matrix(x, y, z, w):
+    """Rows of R(q), body to world (the arithmetic of ``limit_kernels.qmatrix``, as
     scalars: no 3×3 scratch array to allocate per call)."""
-    x, y, z, w = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
     return ((1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
             (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
             (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)))
@@ -176,6 +175,18 @@ def _inv_inertia_general(R, d):
 
 
 @_inline
+def _mass_properties(axisymmetric, x, y, z, w, i0, i1, i2):
+    """Axis e (the body +X axis in the world, ``_axis``) and world I⁻¹ (row-major 9-tuple) of
+    a segment at orientation (x, y, z, w), inverse principal moments (i0, i1, i2) (axial
+    first)."""
+    if axisymmetric:
+        e0, e1, e2 = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)
+        return e0, e1, e2, _inv_inertia_axisymmetric(e0, e1, e2, i0, i1)
+    R = _rotation_matrix(x, y, z, w)
+    return R[0][0], R[1][0], R[2][0], _inv_inertia_general(R, (i0, i1, i2))
+
+
+@_inline
 def _block(X, i):
     """The 3×3 block ``X[i]`` as a row-major 9-tuple."""
     return (X[i, 0, 0], X[i, 0, 1], X[i, 0, 2], X[i, 1, 0], X[i, 1, 1], X[i, 1, 2],
@@ -203,14 +214,9 @@ def _inertia_terms(M, q, e, hv, Iinv):
     ``(n, 3, 3)`` at orientations ``q``."""
     n = q.shape[0]
     for i in range(n):
-        if M.axisymmetric:
-            e0, e1, e2 = _axis(q, i)
-            X = _inv_inertia_axisymmetric(e0, e1, e2, M.inv_inertia[i, 0], M.inv_inertia[i, 1])
-        else:
-            R = _rotation_matrix(q, i)
-            e0, e1, e2 = R[0][0], R[1][0], R[2][0]
-            X = _inv_inertia_general(R, (M.inv_inertia[i, 0], M.inv_inertia[i, 1],
-                                         M.inv_inertia[i, 2]))
+        e0, e1, e2, X = _mass_properties(M.axisymmetric, q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                         M.inv_inertia[i, 0], M.inv_inertia[i, 1],
+                                         M.inv_inertia[i, 2])
         _store_block(Iinv, i, X)
         e[i, 0], e[i, 1], e[i, 2] = e0, e1, e2
         g = M.half[i]
@@ -420,15 +426,9 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
     pa0 = pa1 = pa2 = 0.0               # the previous segment's distal-point acceleration
     for i in range(n):
         first = M.is_first[i]
-        # Mass properties.
-        if M.axisymmetric:
-            e0, e1, e2 = _axis(q, i)
-            X = _inv_inertia_axisymmetric(e0, e1, e2, M.inv_inertia[i, 0], M.inv_inertia[i, 1])
-        else:
-            R = _rotation_matrix(q, i)
-            e0, e1, e2 = R[0][0], R[1][0], R[2][0]
-            X = _inv_inertia_general(R, (M.inv_inertia[i, 0], M.inv_inertia[i, 1],
-                                         M.inv_inertia[i, 2]))
+        e0, e1, e2, X = _mass_properties(M.axisymmetric, q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                         M.inv_inertia[i, 0], M.inv_inertia[i, 1],
+                                         M.inv_inertia[i, 2])
         _store_block(Iinv, i, X)
         half = M.half[i]
         h0, h1, h2 = half * e0, half * e1, half * e2
@@ -531,10 +531,12 @@ def _workspace(n):
 
 @_jit
 def _rk4_workspace(n):
+    """The integrators' scratch: RK4's wb, w_s, xs, qs, vs, wbs, acc, (7: the constrained
+    steps' only), sx, sv, sq, swb, α; ``(n, 3)``, the quaternions ``(n, 4)``."""
     return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
-            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
-            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
-            np.empty((n, 3)), np.empty((n, 3)))
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3)),
+            np.empty((n, 3)))
 
 
 @_inline
@@ -553,7 +555,7 @@ def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     summed as they come (d1 + 2 d2 + 2 d3 + d4, in that order), so no stage is stored; each
     segment's derivative, sums and next stage are done in one pass."""
     n = x.shape[0]
-    wb, w_s, xs, qs, vs, wbs, acc, _, _, sx, sv, sq, swb, alpha = rws
+    wb, w_s, xs, qs, vs, wbs, acc, _, sx, sv, sq, swb, alpha = rws
     for i in range(n):
         qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
         b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, w[i, 0], w[i, 1], w[i, 2])
@@ -817,7 +819,7 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
     _applied(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
     kick = 0.5 * h if rattle else h
     v1, w1, dv, dw, lam, w_change, v0, mu, end = (rws[0], rws[1], rws[2], rws[4], rws[5],
-                                                  rws[6], rws[8], rws[9], rws[10])
+                                                  rws[6], rws[7], rws[8], rws[9])
     for i in range(n):
         for a in range(3):
             v1[i, a] = v[i, a] + kick * F[i, a] * M.inv_mass[i]
@@ -1117,21 +1119,11 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     Chains do not interact within a step, so the call runs chain by chain, each through all
     its steps: a chain's working set stays in the cache however many chains the scene has.
     """
-    n = x.shape[0]
-    starts = np.nonzero(M.is_first)[0]
-    longest = 0
+    starts, ends = _chain_starts(M, x.shape[0])
+    W, R = _workspaces(starts, ends)
     for c in range(starts.shape[0]):
-        end = starts[c + 1] if c + 1 < starts.shape[0] else n
-        longest = max(longest, end - starts[c])
-    W = _workspace(longest)
-    R = _rk4_workspace(longest)
-    for c in range(starts.shape[0]):
-        s = starts[c]
-        e = starts[c + 1] if c + 1 < starts.shape[0] else n
-        m = e - s
-        ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
-        rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
-               R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
+        s, e = starts[c], ends[c]
+        ws, rws = _chain_views(W, R, e - s)
         status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
                               v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
         if status != OK:
@@ -1141,11 +1133,29 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
 
 @_jit
 def _chain_starts(M, n):
+    """Each chain's first segment and one past its last, ``(C,)`` each."""
     starts = np.nonzero(M.is_first)[0]
     ends = np.empty_like(starts)
     for c in range(starts.shape[0]):
         ends[c] = starts[c + 1] if c + 1 < starts.shape[0] else n
     return starts, ends
+
+
+@_jit
+def _workspaces(starts, ends):
+    """The joint system's and the integrators' workspaces, sized for the longest chain."""
+    longest = 0
+    for c in range(starts.shape[0]):
+        longest = max(longest, ends[c] - starts[c])
+    return _workspace(longest), _rk4_workspace(longest)
+
+
+@_inline
+def _chain_views(W, R, m):
+    """The workspaces' first ``m`` rows: one chain's (views, no copies)."""
+    return ((W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m]),
+            (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
+             R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m]))
 
 
 @_jit
@@ -1174,22 +1184,14 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     ``moving``, else ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when
     the next step needs sub-steps (``substeps`` > 1; it is not taken: the simulator takes
     it), else as ``advance``."""
-    n = x.shape[0]
-    starts, ends = _chain_starts(M, n)
-    longest = 0
-    for c in range(starts.shape[0]):
-        longest = max(longest, ends[c] - starts[c])
-    W = _workspace(longest)
-    R = _rk4_workspace(longest)
+    starts, ends = _chain_starts(M, x.shape[0])
+    W, R = _workspaces(starts, ends)
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
             return SUBSTEPS, k
         for c in range(starts.shape[0]):
             s, e = starts[c], ends[c]
-            m = e - s
-            ws = (W[0][:m], W[1][:m], W[2][:m], W[3][:m], W[4][:m], W[5][:m], W[6][:m])
-            rws = (R[0][:m], R[1][:m], R[2][:m], R[3][:m], R[4][:m], R[5][:m], R[6][:m],
-                   R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m], R[13][:m])
+            ws, rws = _chain_views(W, R, e - s)
             status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
                                   w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
             if status != OK:

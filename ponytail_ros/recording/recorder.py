@@ -329,12 +329,23 @@ class RunRecorder:
             self._failed(exc)
 
     def head(self, msg: Any, log_time_ns: int) -> None:
-        """A head pose as received, at its receive time."""
-        self.write(self.layout.head_topic, msg, log_time_ns)
+        """A head pose as received (a message or a ``ReceivedPose``), at its receive time."""
+        self._input(self.layout.head_topic, msg, log_time_ns)
 
     def frame(self, frame_index: int, msg: Any, log_time_ns: int) -> None:
-        """A pose of frame ``frame_index`` as received, at its receive time."""
-        self.write(self.layout.frame_topics[frame_index], msg, log_time_ns)
+        """A pose of frame ``frame_index`` as received, at its receive time (as ``head``)."""
+        self._input(self.layout.frame_topics[frame_index], msg, log_time_ns)
+
+    def _input(self, topic: str, msg: Any, log_time_ns: int) -> None:
+        if not isinstance(msg, ReceivedPose):
+            self.write(topic, msg, log_time_ns)
+        elif self._writable():
+            # Its fields re-encoded as canonical CDR: no message object, no serialisation.
+            try:
+                self._writer.write_serialized(topic, msg.canonical_cdr(), log_time_ns,
+                                              _publish_time(msg, log_time_ns))
+            except BagError as exc:
+                self._failed(exc)
 
     def poses(self, chain_index: int, msg: Any, log_time_ns: int) -> None:
         self.write(self.layout.pose_topics[chain_index], msg, log_time_ns)
@@ -358,19 +369,11 @@ class RunRecorder:
     # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
     def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
         """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
-        the node's ``ReceivedPose``: its message, built now)."""
-        topic = (self.layout.head_topic if source is None
-                 else self.layout.frame_topics[source])
-        if isinstance(msg, ReceivedPose):
-            # Its fields re-encoded as canonical CDR: no message object, no serialisation.
-            if self._writable():
-                try:
-                    self._writer.write_serialized(topic, msg.canonical_cdr(), log_time_ns,
-                                                  _publish_time(msg, log_time_ns))
-                except BagError as exc:
-                    self._failed(exc)
-            return
-        self.write(topic, msg, log_time_ns)
+        a ``ReceivedPose``: recorded from its fields)."""
+        if source is None:
+            self.head(msg, log_time_ns)
+        else:
+            self.frame(source, msg, log_time_ns)
 
     def on_tick(self, tick: Any, log_time_ns: int) -> None:
         """A tick's ``PoseArray`` per chain (each with its ``/tf``), then its markers."""
