@@ -326,8 +326,9 @@ class SolverSpec:
             (up to ~4c/I_axial: thin segments twist easily) leaves the integrator's stability
             region. ``'implicit'``: implicit Euler after each step, stable for any damping and
             step, first order in the damping term. ``'auto'`` (default): explicit while
-            ``dt · λ_max ≤ 2`` (λ_max by Gershgorin), else implicit; re-decided whenever the
-            damping is changed.
+            ``dt · λ_max`` (λ_max by Gershgorin) is inside the integrator's stability region
+            (``step.Integrator.damping_limit``: 2.78 for RK4, 2 for the others), else
+            implicit; re-decided whenever the damping is changed.
         guard_max_speed: a segment faster than this (m/s) is a blow-up: reset and report.
         guard_max_gap: a joint gap larger than this (m) after projection: reset and report.
         guard_max_step_angle: the most a joint may turn per internal step (sub-step, with

@@ -42,7 +42,8 @@ RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
 OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
 
 Integrator = namedtuple('Integrator', ['name', 'id', 'order', 'solves_per_step',
-                                       'rebuilds_velocities', 'explicit_gyroscopic'])
+                                       'rebuilds_velocities', 'explicit_gyroscopic',
+                                       'damping_limit'])
 Integrator.__doc__ = """What the simulator needs to know of an integrator, in one record.
 
 ``id``: the compiled step's switch; ``order``: of accuracy; ``solves_per_step``: joint solves
@@ -50,12 +51,16 @@ with A (RK4: one factorisation and solve per stage; the constrained steps: one f
 reused by the next step, and two solves); ``rebuilds_velocities``: the stabilisation rebuilds
 v from ω after the step (RK4; the constrained steps end with their own mass-weighted
 projection, which a rebuild would undo); ``explicit_gyroscopic``: ω × Iω is integrated
-explicitly, so the guard must watch the precession it can follow (RK4)."""
+explicitly, so the guard must watch the precession it can follow (RK4); ``damping_limit``: where
+the step's stability region ends on the negative real axis (dt·λ for a decay rate λ): explicit
+joint damping is stable while dt·λ_max stays below it (RK4: 2.785, taken as 2.78; the Euler
+kicks of the constrained steps: 2)."""
 
 INTEGRATORS = {
-    'rk4': Integrator('rk4', RK4, 4, 4, True, True),
-    'symplectic_euler': Integrator('symplectic_euler', SYMPLECTIC_EULER, 1, 2, False, False),
-    'rattle': Integrator('rattle', RATTLE, 2, 2, False, False),
+    'rk4': Integrator('rk4', RK4, 4, 4, True, True, 2.78),
+    'symplectic_euler': Integrator('symplectic_euler', SYMPLECTIC_EULER, 1, 2, False, False,
+                                   2.0),
+    'rattle': Integrator('rattle', RATTLE, 2, 2, False, False, 2.0),
 }
 
 # The model's arrays and switches for one call (n segments, C chains; SI units).
