@@ -218,6 +218,23 @@ def test_explicit_damping_beyond_its_limit_is_caught():
     assert not fixed.resets
 
 
+
+def test_auto_damping_keeps_rk4_explicit_inside_its_own_stability_region():
+    """``damping_method='auto'`` switches at the integrator's own limit: RK4's stability region
+    reaches dt·λ = 2.785 on the negative real axis, the Euler kick's 2. The reference
+    ponytail with c = 1e-4 has dt·λ_max = 2.67 at 1/300 s: RK4 keeps explicit damping (as
+    accurate as the step) and runs clean on the moving head, symplectic Euler goes implicit;
+    at 1/240 s (3.33) RK4 goes implicit too."""
+    motion = reference_motion()
+    sim = make_sim(ponytail(damping=1e-4), motion, RK4, 1 / 300)
+    assert 2.0 < sim.dt * sim.model.damping_rate < 2.78
+    assert not sim.model.implicit_damping
+    run = Run(sim, motion, 1.0)
+    assert not run.resets
+    assert run.max_gap < 1e-12
+    assert make_sim(ponytail(damping=1e-4), motion, SE, 1 / 300).model.implicit_damping
+    assert make_sim(ponytail(damping=1e-4), motion, RK4, 1 / 240).model.implicit_damping
+
 # -- segment count ------------------------------------------------------------------------------
 @pytest.mark.parametrize('n, dt, duration', [(1, 1 / 240, 2.0), (2, 1 / 240, 2.0),
                                              (100, 1 / 240, 1.0), (1000, 1 / 2000, 0.05)])
