@@ -24,7 +24,7 @@ blow-up resets the chains to rest at the current head pose and is reported, neve
 """
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -44,7 +44,7 @@ from .stabilization import project_positions, project_velocities
 from .state import ChainState, half_vectors, joint_points
 from . import state_kernels
 
-__all__ = ['Simulator', 'StepReport', 'TUNABLE_PARAMETERS']
+__all__ = ['Simulator', 'StepReport', 'Rollout', 'TUNABLE_PARAMETERS']
 
 # Scenes with colliders or joint limits: a step in which a joint turns by more than this
 # (rad, at the start of the step) is split into sub-steps, at most MAX_SUBSTEPS.
@@ -85,6 +85,18 @@ class StepReport:
     reset_reason: Optional[str] = None
     max_gap: float = 0.0
     timings: dict = field(default_factory=dict)
+
+
+class Rollout(NamedTuple):
+    """What ``Simulator.rollout`` did: one ``StepReport`` per sample and the chain's state
+    after it (``(T, n, 3|4)`` arrays: centres m, unit quaternions (w, x, y, z), velocities
+    m/s, angular velocities rad/s; world frame)."""
+
+    reports: list
+    x: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
 
 
 class Simulator:
@@ -267,6 +279,86 @@ class Simulator:
         self._last_bodies = (self.t, bodies_at(self.t))
         return report
 
+    def rollout(self, times, motion):
+        """``advance_to(t, motion)`` for every ``t`` of ``times`` in turn, bit for bit, with the
+        motion and the anchor table evaluated once for all the calls' stage times (one
+        vectorised ``states_at``), then one compiled call per sample: the way to run a known
+        motion offline (a reference, a benchmark), like MuJoCo's ``rollout``.
+
+        ``times``: ``(T,)`` increasing sample times (s). Returns a ``Rollout``: the ``T``
+        calls' ``StepReport`` and the state after each, ``(T, n, 3|4)`` arrays. Scenes with
+        colliders or joint limits, the dense NumPy step and a sample interval beyond
+        ``max_steps_per_call`` go through ``advance_to`` itself.
+        """
+        times = np.asarray(times, dtype=float).reshape(-1)
+        n = self.model.n
+        out = Rollout([], np.empty((times.size, n, 3)), np.empty((times.size, n, 4)),
+                      np.empty((times.size, n, 3)), np.empty((times.size, n, 3)))
+        done = 0
+        while done < times.size:        # a guard reset ends a stretch; the next starts there
+            done += self._rollout_stretch(times[done:], motion, out, done)
+        return out
+
+    def _rollout_stretch(self, times, motion, out, k0):
+        """Samples ``times`` into ``out`` from row ``k0`` until the first guard reset; how
+        many were taken."""
+        n_targets = np.floor((times - self._t_base) / self.dt + 1e-9).astype(np.int64)
+        counts = np.diff(n_targets, prepend=self._n_steps)
+        if (self.unilateral is not None or not self._compiled or np.any(counts < 0)
+                or np.any(counts > self.scene.solver.max_steps_per_call)):
+            for k, t in enumerate(times):
+                out.reports.append(self.advance_to(t, motion))
+                self._store(out, k0 + k)
+            return times.size
+        m = self.model
+        table = self._table(point_table(motion.states_at(self._stage_times(int(counts.sum()))),
+                                        m.anchor_body, m.attach))
+        self._anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
+        model = self._step_model()
+        st = self.state                 # the working arrays, stepped in place
+        x, q, v, w = (np.array(a, dtype=float) for a in (st.x, st.q, st.v, st.w))
+        self.state = ChainState(x, q, v, w)
+        row = 0                         # the table row of the next step's start
+        for k, n_steps in enumerate(counts):
+            report = StepReport(steps=int(n_steps))
+            t_start = time.perf_counter()
+            failure = None
+            if n_steps > 0:
+                A = compiled.AnchorTable(*(a[row:row + 2 * n_steps + 1] for a in table))
+                try:
+                    self._run_compiled_table(n_steps, self.dt, A, x, q, v, w, model)
+                    self._n_steps += int(n_steps)
+                    row += 2 * int(n_steps)
+                except np.linalg.LinAlgError as err:      # (the time does not advance)
+                    failure = str(err)
+                    report.steps = 0
+                    x[:] = np.nan
+            self.t = self._t_base + self._n_steps * self.dt
+            t_steps = time.perf_counter()
+            # The anchor at self.t: the table's row there (advance_to's end row, or for a call
+            # without steps its own evaluation at the same time: equal bit for bit).
+            anchor = AnchorKinematics(*(a[row] for a in table))
+            self._last_anchor = (self.t, anchor)
+            g = self._measures(anchor)
+            report.max_gap = float(g[1]) if g[0] else np.inf
+            reason = self._guard(g, failure)
+            if reason is not None:          # as advance_to: reset, and say so
+                self.total_resets += 1
+                report.reset_reason = reason
+                self.reset(motion.state_at(self.t))
+                report.max_gap = float(np.max(self.joint_gaps(
+                    self.anchors(motion.state_at(self.t)))))
+            report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
+            out.reports.append(report)
+            self._store(out, k0 + k)
+            if reason is not None:
+                return k + 1
+        return times.size
+
+    def _store(self, out, k):
+        st = self.state
+        out.x[k], out.q[k], out.v[k], out.w[k] = st.x, st.q, st.v, st.w
+
     def advance_frame(self, t_frame, head, head_prev=None):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
 
@@ -337,11 +429,14 @@ class Simulator:
 
     def _run_compiled(self, n_steps, h, table, x, q, v, w):
         """``n_steps`` steps of ``h`` in one compiled call, the state arrays updated in place."""
+        self._run_compiled_table(n_steps, h, self._table(table), x, q, v, w)
+
+    def _run_compiled_table(self, n_steps, h, A, x, q, v, w, model=None):
+        """``_run_compiled`` with the compiled ``AnchorTable`` ``A`` (and ``StepModel``)."""
         ext_F, ext_T = self._external_arrays()
-        A = self._table(table)
         f_c = np.zeros((self.model.n, 3))
-        status = compiled.advance(self._step_model(), A, n_steps, h, x, q, v, w, ext_F, ext_T,
-                                  f_c)
+        status = compiled.advance(self._step_model() if model is None else model, A, n_steps,
+                                  h, x, q, v, w, ext_F, ext_T, f_c)
         self.dynamics.last_f_c = f_c
         if status == compiled.JOINT_SOLVE_FAILED:
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
