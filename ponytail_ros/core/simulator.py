@@ -838,9 +838,14 @@ def _c(a):
     return np.ascontiguousarray(a, dtype=float)
 
 
+_HEAD_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                'linear_acceleration', 'angular_acceleration')
+
+
 def _check_head(head):
     """Refuse a non-finite head state, naming the field: it must never reach the chain."""
-    for name in ('position', 'orientation', 'linear_velocity', 'angular_velocity',
-                 'linear_acceleration', 'angular_acceleration'):
+    if np.isfinite(np.concatenate([getattr(head, name).ravel() for name in _HEAD_FIELDS])).all():
+        return                          # (one check for all six; the field is named below)
+    for name in _HEAD_FIELDS:
         if not np.isfinite(getattr(head, name)).all():
             raise SceneError(f'head.{name}', getattr(head, name).tolist(), 'finite numbers')
