@@ -385,3 +385,27 @@ def test_use_sim_time_driven_by_clock(harness):
     assert r.resets['clock_backwards'] == 1
     assert h.spin_until(lambda: t_of(got[-1].header) < 100.0, 2.0)
     check_geometry(got[-1], 6, 0.3)
+
+
+def test_timer_callback_receives_the_timer_info(ros_context):
+    """``spin.timer_callback`` carries its signature so the executor need not rebuild it, and
+    the executor still finds the ``TimerInfo`` parameter: the callback gets the timer's
+    expected and actual call times (what the node's 'timer lateness' reports)."""
+    import rclpy
+    from rclpy.timer import TimerInfo
+    from rclpy.experimental import EventsExecutor
+    from ponytail_ros.ros.spin import timer_callback
+    got = []
+    node = rclpy.create_node('timer_info_check', context=ros_context)
+    try:
+        node.create_timer(0.01, timer_callback(got.append))
+        executor = EventsExecutor(context=ros_context)      # the executables' executor
+        executor.add_node(node)
+        for _ in range(200):
+            if got:
+                break
+            executor.spin_once(timeout_sec=0.05)
+        assert got and isinstance(got[0], TimerInfo)
+        assert got[0].actual_call_time.nanoseconds >= got[0].expected_call_time.nanoseconds
+    finally:
+        node.destroy_node()

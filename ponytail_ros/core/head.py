@@ -18,17 +18,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .head_kernels import frame_ends as _frame_ends
 from .head_kernels import point_kinematics, track_table
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
-    'WithStaticBodies', 'stack_states', 'point_table',
+    'WithStaticBodies', 'stack_states', 'point_table', 'frame_ends',
     'AnchorTrack',
 ]
 
 
 _FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
            'linear_acceleration', 'angular_acceleration')
+_ANCHOR_FIELDS = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
 
 
 @dataclass
@@ -106,6 +108,12 @@ class AnchorKinematics:
     orientation: np.ndarray
     angular_velocity: np.ndarray
 
+    def row(self, k):
+        """Row ``k`` of a table of these (arrays ``(S, C, 3|4)``): the ``C`` points at one
+        instant (views)."""
+        return AnchorKinematics(self.position[k], self.velocity[k], self.acceleration[k],
+                                self.orientation[k], self.angular_velocity[k])
+
 
 def stack_anchors(anchors):
     """One ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` from a sequence of ``S`` of them."""
@@ -134,6 +142,22 @@ class HeadMotion:
 def stack_states(states):
     """One ``KinematicState`` of arrays ``(T, K, 3|4)`` from a sequence of ``T`` of them."""
     return KinematicState(*(np.stack([getattr(s, f) for s in states]) for f in _FIELDS))
+
+
+def frame_ends(state0, state1, body, r_local):
+    """``point_kinematics`` of the points ``body``/``r_local`` (as there) for two
+    ``KinematicState``s, the ends of a frame: an ``AnchorKinematics`` of ``(2, C, 3|4)``
+    arrays, row 0 from ``state0`` (``head_kernels.frame_ends``; bit for bit the two
+    ``point_kinematics`` calls)."""
+    C = body.shape[0]
+    out = AnchorKinematics(np.empty((2, C, 3)), np.empty((2, C, 3)), np.empty((2, C, 3)),
+                           np.empty((2, C, 4)), np.empty((2, C, 3)))
+    _frame_ends(*(np.ascontiguousarray(getattr(state0, f), dtype=float) for f in _FIELDS),
+                *(np.ascontiguousarray(getattr(state1, f), dtype=float) for f in _FIELDS),
+                np.ascontiguousarray(body, dtype=np.int64),
+                np.ascontiguousarray(r_local, dtype=float), out.position, out.velocity,
+                out.acceleration, out.orientation, out.angular_velocity)
+    return out
 
 
 def point_table(states, body, r_local):
@@ -260,11 +284,21 @@ class AnchorTrack:
     def __init__(self, t0, a0, t1, a1):
         self.t0 = float(t0)
         self.h = max(float(t1) - float(t0), 1e-12)
-        self.a0, self.a1 = a0, a1
         self._ends = tuple(np.ascontiguousarray([getattr(a0, f), getattr(a1, f)], dtype=float)
-                           for f in ('position', 'velocity', 'acceleration', 'orientation',
-                                     'angular_velocity'))
+                           for f in _ANCHOR_FIELDS)
         self._C = self._ends[0].shape[1]
+
+    @classmethod
+    def from_ends(cls, t0, t1, ends):
+        """The track between ``t0`` and ``t1`` from its ends as ``frame_ends`` gives them: an
+        ``AnchorKinematics`` of ``(2, C, 3|4)`` C-contiguous arrays (row 0 at ``t0``), kept
+        without a copy."""
+        track = cls.__new__(cls)
+        track.t0 = float(t0)
+        track.h = max(float(t1) - float(t0), 1e-12)
+        track._ends = tuple(getattr(ends, f) for f in _ANCHOR_FIELDS)
+        track._C = track._ends[0].shape[1]
+        return track
 
     def table(self, times):
         """The anchors at all ``times`` ``(S,)`` at once, as the rows of an

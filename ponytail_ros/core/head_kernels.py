@@ -9,7 +9,8 @@ costs microseconds instead of hundreds of NumPy calls:
 * ``track_table``: ``AnchorTrack``'s quintic Hermite of each attachment point between two
   frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
   stage times of a call (the compiled step's anchor table);
-* ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``).
+* ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``);
+  ``frame_ends`` evaluates it at both ends of a frame in one call (the track's two ends).
 
 Units and frames: s, m, rad; world frame; quaternions scalar-last ``(x, y, z, w)`` body to
 world (as ``rotations``).
@@ -22,7 +23,8 @@ from numba import njit
 from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
                             qto_rotvec, scale)
 
-__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'median_interval', 'FIT_SIZE']
+__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'frame_ends', 'median_interval',
+           'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -253,3 +255,15 @@ def point_kinematics(position, orientation, linear_velocity, angular_velocity,
             out_w[c, a] = w[a]
         for a in range(4):
             out_q[c, a] = q[a]
+
+
+@njit(cache=True)
+def frame_ends(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local,
+               end_p, end_v, end_a, end_q, end_w):
+    """``point_kinematics`` of the points at both ends of a frame: the bodies' state at its
+    start (``p0 … al0``) into row 0 of the ``(2, C, 3|4)`` outputs, at its end (``p1 … al1``)
+    into row 1 (``AnchorTrack``'s ends; one call instead of two and the stacking)."""
+    point_kinematics(p0, q0, v0, w0, a0, al0, body, r_local, end_p[0], end_v[0], end_a[0],
+                     end_q[0], end_w[0])
+    point_kinematics(p1, q1, v1, w1, a1, al1, body, r_local, end_p[1], end_v[1], end_a[1],
+                     end_q[1], end_w[1])

@@ -30,8 +30,8 @@ import numpy as np
 
 from . import collision
 from . import step as compiled
-from .head import (AnchorKinematics, AnchorTrack, HeadMotion, KinematicState, point_table,
-                   stack_anchors)
+from .head import (AnchorKinematics, AnchorTrack, HeadMotion, KinematicState, frame_ends,
+                   point_table, stack_anchors)
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -127,6 +127,7 @@ class Simulator:
         # the NumPy reference step (``integrators`` + ``solver``) as the cross-check.
         self._compiled = s.linear_solver == 'banded'
         self._half = 0.5 * self.model.length
+        self._anchor_body = np.ascontiguousarray(self.model.anchor_body, dtype=np.int64)
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self.total_resets = 0
@@ -375,19 +376,29 @@ class Simulator:
         """
         _check_head(head)
         t_prev, a_prev = self._last_anchor
+        m = self.model
         if head_prev is not None:
+            # Both ends from the same estimate, in one compiled call.
             _check_head(head_prev)
-            a_prev = self.anchors(head_prev)
-        a_new = self.anchors(head)
-        track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
+            ends = frame_ends(head_prev, head, self._anchor_body, m.attach)
+            track = AnchorTrack.from_ends(t_prev, t_frame, ends)
+            a_new = ends.row(1)
+        else:
+            a_new = self.anchors(head)
+            track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         if not self._needs_bodies:
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
                                    anchor_table=track.table)
         else:
             # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
-            b_prev = self._last_bodies[1] if head_prev is None else _body_kinematics(head_prev)
-            b_new = _body_kinematics(head)
-            body_track = AnchorTrack(t_prev, b_prev, t_frame, b_new)
+            if head_prev is None:
+                b_new = _body_kinematics(head)
+                body_track = AnchorTrack(t_prev, self._last_bodies[1], t_frame, b_new)
+            else:
+                k = head.n_bodies
+                ends = frame_ends(head_prev, head, np.arange(k), np.zeros((k, 3)))
+                body_track = AnchorTrack.from_ends(t_prev, t_frame, ends)
+                b_new = ends.row(1)
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
                                    _memo_last(body_track.at), anchor_table=track.table,
                                    body_table=body_track.table)

@@ -73,7 +73,7 @@ from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_
                                          FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
                                          chain_param_name, check_names, definition)
 from ponytail_ros.app.sink import HEAD, Sinks
-from .spin import run_node
+from .spin import run_node, timer_callback
 
 __all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS']
 
@@ -254,7 +254,7 @@ class PonytailNode(Node):
                                  for f, sub in zip(self._frames, self._frame_subs)}}
         #: /tf live (tf2_msgs importable and tf.publish), else None.
         self._tf_pub = self._make_tf_publisher()
-        self._timer = self.create_timer(1.0 / values['rate'], self._on_tick)
+        self._timer = self.create_timer(1.0 / values['rate'], timer_callback(self._on_tick))
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._diag_timer = self.create_timer(values['diagnostics_period'],
                                              self._on_diagnostics, clock=self._steady)
