@@ -11,6 +11,10 @@ rest on.
 ``--characters N``: instead, N characters in one scene, each the params file's chains and
 colliders on its own kinematic body (the head moving as above, the characters 1 m apart): one
 tick of the core for all of them, head estimation and ROS not included (a crowd node's floor).
+
+``--idle S``: sleep S s between ticks, as a node does between its timer's ticks (1/120 s at
+120 Hz): the tick then starts with caches and predictors cold, and costs more than back to
+back.
 """
 import argparse
 import dataclasses
@@ -28,8 +32,9 @@ from ponytail_ros.testing import load_config
 __all__ = ['measure', 'main']
 
 
-def measure(params, chain, n_segments, collide, ticks):
-    """``(median s, max s, reset reasons)`` per tick of ``ticks`` ticks."""
+def measure(params, chain, n_segments, collide, ticks, idle=0.0):
+    """``(median s, max s, reset reasons)`` per tick of ``ticks`` ticks (``idle`` s of sleep
+    between ticks)."""
     cfg = load_config(params, {f'{chain}.n_segments': n_segments, f'{chain}.collide': collide})
     rate = cfg.values['rate']
     motion = SwayYawMotion()
@@ -43,6 +48,8 @@ def measure(params, chain, n_segments, collide, ticks):
             wall.append(time.perf_counter() - t0)
         if report.reset_reason:
             resets.append(report.reset_reason)
+        if idle:
+            time.sleep(idle)
     return float(np.median(wall)), float(max(wall)), resets
 
 
@@ -94,6 +101,8 @@ def main(argv=None):
     p.add_argument('--chain', default='ponytail')
     p.add_argument('--segments', type=int, nargs='+', default=[12, 256, 1024, 4096])
     p.add_argument('--ticks', type=int, default=10)
+    p.add_argument('--idle', type=float, nargs='+', default=[0.0],
+                   help='also measure with this many seconds of sleep between ticks')
     p.add_argument('--characters', type=int, nargs='+',
                    help='measure crowds of this many characters instead')
     p.add_argument('--json', help='write the rows to this file')
@@ -107,15 +116,18 @@ def main(argv=None):
               f'120 Hz allows 8.3), resets: {resets or "none"}')
     for n in [] if args.characters else args.segments:
         for collide in (False, True):
-            try:
-                med, worst, resets = measure(args.params, args.chain, n, collide, args.ticks)
-            except ValueError as err:               # out of the range that runs: say so
-                print(f'{n:5d} segments, collide {collide!s:5}: refused: {err}')
-                continue
-            rows.append(dict(n_segments=n, collide=collide, median_ms=1e3 * med,
-                             max_ms=1e3 * worst, resets=resets))
-            print(f'{n:5d} segments, collide {collide!s:5}: {1e3 * med:9.1f} ms per tick '
-                  f'(max {1e3 * worst:.1f}), resets: {resets or "none"}')
+            for idle in args.idle:
+                try:
+                    med, worst, resets = measure(args.params, args.chain, n, collide, args.ticks,
+                                                 idle)
+                except ValueError as err:               # out of the range that runs: say so
+                    print(f'{n:5d} segments, collide {collide!s:5}: refused: {err}')
+                    break
+                rows.append(dict(n_segments=n, collide=collide, idle_s=idle,
+                                 median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets))
+                print(f'{n:5d} segments, collide {collide!s:5}, idle {idle:g} s: '
+                      f'{1e3 * med:9.3f} ms per tick (max {1e3 * worst:.1f}), '
+                      f'resets: {resets or "none"}')
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)
