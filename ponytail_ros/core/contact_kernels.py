@@ -1413,9 +1413,18 @@ def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_c
     """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state);
     ``x0``, ``q0``: a copy of the step's positions (read only without ``project``; they must
     not be ``x``, ``q`` themselves). Returns the status."""
-    n = x.shape[0]
+    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
+    return resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                        project, dt, stats, ws)
+
+
+@njit(cache=True)
+def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                 project, dt, stats, ws):
+    """``resolve_in_place`` with its workspace given (``resolve_workspace`` of this model,
+    detector and colliders): a step loop allocates it once for all its steps. Every stage
+    writes what it reads there first, as it must of ``np.empty``'s contents."""
     stats[:] = 0
-    ws = resolve_workspace(n, model, det, pose, has_colliders)
     h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws, stats)
