@@ -1069,17 +1069,36 @@ def row_response(R, I, r, h, inv_I, C, Lo, first, inv_mass, has_child, s, e, dv,
 
 
 @njit(cache=True)
-def gather_chain(I, chain_of, r0, done, members):
-    """The rows (from ``r0`` on, not yet ``done``) of the chain of row ``r0`` into ``members``,
-    marked done; returns their number."""
-    c = chain_of[I[r0, SEG]]
-    kg = 0
-    for r in range(r0, I.shape[0]):
-        if not done[r] and chain_of[I[r, SEG]] == c:
-            members[kg] = r
-            kg += 1
-            done[r] = True
-    return kg
+def group_rows(I, chain_of, chain_start, chain_end, members, start):
+    """The rows grouped by chain, in the order of each chain's first row, in row order within
+    a group (group g: ``members[start[g]:start[g + 1]]``): a counting sort, O(rows + chains)
+    however many chains have rows. Returns the number of groups and the largest group's
+    rows and segments."""
+    k = I.shape[0]
+    scratch = np.empty(2 * k, dtype=np.int64)
+    group, fill = scratch[:k], scratch[k:]
+    group_of = np.full(chain_start.shape[0], -1, dtype=np.int64)
+    n_groups, nc_max = 0, 0
+    for r in range(k):
+        c = chain_of[I[r, SEG]]
+        if group_of[c] < 0:
+            group_of[c] = n_groups
+            fill[n_groups] = 0
+            n_groups += 1
+            nc_max = max(nc_max, chain_end[c] - chain_start[c])
+        group[r] = group_of[c]
+        fill[group[r]] += 1
+    o, kg_max = 0, 0
+    for g in range(n_groups):
+        start[g] = o
+        o += fill[g]
+        kg_max = max(kg_max, fill[g])
+        fill[g] = start[g]
+    start[n_groups] = o
+    for r in range(k):
+        members[fill[group[r]]] = r
+        fill[group[r]] += 1
+    return n_groups, kg_max, nc_max
 
 
 @njit(cache=True)
@@ -1135,30 +1154,17 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
 @njit(cache=True)
 def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
     """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
-    rows of this call (six allocations, whatever the number of chains and rows)."""
+    rows of this call (a few allocations, whatever the number of chains and rows)."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
     inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
     k = R.shape[0]
     if k == 0:
         return
-    # The rows grouped by chain, in the order of each chain's first row (group g:
-    # members[start[g]:start[g + 1]]), and the largest group's sizes.
+    # The rows grouped by chain (group g: members[start[g]:start[g + 1]]).
     ib = np.empty(2 * k + 1, dtype=np.int64)
     members, start = ib[:k], ib[k:]
-    flags = np.zeros(2 * k, dtype=np.bool_)
-    done, mobile = flags[:k], flags[k:]
-    n_groups, o, kg_max, nc_max = 0, 0, 0, 0
-    for r0 in range(k):
-        if done[r0]:
-            continue
-        kg = gather_chain(I, chain_of, r0, done, members[o:])
-        c = chain_of[I[r0, SEG]]
-        nc = chain_end[c] - chain_start[c]
-        start[n_groups] = o
-        n_groups += 1
-        o += kg
-        kg_max, nc_max = max(kg_max, kg), max(nc_max, nc)
-    start[n_groups] = o
+    n_groups, kg_max, nc_max = group_rows(I, chain_of, chain_start, chain_end, members, start)
+    mobile = np.zeros(k, dtype=np.bool_)
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
     rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
     c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
