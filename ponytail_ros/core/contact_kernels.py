@@ -169,11 +169,11 @@ def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
 
 
 @njit(cache=True)
-def apply_joint_impulses(lam, h, inv_I, model, s, e, dv, dw):
+def apply_joint_impulses(lam, h, inv_I, inv_mass, has_child, s, e, dv, dw):
     """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
     parents) over segments ``s:e`` (whole chains) to ``dv``, ``dw`` (``lam``, ``dv``, ``dw``
-    indexed from s): Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i)."""
-    inv_mass, has_child = model[INV_MASS], model[HAS_CHILD]
+    indexed from s): Δv_i = (λ_i - λ_{i+1}) / m_i,  Δω_i = I_i⁻¹ ((λ_i + λ_{i+1}) × h_i).
+    The model's arrays, not its tuple: called per row (``row_response``)."""
     for i in range(s, e):
         ln = v3(lam, i - s + 1) if has_child[i] else (0.0, 0.0, 0.0)
         li = v3(lam, i - s)
@@ -202,7 +202,7 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, d
     _chain_solve(C, Lo, is_first, c_dot)
     dv[:] = 0.0
     dw[:] = 0.0
-    apply_joint_impulses(c_dot, h, inv_I, model, 0, n, dv, dw)
+    apply_joint_impulses(c_dot, h, inv_I, model[INV_MASS], model[HAS_CHILD], 0, n, dv, dw)
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -324,48 +324,57 @@ def closest_segment_segment(p0, d1, a0, d2):
     return s, clip01(t)
 
 
-@njit(cache=True, inline='always')
-def detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out, own):
-    """``detect`` for colliding segment m (core ``p0 + s d1``, proximal to distal joint) and
-    collider j: entry ``[m, j]`` of each table."""
+@njit(cache=True)
+def detect_segments(x, h, anchor_position, pose, det, report, m0, m1, j, depth, s_out, t_out,
+                    own):
+    """``detect`` for colliding segments ``m0:m1`` and collider j: entries ``[m0:m1, j]`` of
+    each table. The tuples' arrays are taken out once, before the segments' loop (each array
+    bound inside the loop would cost a reference count per segment)."""
+    seg = det[D_SEG]
     a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
     seg_radius, seg_length, inner = det[D_RADIUS], det[D_LENGTH], det[D_INNER]
     first_of, first_chain = det[D_FIRST_OF], det[D_FIRST_CHAIN]
     root_fixed, rooted_fixed = det[D_ROOT_FIXED], det[D_ROOTED_FIXED]
     sum_radius, n_sphere, n_round = det[D_SUM_RADIUS], det[D_N_SPHERE], det[D_N_ROUND]
-    f = first_of[m]
-    if j >= n_round:
-        nn = v3(normal, j)
-        off = dot(v3(a0, j), nn)
-        s1 = dot(add(p0, d1), nn) - off
-        if report:
-            s1 = min(s1, dot(p0, nn) - off)
-        depth[m, j] = seg_radius[m] - s1
-        s_out[m, j] = 1.0
-        t_out[m, j] = 0.0
-        own[m, j] = True
-        return
     aj, dj = v3(a0, j), v3(d2, j)
-    if j < n_sphere:
-        s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
-        t = 0.0
-    else:
-        s, t = closest_segment_segment(p0, d1, aj, dj)
-    if f >= 0:
-        if root_fixed[f, j]:
-            is_rooted = rooted_fixed[f, j]
+    for m in range(m0, m1):
+        # Segment m's core p0 + s d1, proximal to distal joint.
+        g = seg[m]
+        hg = v3(h, g)
+        p0 = sub(v3(x, g), hg)
+        d1 = scale(2.0, hg)
+        f = first_of[m]
+        if j >= n_round:
+            nn = v3(normal, j)
+            off = dot(aj, nn)
+            s1 = dot(add(p0, d1), nn) - off
+            if report:
+                s1 = min(s1, dot(p0, nn) - off)
+            depth[m, j] = seg_radius[m] - s1
+            s_out[m, j] = 1.0
+            t_out[m, j] = 0.0
+            own[m, j] = True
+            continue
+        if j < n_sphere:
+            s = clip01(dot(sub(aj, p0), d1) / (seg_length[m] * seg_length[m]))
+            t = 0.0
         else:
-            is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
-                               sum_radius[m, j], seg_length[m])
-        if is_rooted:
-            e2 = max(dot(dj, dj), 1e-300)
-            s = max(s, ROOT_LEVER)
-            t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
-    diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
-    depth[m, j] = sum_radius[m, j] - norm(diff)
-    s_out[m, j] = s
-    t_out[m, j] = t
-    own[m, j] = not (inner[m] and s <= 0.0)
+            s, t = closest_segment_segment(p0, d1, aj, dj)
+        if f >= 0:
+            if root_fixed[f, j]:
+                is_rooted = rooted_fixed[f, j]
+            else:
+                is_rooted = rooted(v3(anchor_position, first_chain[f]), aj, dj,
+                                   sum_radius[m, j], seg_length[m])
+            if is_rooted:
+                e2 = max(dot(dj, dj), 1e-300)
+                s = max(s, ROOT_LEVER)
+                t = clip01(dot(sub(add(p0, scale(s, d1)), aj), dj) / e2)
+        diff = sub(add(p0, scale(s, d1)), add(aj, scale(t, dj)))
+        depth[m, j] = sum_radius[m, j] - norm(diff)
+        s_out[m, j] = s
+        t_out[m, j] = t
+        own[m, j] = not (inner[m] and s <= 0.0)
 
 
 @njit(cache=True)
@@ -379,45 +388,33 @@ def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     segment's proximal joint is its parent's distal joint: no row there (``own`` False). A
     first segment rooted on a round collider is tested on ``s ≥ ROOT_LEVER``.
     """
-    seg = det[D_SEG]
-    K = pose[P_A0].shape[0]
-    for m in range(seg.shape[0]):
-        g = seg[m]
-        hg = v3(h, g)
-        p0 = sub(v3(x, g), hg)
-        d1 = scale(2.0, hg)
-        for j in range(K):
-            detect_pair(p0, d1, anchor_position, pose, det, report, m, j, depth, s_out, t_out,
-                        own)
+    for j in range(pose[P_A0].shape[0]):
+        detect_segments(x, h, anchor_position, pose, det, report, 0, det[D_SEG].shape[0], j,
+                        depth, s_out, t_out, own)
 
 
 @njit(cache=True, inline='always')
-def anchor_distance(anchor_position, pose, det, c, j):
-    """Distance (m) from colliding chain c's anchor (``det[D_CHAINS][c]``) to collider j's
-    surface: to a round collider's core minus its radius, a plane's signed height."""
-    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
-    p = v3(anchor_position, det[D_CHAINS][c])
-    aj = v3(a0, j)
-    if j < det[D_N_ROUND]:
-        dj = v3(d2, j)
+def anchor_distance(p, aj, dj, nn, is_round, radius):
+    """Distance (m) from a chain's anchor ``p`` to a collider's surface: to a round
+    collider's core ``aj + t dj`` minus its ``radius``, a plane's (through ``aj``, normal
+    ``nn``) signed height. Vectors as 3-tuples: called per (chain, collider) pair, it binds
+    no array."""
+    if is_round:
         rel = sub(p, aj)
         e2 = max(dot(dj, dj), 1e-300)
         t = clip01(dot(rel, dj) / e2)
-        return norm(sub(rel, scale(t, dj))) - det[D_COL_RADIUS][j]
-    nn = v3(normal, j)
+        return norm(sub(rel, scale(t, dj))) - radius
     return dot(p, nn) - dot(aj, nn)
 
 
 @njit(cache=True, inline='always')
-def outside_box(anchor_position, pose, det, c, j, reach):
-    """Is chain slot c's anchor farther than ``reach`` (m) along some axis from the box around
-    round collider j (its core's box grown by its radius)? Then it is farther than that from
-    the collider (a cheap test before ``anchor_distance``: no square root)."""
-    p = v3(anchor_position, det[D_CHAINS][c])
-    a0, d2, r = pose[P_A0], pose[P_D2], det[D_COL_RADIUS][j]
+def outside_box(p, aj, dj, radius, reach):
+    """Is the anchor ``p`` farther than ``reach`` (m) along some axis from the box around a
+    round collider (its core ``aj + t dj``'s box grown by its radius)? Then it is farther
+    than that from the collider (a cheap test before ``anchor_distance``: no square root)."""
     for a in range(3):
-        e = a0[j, a] + d2[j, a]
-        if p[a] < min(a0[j, a], e) - r - reach or p[a] > max(a0[j, a], e) + r + reach:
+        e = aj[a] + dj[a]
+        if p[a] < min(aj[a], e) - radius - reach or p[a] > max(aj[a], e) + radius + reach:
             return True
     return False
 
@@ -441,11 +438,15 @@ def near(anchor_position, pose, v, w, det, dt):
     its length (plus radius) about its anchor; its surface moves at most at
     ``surface_speed``."""
     det_chains, chain_reach = det[D_CHAINS], det[D_CHAIN_REACH]
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    col_radius, n_round = det[D_COL_RADIUS], det[D_N_ROUND]
     speed = surface_speed(pose, v, w, det)
     for c in range(det_chains.shape[0]):
         reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
-        for j in range(pose[P_A0].shape[0]):
-            if anchor_distance(anchor_position, pose, det, c, j) < reach:
+        p = v3(anchor_position, det_chains[c])
+        for j in range(a0.shape[0]):
+            if anchor_distance(p, v3(a0, j), v3(d2, j), v3(normal, j), j < n_round,
+                               col_radius[j]) < reach:
                 return True
     return False
 
@@ -514,21 +515,21 @@ def resolve_workspace(n, model, det, pose, has_colliders):
 
 # -- rows ----------------------------------------------------------------------------------------
 @njit(cache=True)
-def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
-    """Normal (from the collider to the segment) and touching point on segment g's surface
-    for the closest points ``s`` (segment) and ``t`` (capsule core) with collider j."""
-    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
-    ps = add(v3(x, g), scale(2.0 * s - 1.0, v3(h, g)))
-    if j >= n_round:
-        nrm = v3(normal, j)
+def contact_frame(xg, hg, s, t, aj, dj, nj, radius, is_round):
+    """Normal (from the collider to the segment) and touching point on the surface of the
+    segment (centre ``xg``, half-vector ``hg``) for the closest points ``s`` (segment) and
+    ``t`` (a round collider's core ``aj + t dj``; a plane: its normal ``nj``). Vectors as
+    3-tuples: called per row, it binds no array."""
+    ps = add(xg, scale(2.0 * s - 1.0, hg))
+    if not is_round:
+        nrm = nj
     else:
-        diff = sub(ps, add(v3(a0, j), scale(t, v3(d2, j))))
+        diff = sub(ps, add(aj, scale(t, dj)))
         dist = norm(diff)
         if dist > 1e-12:
             nrm = (diff[0] / dist, diff[1] / dist, diff[2] / dist)
         else:
             # On the core: any direction perpendicular to the segment.
-            hg = v3(h, g)
             ref = (1.0, 0.0, 0.0) if abs(hg[0]) < 0.9 else (0.0, 1.0, 0.0)
             p = cross(hg, ref)
             npn = norm(p)
@@ -538,7 +539,7 @@ def contact_frame(x, h, g, s, t, j, radius, pose, n_round):
 
 @njit(cache=True, inline='always')
 def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: C901 (kernel loops)
-    """Broad phase per (colliding chain, collider) pair, then detection (``detect_pair``) of
+    """Broad phase per (colliding chain, collider) pair, then detection (``detect_segments``) of
     every segment of the pairs kept; returns the position skin (``POSITION_SKIN`` plus 4×
     the deepest violation, at least ``VELOCITY_SKIN``), as if every pair had been detected.
 
@@ -550,6 +551,8 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     repeated until the skin stands. Pairs kept, per chain slot c (``det[D_CHAINS][c]``):
     colliders ``ws[WS_PAIRS][PR_LIST][c, :ws[WS_SLOTS][S_COUNT][c]]``, in column order."""
     seg, det_chains, chain_reach = det[D_SEG], det[D_CHAINS], det[D_CHAIN_REACH]
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
+    col_radius, n_round = det[D_COL_RADIUS], det[D_N_ROUND]
     chain_of = model[CHAIN_OF]
     depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
     state, pair_list, count = ws[WS_PAIRS][PR_STATE], ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT]
@@ -574,23 +577,24 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
         for c in range(nd):
             reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
                      + PAIR_MARGIN)
+            p = v3(anchor_position, det_chains[c])
             for j in range(K):
                 if state[c, j] != 0:
                     continue
-                if j < det[D_N_ROUND] and outside_box(anchor_position, pose, det, c, j, reach):
+                aj, dj = v3(a0, j), v3(d2, j)
+                if j < n_round and outside_box(p, aj, dj, col_radius[j], reach):
                     continue
-                if anchor_distance(anchor_position, pose, det, c, j) < reach:
+                if anchor_distance(p, aj, dj, v3(normal, j), j < n_round,
+                                   col_radius[j]) < reach:
                     state[c, j] = 1
         for c in range(nd):
             for j in range(K):
                 if state[c, j] != 1:
                     continue
                 state[c, j] = 2
+                detect_segments(x, h, anchor_position, pose, det, False, first_seg[c],
+                                end_seg[c], j, depth, s, t, own)
                 for i in range(first_seg[c], end_seg[c]):
-                    g = seg[i]
-                    hg = v3(h, g)
-                    detect_pair(sub(v3(x, g), hg), scale(2.0, hg), anchor_position, pose, det,
-                                False, i, j, depth, s, t, own)
                     deepest = max(deepest, depth[i, j])
         skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
     for c in range(nd):
@@ -609,6 +613,8 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     ``ws``: the workspace (its half-vectors and detection tables are overwritten); only the
     pairs ``near_pairs`` keeps are detected."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
+    seg_radius, n_round = det[D_RADIUS], det[D_N_ROUND]
+    a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
     origin, col_vel, col_om, col_speed = (pose[P_ORIGIN], pose[P_VELOCITY], pose[P_OMEGA],
                                           pose[P_SPEED])
     chain_of = model[CHAIN_OF]
@@ -635,8 +641,8 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
             reach = skin + SPECULATIVE_STEPS * dt * (speed + col_speed[j])
             if not (own[i, j] and depth[i, j] > -reach):
                 continue
-            nrm, point = contact_frame(x, h, g, s[i, j], t[i, j], j, det[D_RADIUS][i], pose,
-                                       det[D_N_ROUND])
+            nrm, point = contact_frame(v3(x, g), v3(h, g), s[i, j], t[i, j], v3(a0, j),
+                                       v3(d2, j), v3(normal, j), seg_radius[i], j < n_round)
             arm = sub(point, v3(x, g))
             v_col = add(v3(col_vel, j), cross(v3(col_om, j), sub(point, v3(origin, j))))
             rel = sub(add(v3(v, g), cross(v3(w, g), arm)), v_col)
@@ -1033,11 +1039,11 @@ def friction_step(W, slip, bound):
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
 @njit(cache=True)
-def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw, c_dot):
+def row_response(R, I, r, h, inv_I, C, Lo, first, inv_mass, has_child, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
     impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
-    ``c_dot`` ``(e - s, 3)``: scratch."""
-    inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
+    ``C``, ``Lo``, ``first``: the chain's factors and ``is_first`` (from s); ``c_dot``
+    ``(e - s, 3)``: scratch. Plain arrays, not the model's tuple: called per row."""
     nc = e - s
     g, p = I[r, SEG], I[r, PAR]
     dv[:] = 0.0
@@ -1058,22 +1064,41 @@ def row_response(R, I, r, h, inv_I, C, Lo, model, s, e, dv, dw, c_dot):
             d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
         for a in range(3):
             c_dot[i, a] = d[a]
-    _chain_solve(C[s:e], Lo[s:e], is_first[s:e], c_dot)
-    apply_joint_impulses(c_dot, h, inv_I, model, s, e, dv, dw)
+    _chain_solve(C, Lo, first, c_dot)
+    apply_joint_impulses(c_dot, h, inv_I, inv_mass, has_child, s, e, dv, dw)
 
 
 @njit(cache=True)
-def gather_chain(I, chain_of, r0, done, members):
-    """The rows (from ``r0`` on, not yet ``done``) of the chain of row ``r0`` into ``members``,
-    marked done; returns their number."""
-    c = chain_of[I[r0, SEG]]
-    kg = 0
-    for r in range(r0, I.shape[0]):
-        if not done[r] and chain_of[I[r, SEG]] == c:
-            members[kg] = r
-            kg += 1
-            done[r] = True
-    return kg
+def group_rows(I, chain_of, chain_start, chain_end, members, start):
+    """The rows grouped by chain, in the order of each chain's first row, in row order within
+    a group (group g: ``members[start[g]:start[g + 1]]``): a counting sort, O(rows + chains)
+    however many chains have rows. Returns the number of groups and the largest group's
+    rows and segments."""
+    k = I.shape[0]
+    scratch = np.empty(2 * k, dtype=np.int64)
+    group, fill = scratch[:k], scratch[k:]
+    group_of = np.full(chain_start.shape[0], -1, dtype=np.int64)
+    n_groups, nc_max = 0, 0
+    for r in range(k):
+        c = chain_of[I[r, SEG]]
+        if group_of[c] < 0:
+            group_of[c] = n_groups
+            fill[n_groups] = 0
+            n_groups += 1
+            nc_max = max(nc_max, chain_end[c] - chain_start[c])
+        group[r] = group_of[c]
+        fill[group[r]] += 1
+    o, kg_max = 0, 0
+    for g in range(n_groups):
+        start[g] = o
+        o += fill[g]
+        kg_max = max(kg_max, fill[g])
+        fill[g] = start[g]
+    start[n_groups] = o
+    for r in range(k):
+        members[fill[group[r]]] = r
+        fill[group[r]] += 1
+    return n_groups, kg_max, nc_max
 
 
 @njit(cache=True)
@@ -1129,29 +1154,17 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
 @njit(cache=True)
 def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
     """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
-    rows of this call (six allocations, whatever the number of chains and rows)."""
+    rows of this call (a few allocations, whatever the number of chains and rows)."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
     k = R.shape[0]
     if k == 0:
         return
-    # The rows grouped by chain, in the order of each chain's first row (group g:
-    # members[start[g]:start[g + 1]]), and the largest group's sizes.
+    # The rows grouped by chain (group g: members[start[g]:start[g + 1]]).
     ib = np.empty(2 * k + 1, dtype=np.int64)
     members, start = ib[:k], ib[k:]
-    flags = np.zeros(2 * k, dtype=np.bool_)
-    done, mobile = flags[:k], flags[k:]
-    n_groups, o, kg_max, nc_max = 0, 0, 0, 0
-    for r0 in range(k):
-        if done[r0]:
-            continue
-        kg = gather_chain(I, chain_of, r0, done, members[o:])
-        c = chain_of[I[r0, SEG]]
-        nc = chain_end[c] - chain_start[c]
-        start[n_groups] = o
-        n_groups += 1
-        o += kg
-        kg_max, nc_max = max(kg_max, kg), max(nc_max, nc)
-    start[n_groups] = o
+    n_groups, kg_max, nc_max = group_rows(I, chain_of, chain_start, chain_end, members, start)
+    mobile = np.zeros(k, dtype=np.bool_)
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
     rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
     c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
@@ -1164,8 +1177,10 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
         nc = e - s
         rv, rw = rv_all[:kg, :nc], rw_all[:kg, :nc]
         c_dot, W, lc = c_dot_all[:nc], W_all[:kg, :kg], lc_all[:kg]
+        Cg, Log, first = C[s:e], Lo[s:e], is_first[s:e]
         for a in range(kg):
-            row_response(R, I, mem[a], h, inv_I, C, Lo, model, s, e, rv[a], rw[a], c_dot)
+            row_response(R, I, mem[a], h, inv_I, Cg, Log, first, inv_mass, has_child, s, e,
+                         rv[a], rw[a], c_dot)
         delassus(R, I, mem, s, rv, rw, model, W, mobile[:kg])
         chain_impulses(W, mobile[:kg], b, bound, mem, lc, ds)
         for a in range(kg):
@@ -1413,9 +1428,18 @@ def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_c
     """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state);
     ``x0``, ``q0``: a copy of the step's positions (read only without ``project``; they must
     not be ``x``, ``q`` themselves). Returns the status."""
-    n = x.shape[0]
+    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
+    return resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                        project, dt, stats, ws)
+
+
+@njit(cache=True)
+def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                 project, dt, stats, ws):
+    """``resolve_in_place`` with its workspace given (``resolve_workspace`` of this model,
+    detector and colliders): a step loop allocates it once for all its steps. Every stage
+    writes what it reads there first, as it must of ``np.empty``'s contents."""
     stats[:] = 0
-    ws = resolve_workspace(n, model, det, pose, has_colliders)
     h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws, stats)

@@ -1191,10 +1191,23 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     it), else as ``advance``."""
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
+    # The contact stage's workspace and the step's positions before it, for all the steps.
+    cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
+                                            has_colliders)
+    x0, q0 = np.empty_like(x), np.empty_like(q)
+    # One chain: its views made once, not every step (each view costs a reference count).
+    single = starts.shape[0] == 1
+    e1 = ends[0] if single else 0
+    M1 = _chain_model(M, 0, e1)
+    ws1, rws1 = _chain_views(W, R, e1)
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
             return SUBSTEPS, k
-        for c in range(starts.shape[0]):
+        if single:
+            status = _chain_steps(M1, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, ws1, rws1)
+            if status != OK:
+                return status, k
+        for c in range(0 if single else starts.shape[0]):
             s, e = starts[c], ends[c]
             ws, rws = _chain_views(W, R, e - s)
             status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
@@ -1208,13 +1221,11 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
                                                  B.angular_velocity[r], cols)
         else:
             pose = static_pose
-        status, x1, q1, v1, w1 = contact_kernels.resolve(
-            x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders, M.projection, h,
-            stats)
+        x0[:] = x
+        q0[:] = q
+        status = contact_kernels.resolve_into(
+            x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
+            M.projection, h, stats, cws)
         if status != contact_kernels.OK:
             return JOINT_SOLVE_FAILED, k
-        x[:] = x1
-        q[:] = q1
-        v[:] = v1
-        w[:] = w1
     return OK, n_steps
