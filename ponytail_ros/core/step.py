@@ -323,71 +323,87 @@ def _apply_joint_impulses(M, lam, hv, Iinv, dv, dw):
 
 # -- applied forces ----------------------------------------------------------------------------
 @_inline
-def _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
-    """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``forces``)."""
+def _applied_forces(M, A, row, x, q, v, w, ext_F, ext_T, F, T):
+    """``_applied`` of the whole model ``M`` and table ``A`` (the constrained steps)."""
+    _applied(row, x, q, v, w, ext_F, ext_T, F, T, M.mass, M.length, M.chain_of, M.is_first,
+             M.damping, M.stiffness, M.q_rest, M.drag_linear, M.drag_quadratic, M.gravity,
+             M.wind, M.gravity_on, M.explicit_damping, M.stiffness_on, M.drag_on,
+             M.external_on, A.orientation, A.angular_velocity)
+
+
+# The stage-level helpers of RK4 below take only the arrays they use, not the ``StepModel`` and
+# ``AnchorTable`` tuples: an inline helper increfs and decrefs every array of a tuple argument at
+# every call, and the stages run four times per step.
+@_inline
+def _applied(row, x, q, v, w, ext_F, ext_T, F, T, mass, length, chain_of, is_first, damping,
+             stiffness, q_rest, drag_linear, drag_quadratic, gravity, wind, gravity_on,
+             explicit_damping, stiffness_on, drag_on, external_on, anchor_orientation,
+             anchor_angular_velocity):
+    """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``forces``);
+    the model's arrays and switches are ``StepModel``'s, the anchors' ``AnchorTable``'s."""
     n = x.shape[0]
     for i in range(n):
         for a in range(3):
-            F[i, a] = M.mass[i] * M.gravity[a] if M.gravity_on else 0.0
+            F[i, a] = mass[i] * gravity[a] if gravity_on else 0.0
             T[i, a] = 0.0
-    if M.explicit_damping or M.stiffness_on:
+    if explicit_damping or stiffness_on:
         for i in range(n):
-            c = M.chain_of[i]
+            c = chain_of[i]
             tau0, tau1, tau2 = 0.0, 0.0, 0.0
-            if M.explicit_damping:
-                if M.is_first[i]:
-                    pw0 = A.angular_velocity[row, c, 0]
-                    pw1 = A.angular_velocity[row, c, 1]
-                    pw2 = A.angular_velocity[row, c, 2]
+            if explicit_damping:
+                if is_first[i]:
+                    pw0 = anchor_angular_velocity[row, c, 0]
+                    pw1 = anchor_angular_velocity[row, c, 1]
+                    pw2 = anchor_angular_velocity[row, c, 2]
                 else:
                     pw0, pw1, pw2 = w[i - 1, 0], w[i - 1, 1], w[i - 1, 2]
-                k = M.damping[i]
+                k = damping[i]
                 tau0 -= k * (w[i, 0] - pw0)
                 tau1 -= k * (w[i, 1] - pw1)
                 tau2 -= k * (w[i, 2] - pw2)
-            if M.stiffness_on:
+            if stiffness_on:
                 # q = q_parent ⊗ q_rest ⊗ q_err: q_err is the deviation in the child frame.
-                if M.is_first[i]:
-                    px = A.orientation[row, c, 0]
-                    py = A.orientation[row, c, 1]
-                    pz = A.orientation[row, c, 2]
-                    pw = A.orientation[row, c, 3]
+                if is_first[i]:
+                    px = anchor_orientation[row, c, 0]
+                    py = anchor_orientation[row, c, 1]
+                    pz = anchor_orientation[row, c, 2]
+                    pw = anchor_orientation[row, c, 3]
                 else:
                     px, py, pz, pw = q[i - 1, 0], q[i - 1, 1], q[i - 1, 2], q[i - 1, 3]
-                rx, ry, rz, rw = _qmul(px, py, pz, pw, M.q_rest[i, 0], M.q_rest[i, 1],
-                                       M.q_rest[i, 2], M.q_rest[i, 3])
+                rx, ry, rz, rw = _qmul(px, py, pz, pw, q_rest[i, 0], q_rest[i, 1],
+                                       q_rest[i, 2], q_rest[i, 3])
                 ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, q[i, 0], q[i, 1], q[i, 2], q[i, 3])
                 p0, p1, p2 = qto_rotvec((ex, ey, ez, ew))
                 s0, s1, s2 = _qrot(q[i, 0], q[i, 1], q[i, 2], q[i, 3], p0, p1, p2)
-                k = M.stiffness[i]
+                k = stiffness[i]
                 tau0 -= k * s0
                 tau1 -= k * s1
                 tau2 -= k * s2
             T[i, 0] += tau0
             T[i, 1] += tau1
             T[i, 2] += tau2
-            if not M.is_first[i]:
+            if not is_first[i]:
                 T[i - 1, 0] -= tau0
                 T[i - 1, 1] -= tau1
                 T[i - 1, 2] -= tau2
-    if M.drag_on:
+    if drag_on:
         for i in range(n):
-            u0 = v[i, 0] - M.wind[0]
-            u1 = v[i, 1] - M.wind[1]
-            u2 = v[i, 2] - M.wind[2]
+            u0 = v[i, 0] - wind[0]
+            u1 = v[i, 1] - wind[1]
+            u2 = v[i, 2] - wind[2]
             speed = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-            c1 = M.drag_linear[i]
-            k = (c1 + M.drag_quadratic[i] * speed) * M.length[i]
+            c1 = drag_linear[i]
+            k = (c1 + drag_quadratic[i] * speed) * length[i]
             F[i, 0] -= k * u0
             F[i, 1] -= k * u1
             F[i, 2] -= k * u2
             e0, e1, e2 = _axis(q, i)
             wa = w[i, 0] * e0 + w[i, 1] * e1 + w[i, 2] * e2
-            kt = c1 * (M.length[i] ** 3 / 12.0)
+            kt = c1 * (length[i] ** 3 / 12.0)
             T[i, 0] -= kt * (w[i, 0] - wa * e0)
             T[i, 1] -= kt * (w[i, 1] - wa * e1)
             T[i, 2] -= kt * (w[i, 2] - wa * e2)
-    if M.external_on:
+    if external_on:
         for i in range(n):
             for a in range(3):
                 F[i, a] += ext_F[i, a]
@@ -409,12 +425,15 @@ def _gyroscopic(axisymmetric, I0, I1, I2, e0, e1, e2, qx, qy, qz, qw, w0, w1, w2
 
 # -- RK4: accelerations with the joint forces solved (A f_c = b) --------------------------------
 @_inline
-def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
+def _accelerations(row, x, q, v, w, F, T, hv, Iinv, C, Lo, acc, alpha, f_c, half, inv_mass,
+                   inertia, inv_inertia, chain_of, is_first, has_child, axisymmetric,
+                   baumgarte_stiffness, baumgarte_damping, anchor_position, anchor_velocity,
+                   anchor_acceleration):
     """Linear and angular accelerations (m/s², rad/s²) with every joint enforced
-    (``solver.Dynamics.accelerations``), ``f_c`` the joint forces (N); False if A is not
-    positive definite.
+    (``solver.Dynamics.accelerations``) under the applied forces ``F``, ``T``, ``f_c`` the
+    joint forces (N); False if A is not positive definite.
 
-    After the applied forces, two sweeps, the factorisation's own (``chain_solve``):
+    Two sweeps, the factorisation's own (``chain_solve``):
       root to tip, per segment i: its mass properties and free accelerations (Eq. 11 without
         f_c), joint i's right-hand side (Eq. 3), joint i's row of A factorised and the
         right-hand side forward-substituted. The factorisation is a chain of dependent
@@ -422,31 +441,29 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
       tip to root: the back substitution, and each segment's joint forces applied.
     The arithmetic of every value is that of ``_inertia_terms``, ``_factor_joints``,
     ``chain_solve.solve`` and ``_apply_joint_impulses`` in turn."""
-    F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]
-    _applied(M, A, row, x, q, v, w, ext_F, ext_T, F, T)
-    baumgarte = M.baumgarte_stiffness != 0.0 or M.baumgarte_damping != 0.0
+    baumgarte = baumgarte_stiffness != 0.0 or baumgarte_damping != 0.0
     g = pinv = _ZERO6                   # G and P⁻¹ of the previous segment / joint
     z0 = z1 = z2 = 0.0                  # the previous joint's forward-substituted rhs
     pa0 = pa1 = pa2 = 0.0               # the previous segment's distal-point acceleration
     for i in range(n):
-        first = M.is_first[i]
-        e0, e1, e2, X = _mass_properties(M.axisymmetric, q[i, 0], q[i, 1], q[i, 2], q[i, 3],
-                                         M.inv_inertia[i, 0], M.inv_inertia[i, 1],
-                                         M.inv_inertia[i, 2])
+        first = is_first[i]
+        e0, e1, e2, X = _mass_properties(axisymmetric, q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                         inv_inertia[i, 0], inv_inertia[i, 1],
+                                         inv_inertia[i, 2])
         _store_block(Iinv, i, X)
-        half = M.half[i]
-        h0, h1, h2 = half * e0, half * e1, half * e2
+        hl = half[i]
+        h0, h1, h2 = hl * e0, hl * e1, hl * e2
         hv[i, 0], hv[i, 1], hv[i, 2] = h0, h1, h2
         # Free accelerations (Eq. 11 without f_c) and the joint points' under them (Eq. 3):
         # r_d = h, r_p = -h.
         w0, w1, w2 = w[i, 0], w[i, 1], w[i, 2]
-        y0, y1, y2 = _gyroscopic(M.axisymmetric, M.inertia[i, 0], M.inertia[i, 1],
-                                 M.inertia[i, 2], e0, e1, e2, q[i, 0], q[i, 1], q[i, 2],
+        y0, y1, y2 = _gyroscopic(axisymmetric, inertia[i, 0], inertia[i, 1],
+                                 inertia[i, 2], e0, e1, e2, q[i, 0], q[i, 1], q[i, 2],
                                  q[i, 3], w0, w1, w2)
         a0, a1, a2 = _mul9(X, T[i, 0] - y0, T[i, 1] - y1, T[i, 2] - y2)
         alpha[i, 0], alpha[i, 1], alpha[i, 2] = a0, a1, a2
-        im = M.inv_mass[i]
+        im = inv_mass[i]
         ac0, ac1, ac2 = F[i, 0] * im, F[i, 1] * im, F[i, 2] * im
         acc[i, 0], acc[i, 1], acc[i, 2] = ac0, ac1, ac2
         c0, c1, c2 = _cross(a0, a1, a2, h0, h1, h2)
@@ -455,22 +472,25 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
         t0, t1, t2 = c0 + d0, c1 + d1, c2 + d2                   # tangential + centripetal
         # Joint i's right-hand side: parent point minus child point acceleration.
         if first:
-            c = M.chain_of[i]
-            pa0 = A.acceleration[row, c, 0]
-            pa1 = A.acceleration[row, c, 1]
-            pa2 = A.acceleration[row, c, 2]
+            c = chain_of[i]
+            pa0 = anchor_acceleration[row, c, 0]
+            pa1 = anchor_acceleration[row, c, 1]
+            pa2 = anchor_acceleration[row, c, 2]
         r0, r1, r2 = pa0 - (ac0 - t0), pa1 - (ac1 - t1), pa2 - (ac2 - t2)
         if baumgarte:
-            r0 += _baumgarte(M, A, row, x, v, w, hv, i, 0, u0)
-            r1 += _baumgarte(M, A, row, x, v, w, hv, i, 1, u1)
-            r2 += _baumgarte(M, A, row, x, v, w, hv, i, 2, u2)
+            r0 += _baumgarte(row, x, v, w, hv, i, 0, u0, chain_of, is_first, anchor_position,
+                             anchor_velocity, baumgarte_stiffness, baumgarte_damping)
+            r1 += _baumgarte(row, x, v, w, hv, i, 1, u1, chain_of, is_first, anchor_position,
+                             anchor_velocity, baumgarte_stiffness, baumgarte_damping)
+            r2 += _baumgarte(row, x, v, w, hv, i, 2, u2, chain_of, is_first, anchor_position,
+                             anchor_velocity, baumgarte_stiffness, baumgarte_damping)
         pa0, pa1, pa2 = ac0 + t0, ac1 + t1, ac2 + t2
         # Joint i's row of A, factorised; forward substitution (1 + 𝓛) z = b.
-        if M.axisymmetric:
-            gi = _G_axisymmetric(h0, h1, h2, M.inv_inertia[i, 1])
+        if axisymmetric:
+            gi = _G_axisymmetric(h0, h1, h2, inv_inertia[i, 1])
         else:
             gi = _G_general(h0, h1, h2, X)
-        imp = 0.0 if first else M.inv_mass[i - 1]
+        imp = 0.0 if first else inv_mass[i - 1]
         ok, lo, pinv = _joint_row(first, pinv, im, imp, gi, g)
         if not ok:
             return False
@@ -489,13 +509,13 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
         z0, z1, z2 = f_c[i, 0], f_c[i, 1], f_c[i, 2]
         P = _block(C, i)
         f0, f1, f2 = _mul9(P, z0, z1, z2)
-        if i + 1 < n and not M.is_first[i + 1]:
+        if i + 1 < n and not is_first[i + 1]:
             f0 -= Lo[i + 1, 0, 0] * l0 + Lo[i + 1, 1, 0] * l1 + Lo[i + 1, 2, 0] * l2
             f1 -= Lo[i + 1, 0, 1] * l0 + Lo[i + 1, 1, 1] * l1 + Lo[i + 1, 2, 1] * l2
             f2 -= Lo[i + 1, 0, 2] * l0 + Lo[i + 1, 1, 2] * l1 + Lo[i + 1, 2, 2] * l2
         f_c[i, 0], f_c[i, 1], f_c[i, 2] = f0, f1, f2
-        g0, g1, g2 = (l0, l1, l2) if M.has_child[i] else (0.0, 0.0, 0.0)
-        im = M.inv_mass[i]
+        g0, g1, g2 = (l0, l1, l2) if has_child[i] else (0.0, 0.0, 0.0)
+        im = inv_mass[i]
         acc[i, 0] += (f0 - g0) * im
         acc[i, 1] += (f1 - g1) * im
         acc[i, 2] += (f2 - g2) * im
@@ -510,13 +530,14 @@ def _accelerations(M, A, row, x, q, v, w, ext_F, ext_T, ws, acc, alpha, f_c):
 
 
 @_jit
-def _baumgarte(M, A, row, x, v, w, hv, i, a, wxh):
+def _baumgarte(row, x, v, w, hv, i, a, wxh, chain_of, is_first, anchor_position,
+               anchor_velocity, baumgarte_stiffness, baumgarte_damping):
     """Joint i's Baumgarte term 2ζ Ċ + κ C along axis ``a`` (``wxh`` = (ω × h)_a of segment
     i; segment i-1's ``hv`` already set)."""
-    if M.is_first[i]:
-        c = M.chain_of[i]
-        pp = A.position[row, c, a]
-        pv = A.velocity[row, c, a]
+    if is_first[i]:
+        c = chain_of[i]
+        pp = anchor_position[row, c, a]
+        pv = anchor_velocity[row, c, a]
     else:
         pp = x[i - 1, a] + hv[i - 1, a]
         pu0, pu1, pu2 = _cross(w[i - 1, 0], w[i - 1, 1], w[i - 1, 2],
@@ -524,7 +545,7 @@ def _baumgarte(M, A, row, x, v, w, hv, i, a, wxh):
         pv = v[i - 1, a] + (pu0, pu1, pu2)[a]
     gap = pp - (x[i, a] - hv[i, a])
     rate = pv - (v[i, a] - wxh)
-    return M.baumgarte_damping * rate + M.baumgarte_stiffness * gap
+    return baumgarte_damping * rate + baumgarte_stiffness * gap
 
 
 @_jit
@@ -560,6 +581,7 @@ def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     summed as they come (d1 + 2 d2 + 2 d3 + d4, in that order), so no stage is stored; each
     segment's derivative, sums and next stage are done in one pass."""
     n = x.shape[0]
+    F, T, _, hv, Iinv, C, Lo = ws
     wb, w_s, xs, qs, vs, wbs, acc, _, sx, sv, sq, swb, alpha = rws
     for i in range(n):
         qx, qy, qz, qw = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
@@ -574,7 +596,14 @@ def _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):
     hh = 0.5 * h
     for s in range(4):
         row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
-        if not _accelerations(M, A, row, xs, qs, vs, w_s, ext_F, ext_T, ws, acc, alpha, f_c):
+        _applied(row, xs, qs, vs, w_s, ext_F, ext_T, F, T, M.mass, M.length, M.chain_of,
+                 M.is_first, M.damping, M.stiffness, M.q_rest, M.drag_linear, M.drag_quadratic,
+                 M.gravity, M.wind, M.gravity_on, M.explicit_damping, M.stiffness_on, M.drag_on,
+                 M.external_on, A.orientation, A.angular_velocity)
+        if not _accelerations(row, xs, qs, vs, w_s, F, T, hv, Iinv, C, Lo, acc, alpha, f_c,
+                              M.half, M.inv_mass, M.inertia, M.inv_inertia, M.chain_of,
+                              M.is_first, M.has_child, M.axisymmetric, M.baumgarte_stiffness,
+                              M.baumgarte_damping, A.position, A.velocity, A.acceleration):
             return False
         weight = 1.0 if (s == 0 or s == 3) else 2.0
         c = hh if s < 2 else h            # the next stage's offset
@@ -821,7 +850,7 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
         _inertia_terms(M, q, e, hv, Iinv)
         if not _factor_joints(M, hv, Iinv, C, Lo):
             return False
-    _applied(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
+    _applied_forces(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
     kick = 0.5 * h if rattle else h
     v1, w1, dv, dw, lam, w_change, v0, mu, end = (rws[0], rws[1], rws[2], rws[4], rws[5],
                                                   rws[6], rws[7], rws[8], rws[9])
@@ -865,7 +894,7 @@ def _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh)
             for a in range(3):
                 dv[i, a] = 2.0 * v1[i, a] - v0[i, a]
                 dw[i, a] = w1[i, a] + w_change[i, a]
-        _applied(M, A, r1, x, q, dv, dw, ext_F, ext_T, F, T)
+        _applied_forces(M, A, r1, x, q, dv, dw, ext_F, ext_T, F, T)
         for i in range(n):
             for a in range(3):
                 v[i, a] = v1[i, a] + kick * F[i, a] * M.inv_mass[i]
