@@ -89,8 +89,8 @@ class StepReport:
 
 class Rollout(NamedTuple):
     """What ``Simulator.rollout`` did: one ``StepReport`` per sample and the chain's state
-    after it (``(T, n, 3|4)`` arrays: centres m, unit quaternions (w, x, y, z), velocities
-    m/s, angular velocities rad/s; world frame)."""
+    after it (``(T, n, 3|4)`` arrays, as ``ChainState``: centres m, unit quaternions
+    ``(x, y, z, w)`` body to world, velocities m/s, angular velocities rad/s; world frame)."""
 
     reports: list
     x: np.ndarray
