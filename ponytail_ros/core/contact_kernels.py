@@ -1423,22 +1423,14 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
 
 
 @njit(cache=True)
-def resolve_in_place(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
-                     project, dt, stats):
-    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state);
-    ``x0``, ``q0``: a copy of the step's positions (read only without ``project``; they must
-    not be ``x``, ``q`` themselves). Returns the status."""
-    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
-    return resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
-                        project, dt, stats, ws)
-
-
-@njit(cache=True)
 def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
                  project, dt, stats, ws):
-    """``resolve_in_place`` with its workspace given (``resolve_workspace`` of this model,
-    detector and colliders): a step loop allocates it once for all its steps. Every stage
-    writes what it reads there first, as it must of ``np.empty``'s contents."""
+    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state), with
+    its workspace ``ws`` given (``resolve_workspace`` of this model, detector and colliders: a
+    step loop allocates it once for all its steps; every stage writes what it reads there
+    first, as it must of ``np.empty``'s contents). ``x0``, ``q0``: a copy of the step's
+    positions (read only without ``project``; they must not be ``x``, ``q`` themselves).
+    Returns the status."""
     stats[:] = 0
     h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
@@ -1486,10 +1478,11 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
     unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
     energy), ``velocity_stage``, and the centre velocities rebuilt from ω. All scratch is one
-    workspace (``workspace``), a few allocations per call (``resolve_in_place``: the same
-    without the four copies).
+    workspace (``workspace``), a few allocations per call (``resolve_into``: the same in
+    place, on a workspace kept across steps).
     """
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
-    status = resolve_in_place(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
-                              has_colliders, project, dt, stats)
+    status = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
+                          has_colliders, project, dt, stats,
+                          resolve_workspace(x.shape[0], model, det, pose, has_colliders))
     return status, x1, q1, v1, w1

@@ -28,9 +28,10 @@ __all__ = [
 ]
 
 
-_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
-           'linear_acceleration', 'angular_acceleration')
-_ANCHOR_FIELDS = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
+#: The fields of ``KinematicState`` and of ``AnchorKinematics``, in order.
+STATE_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                'linear_acceleration', 'angular_acceleration')
+ANCHOR_FIELDS = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
 
 
 @dataclass
@@ -72,7 +73,7 @@ class KinematicState:
             return self
         still = KinematicState.still(np.zeros((k, 3)))
         return KinematicState(*(np.concatenate([getattr(self, f), getattr(still, f)])
-                                for f in _FIELDS))
+                                for f in STATE_FIELDS))
 
     def is_finite(self):
         return all(np.all(np.isfinite(a)) for a in (
@@ -88,7 +89,8 @@ class KinematicState:
         C = body.shape[0]
         out = AnchorKinematics(np.empty((C, 3)), np.empty((C, 3)), np.empty((C, 3)),
                                np.empty((C, 4)), np.empty((C, 3)))
-        point_kinematics(*(np.ascontiguousarray(getattr(self, f), dtype=float) for f in _FIELDS),
+        point_kinematics(*(np.ascontiguousarray(getattr(self, f), dtype=float)
+                           for f in STATE_FIELDS),
                          body, np.ascontiguousarray(r_local, dtype=float), out.position,
                          out.velocity, out.acceleration, out.orientation, out.angular_velocity)
         return out
@@ -117,8 +119,8 @@ class AnchorKinematics:
 
 def stack_anchors(anchors):
     """One ``AnchorKinematics`` of arrays ``(S, C, 3|4)`` from a sequence of ``S`` of them."""
-    return AnchorKinematics(*(np.stack([getattr(a, f) for a in anchors]) for f in (
-        'position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')))
+    return AnchorKinematics(*(np.stack([getattr(a, f) for a in anchors])
+                              for f in ANCHOR_FIELDS))
 
 
 class HeadMotion:
@@ -141,7 +143,7 @@ class HeadMotion:
 
 def stack_states(states):
     """One ``KinematicState`` of arrays ``(T, K, 3|4)`` from a sequence of ``T`` of them."""
-    return KinematicState(*(np.stack([getattr(s, f) for s in states]) for f in _FIELDS))
+    return KinematicState(*(np.stack([getattr(s, f) for s in states]) for f in STATE_FIELDS))
 
 
 def frame_ends(state0, state1, body, r_local):
@@ -152,8 +154,8 @@ def frame_ends(state0, state1, body, r_local):
     C = body.shape[0]
     out = AnchorKinematics(np.empty((2, C, 3)), np.empty((2, C, 3)), np.empty((2, C, 3)),
                            np.empty((2, C, 4)), np.empty((2, C, 3)))
-    _frame_ends(*(np.ascontiguousarray(getattr(state0, f), dtype=float) for f in _FIELDS),
-                *(np.ascontiguousarray(getattr(state1, f), dtype=float) for f in _FIELDS),
+    _frame_ends(*(np.ascontiguousarray(getattr(state0, f), dtype=float) for f in STATE_FIELDS),
+                *(np.ascontiguousarray(getattr(state1, f), dtype=float) for f in STATE_FIELDS),
                 np.ascontiguousarray(body, dtype=np.int64),
                 np.ascontiguousarray(r_local, dtype=float), out.position, out.velocity,
                 out.acceleration, out.orientation, out.angular_velocity)
@@ -172,7 +174,7 @@ def point_table(states, body, r_local):
     out = AnchorKinematics(np.empty((T, C, 3)), np.empty((T, C, 3)), np.empty((T, C, 3)),
                            np.empty((T, C, 4)), np.empty((T, C, 3)))
     point_kinematics(*(np.ascontiguousarray(getattr(states, f), dtype=float).reshape(T * K, -1)
-                       for f in _FIELDS),
+                       for f in STATE_FIELDS),
                      (np.arange(T)[:, None] * K + body).reshape(-1),
                      np.broadcast_to(np.asarray(r_local, dtype=float).reshape(C, 3),
                                      (T, C, 3)).reshape(T * C, 3),
@@ -199,7 +201,7 @@ class WithStaticBodies(HeadMotion):
         return KinematicState(*(np.concatenate(
             [getattr(moving, f), np.broadcast_to(getattr(still, f),
                                                  (T,) + getattr(still, f).shape)],
-            axis=1) for f in _FIELDS))
+            axis=1) for f in STATE_FIELDS))
 
 
 class StillMotion(HeadMotion):
@@ -215,7 +217,7 @@ class StillMotion(HeadMotion):
         T = np.asarray(times).reshape(-1).shape[0]
         return KinematicState(*(np.broadcast_to(getattr(self._state, f),
                                                 (T,) + getattr(self._state, f).shape).copy()
-                                for f in _FIELDS))
+                                for f in STATE_FIELDS))
 
 
 class SwayYawMotion(HeadMotion):
@@ -285,7 +287,7 @@ class AnchorTrack:
         self.t0 = float(t0)
         self.h = max(float(t1) - float(t0), 1e-12)
         self._ends = tuple(np.ascontiguousarray([getattr(a0, f), getattr(a1, f)], dtype=float)
-                           for f in _ANCHOR_FIELDS)
+                           for f in ANCHOR_FIELDS)
         self._C = self._ends[0].shape[1]
 
     @classmethod
@@ -296,7 +298,7 @@ class AnchorTrack:
         track = cls.__new__(cls)
         track.t0 = float(t0)
         track.h = max(float(t1) - float(t0), 1e-12)
-        track._ends = tuple(getattr(ends, f) for f in _ANCHOR_FIELDS)
+        track._ends = tuple(getattr(ends, f) for f in ANCHOR_FIELDS)
         track._C = track._ends[0].shape[1]
         return track
 

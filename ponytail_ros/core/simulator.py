@@ -30,8 +30,8 @@ import numpy as np
 
 from . import collision
 from . import step as compiled
-from .head import (AnchorKinematics, AnchorTrack, HeadMotion, KinematicState, frame_ends,
-                   point_table, stack_anchors)
+from .head import (STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion, KinematicState,
+                   frame_ends, point_table, stack_anchors)
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -339,16 +339,7 @@ class Simulator:
             # The anchor at self.t: the table's row there (advance_to's end row, or for a call
             # without steps its own evaluation at the same time: equal bit for bit).
             anchor = AnchorKinematics(*(a[row] for a in table))
-            self._last_anchor = (self.t, anchor)
-            g = self._measures(anchor)
-            report.max_gap = float(g[1]) if g[0] else np.inf
-            reason = self._guard(g, failure)
-            if reason is not None:          # as advance_to: reset, and say so
-                self.total_resets += 1
-                report.reset_reason = reason
-                self.reset(motion.state_at(self.t))
-                report.max_gap = float(np.max(self.joint_gaps(
-                    self.anchors(motion.state_at(self.t)))))
+            reason = self._end_call(report, anchor, failure, motion.state_at)
             report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
             out.reports.append(report)
             self._store(out, k0 + k)
@@ -515,6 +506,14 @@ class Simulator:
         anchor = anchor_at(self.t) if end is None or failure is not None else AnchorKinematics(
             end.position[-1], end.velocity[-1], end.acceleration[-1], end.orientation[-1],
             end.angular_velocity[-1])
+        self._end_call(report, anchor, failure, head_at)
+        report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
+        return report
+
+    def _end_call(self, report, anchor, failure, head_at):
+        """The end of a call at ``self.t`` with the anchor there: its joint gap into
+        ``report``, the guard, and on a blow-up (or the solver's ``failure``) the reset at rest
+        on ``head_at(self.t)``, said in ``report``. Returns the reset reason, or None."""
         self._last_anchor = (self.t, anchor)
         g = self._measures(anchor)
         report.max_gap = float(g[1]) if g[0] else np.inf
@@ -524,8 +523,7 @@ class Simulator:
             report.reset_reason = reason
             self.reset(head_at(self.t))
             report.max_gap = float(np.max(self.joint_gaps(self.anchors(head_at(self.t)))))
-        report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
-        return report
+        return reason
 
     def _project(self, anchor, x, q, v, w):
         """Positions (and for RK4 velocities) put back on the joints at the step's end."""
@@ -849,14 +847,10 @@ def _c(a):
     return np.ascontiguousarray(a, dtype=float)
 
 
-_HEAD_FIELDS = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
-                'linear_acceleration', 'angular_acceleration')
-
-
 def _check_head(head):
     """Refuse a non-finite head state, naming the field: it must never reach the chain."""
-    if np.isfinite(np.concatenate([getattr(head, name).ravel() for name in _HEAD_FIELDS])).all():
+    if np.isfinite(np.concatenate([getattr(head, name).ravel() for name in STATE_FIELDS])).all():
         return                          # (one check for all six; the field is named below)
-    for name in _HEAD_FIELDS:
+    for name in STATE_FIELDS:
         if not np.isfinite(getattr(head, name)).all():
             raise SceneError(f'head.{name}', getattr(head, name).tolist(), 'finite numbers')
