@@ -108,6 +108,23 @@ def _moving_shoulder():
 SCENES['capsule on a moving body'] = (_moving_shoulder, TwoBodies, 1.5)
 
 
+def _caged():
+    """A short chain hanging in a cage of twelve small spheres (on the head), 1 mm clear of them:
+    every collider is within the chain's reach, so the candidate rows (4 segments × 12
+    colliders) overflow the row tables' usual room (``ROW_COLLIDERS`` per segment) and the
+    step is resolved again with grown tables (``contact_kernels.grown``)."""
+    chain = ChainSpec(n_segments=4, length=0.4, mass=0.05, radius=0.01, attach=(0, 0, 0),
+                      damping=2e-4, drag_linear=0.05)
+    cage = tuple(ColliderSpec.sphere(center=(0.036 * np.cos(a), 0.036 * np.sin(a), z),
+                                     radius=0.025, friction=0.0)
+                 for a, z in zip(np.linspace(0, 2 * np.pi, 12, endpoint=False),
+                                 np.tile([-0.12, -0.2, -0.28], 4)))
+    return Scene(chains=(chain,), colliders=cage)
+
+
+SCENES['caged: the row tables grow'] = (_caged, ShakeMotion, 0.6)
+
+
 def _per_step(sim):
     """Make ``sim`` take every step through ``Unilateral.resolve`` (the per-step path it uses
     for sub-stepped steps) instead of its compiled step loop, so that calls can be recorded;
@@ -116,7 +133,8 @@ def _per_step(sim):
 
 
 @pytest.mark.parametrize('name', ['sphere and limits', 'capsule on a moving body',
-                                  'swing and twist limits', 'several chains'])
+                                  'swing and twist limits', 'several chains',
+                                  'caged: the row tables grow'])
 def test_the_compiled_loop_equals_the_per_step_path(name):
     """The compiled step loop with contacts and limits inside (``step.advance_unilateral``)
     gives bit for bit the state of the per-step path (compiled step, then ``resolve`` from
@@ -283,3 +301,44 @@ def test_collider_pose_matches_the_oracle():
     for field in ('a0', 'd2', 'normal', 'origin', 'velocity', 'omega', 'speed'):
         assert np.max(np.abs(getattr(got, field) - getattr(ref, field))) < AGREE, field
     assert np.all(got.speed[[2, 4]] == 0.0) and np.all(got.speed[[0, 1, 3]] > 0.0)
+
+
+_LEAK_CHECK = """
+import sys
+import numpy as np
+sys.path.insert(0, {test_dir!r})
+from numba.core.runtime import rtsys
+import test_contact_kernels as T
+from ponytail_ros.core import Simulator
+out = []
+for name in ('sphere and limits', 'several chains', 'caged: the row tables grow'):
+    make_scene, make_motion, _ = T.SCENES[name]
+    motion = make_motion()
+    sim = Simulator(make_scene(), motion)
+    sim.advance_to(0.05, motion)
+    s0 = rtsys.get_allocation_stats()
+    for k in range(1, 41):
+        sim.advance_to(0.05 + k / 120, motion)
+    s1 = rtsys.get_allocation_stats()
+    out.append((s1.mi_alloc - s0.mi_alloc, s1.mi_free - s0.mi_free))
+print(out)
+"""
+
+
+def test_compiled_steps_free_every_array_they_allocate():
+    """The kernels that borrow (``_nrt=False``: no reference counting) must not upset numba's
+    counts: over 40 ticks of contact scenes (the grown-tables path included), every array the
+    compiled calls allocate is freed. numba counts allocations only when started with
+    ``NUMBA_NRT_STATS=1``, hence a process of its own."""
+    import ast
+    import os
+    import subprocess
+    import sys
+    test_dir = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, NUMBA_NRT_STATS='1')
+    res = subprocess.run([sys.executable, '-c', _LEAK_CHECK.format(test_dir=test_dir)],
+                         env=env, capture_output=True, text=True, check=True)
+    counts = ast.literal_eval(res.stdout.strip().splitlines()[-1])
+    for allocated, freed in counts:
+        assert allocated > 100          # the calls did allocate (workspaces, row scratch)
+        assert freed == allocated

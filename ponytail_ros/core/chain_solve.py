@@ -88,7 +88,7 @@ def store_factors(Pinv, Lo, i, pinv, lo):
     Lo[i, 2, 0], Lo[i, 2, 1], Lo[i, 2, 2] = lo[6], lo[7], lo[8]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def factor(D, L, is_first, Pinv, Lo):
     """Factorise A (blocks ``D``, ``L`` ``(n, 3, 3)``; D's upper triangle is read) into
     ``Pinv`` and ``Lo`` (in place).
@@ -112,7 +112,7 @@ def factor(D, L, is_first, Pinv, Lo):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def solve(Pinv, Lo, is_first, b):
     """Solve A x = b with the factors of ``factor``; ``b`` ``(n, 3)`` is overwritten by x."""
     n = b.shape[0]
@@ -137,7 +137,7 @@ def solve(Pinv, Lo, is_first, b):
         b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def solve_many(Pinv, Lo, is_first, B):
     """Solve A X = B for ``B`` ``(k, n, 3)`` (k right-hand sides), in place."""
     for r in range(B.shape[0]):

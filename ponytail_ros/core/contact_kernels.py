@@ -19,6 +19,10 @@ point, m/s). All vectors are in the world frame, SI units.
 
 The model's constants come in as tuples (``collision.Unilateral.model_args`` and
 ``detector_args``, named indices below); every kernel is callable from other njit code.
+Kernels marked ``_nrt=False`` borrow every array they touch (they allocate nothing and return
+no array; their callers own all of them): compiled without numba's reference counting, they
+skip the atomic increment and decrement each array bound, sliced or passed costs otherwise.
+
 numba's cache does not see edits of a callee in another file (``chain_solve``,
 ``limit_kernels``): after editing those, clear this module's cache.
 """
@@ -63,8 +67,9 @@ SEG, PAR, CONTACT = 0, 1, 2
  D_FRICTION) = range(16)
 P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
 
-# Status of ``resolve``.
-OK, NOT_POSITIVE_DEFINITE = 0, 1
+# Status of ``resolve`` (``NO_ROOM``: internal, the row tables overflowed; ``resolve_into``
+# grows them and resolves the step again).
+OK, NOT_POSITIVE_DEFINITE, NO_ROOM = 0, 1, 2
 
 
 @njit(cache=True)
@@ -82,7 +87,7 @@ def mat_vec(M, i, u):
 
 
 # -- the chain's configuration: half-vectors, inverse inertias, the factorised J M⁻¹ Jᵀ ------
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
     """Segment i with principal moments (I_a, I_p, I_p): I⁻¹ = 1/I_p + (1/I_a - 1/I_p) e eᵀ
     and G = (h hᵀ - |h|² 1) / I_p, e = h / (l/2) its axis (world)."""
@@ -100,7 +105,7 @@ def axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G):
             G[i, a, b] *= inv_inertia[i, 1]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def general_terms(qi, hi, inv_inertia, i, inv_I, G, R, SI):
     """Segment i with any principal moments: I⁻¹ = R diag(1/I) Rᵀ (R of ``qi``) and
     G = ([h]× I⁻¹) [h]×, built with [h]× u = h × u column by column (``R``, ``SI``: 3×3
@@ -123,7 +128,7 @@ def general_terms(qi, hi, inv_inertia, i, inv_I, G, R, SI):
         G[i, a, 2] = SI[a, 0] * hi[1] - SI[a, 1] * hi[0]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def joint_blocks(G, inv_mass, is_first, D, L):
     """Blocks of A = J M⁻¹ Jᵀ: ``A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1}`` (the second
     terms only below a parent segment), ``A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1})``."""
@@ -149,7 +154,7 @@ def factor_chain(q, model, h, inv_I, C, Lo):
                              np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((2, 3, 3)))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
     """``factor_chain`` with its scratch given: the blocks ``G``, ``D``, ``L`` ``(n, 3, 3)``
     and two 3×3 matrices ``R3`` ``(2, 3, 3)``."""
@@ -168,7 +173,7 @@ def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
     return _chain_factor(D, L, model[IS_FIRST], C, Lo)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def apply_joint_impulses(lam, h, inv_I, inv_mass, has_child, s, e, dv, dw):
     """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
     parents) over segments ``s:e`` (whole chains) to ``dv``, ``dw`` (``lam``, ``dv``, ``dw``
@@ -183,7 +188,7 @@ def apply_joint_impulses(lam, h, inv_I, inv_mass, has_child, s, e, dv, dw):
             dw[i - s, a] += dwi[a]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, dw):
     """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
     place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's).
@@ -209,7 +214,7 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, d
             w[i, a] += dw[i, a]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def project_positions(anchor_position, h, model, x):
     """Centres that close every joint exactly: x_i = p_anchor + Σ_{j<i} 2 h_j + h_i."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
@@ -223,7 +228,7 @@ def project_positions(anchor_position, h, model, x):
             p = add(p, scale(2.0, hi))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def project_velocities(anchor_velocity, w, h, model, v):
     """Centre velocities of the rigid chain: v_i = v_anchor + Σ_{j<i} 2 ω_j × h_j + ω_i × h_i."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
@@ -237,7 +242,7 @@ def project_velocities(anchor_velocity, w, h, model, v):
             p = add(p, scale(2.0, wh))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def half_vectors(length, q, h):
     for i in range(q.shape[0]):
         hi = scale(0.5 * length[i], qaxis_x(q4(q, i)))
@@ -324,7 +329,7 @@ def closest_segment_segment(p0, d1, a0, d2):
     return s, clip01(t)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def detect_segments(x, h, anchor_position, pose, det, report, m0, m1, j, depth, s_out, t_out,
                     own):
     """``detect`` for colliding segments ``m0:m1`` and collider j: entries ``[m0:m1, j]`` of
@@ -377,7 +382,7 @@ def detect_segments(x, h, anchor_position, pose, det, report, m0, m1, j, depth, 
         own[m, j] = not (inner[m] and s <= 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def detect(x, h, anchor_position, pose, det, report, depth, s_out, t_out, own):
     """Depth (m, > 0 inside) of every colliding segment (capsule) in every collider, the
     closest-point parameters ``s`` (on the segment, proximal 0 to distal 1) and ``t`` (on a
@@ -429,10 +434,14 @@ def surface_speed(pose, v, w, det):
     for i in range(v.shape[0]):
         v2 = max(v2, dot(v3(v, i), v3(v, i)))
         w2 = max(w2, dot(v3(w, i), v3(w, i)))
-    return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + np.max(pose[P_SPEED])
+    col_speed = pose[P_SPEED]
+    fastest = col_speed[0] if col_speed.shape[0] else 0.0
+    for j in range(col_speed.shape[0]):
+        fastest = max(fastest, col_speed[j])
+    return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + fastest
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def near(anchor_position, pose, v, w, det, dt):
     """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
     its length (plus radius) about its anchor; its surface moves at most at
@@ -460,8 +469,9 @@ def near(anchor_position, pose, v, w, det, dt):
 # into the first axis of its stacked arrays:
 (WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
  WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT) = range(15)
-# WS_VEC (5, n, 3): the half-vectors of the factorisation, then four scratch vectors.
-V_H, V_N0, V_N1, V_N2, V_N3 = range(5)
+# WS_VEC (7, n, 3): the half-vectors of the factorisation, four scratch vectors, then the
+# step's velocities on entry (kept to resolve it again if the row tables overflow).
+V_H, V_N0, V_N1, V_N2, V_N3, V_V0, V_W0 = range(7)
 # WS_MAT (6, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``factor_chain``), its blocks.
 M_INV_I, M_PIVOTS, M_LO, M_G, M_D, M_L = range(6)
 # WS_TABLES (3, cap, NCOL) floats and WS_IDS (3, cap, 3) integers: the row tables.
@@ -480,7 +490,7 @@ S_COUNT, S_FIRST, S_END = range(3)
 def workspace(n, m, K, nl, nd, n_chains):
     """The workspace of ``resolve`` (indices ``WS_*`` and, within the stacked arrays, the
     names above): half-vectors and scratch vectors, the factorisation and its blocks, two 3×3,
-    the row tables (all rows, a selection, friction rows; ``rows_room`` gives larger ones when
+    the row tables (all rows, a selection, friction rows; ``grown`` gives larger ones when
     needed), detection tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
     gaps and rates, per-row vectors and a mask ``(k_max)``, and the per-pair broad phase's
     tables (nd colliding chains of n_chains)."""
@@ -488,7 +498,7 @@ def workspace(n, m, K, nl, nd, n_chains):
     # The row tables' capacity: a crowd's segments each near a few colliders of many (a
     # workspace this small is reused by malloc, not mapped and faulted in at every call).
     cap = m * min(K, ROW_COLLIDERS) + 2 * nl
-    return (np.empty((5, n, 3)), np.empty((6, n, 3, 3)), np.empty((2, 3, 3)),
+    return (np.empty((7, n, 3)), np.empty((6, n, 3, 3)), np.empty((2, 3, 3)),
             np.empty((3, cap, NCOL)), np.empty((3, cap, 3), dtype=np.int64),
             np.empty((3, m, K)), np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
             np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
@@ -496,12 +506,16 @@ def workspace(n, m, K, nl, nd, n_chains):
             np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64))
 
 
-@njit(cache=True)
-def rows_room(R, I, k):
-    """``R``, ``I`` if they hold k rows, else new tables of k rows."""
-    if k <= R.shape[0]:
-        return R, I
-    return np.empty((k, NCOL)), np.empty((k, 3), dtype=np.int64)
+@njit(cache=True, _nrt=True)
+def grown(ws):
+    """``ws`` with row tables that hold every candidate row (``k_max``: each colliding segment
+    in each collider, and each limit twice), for the rare call whose rows overflow the usual
+    ones (a segment near more than ``ROW_COLLIDERS`` colliders)."""
+    k_max = ws[WS_ROWVEC].shape[1]
+    return (ws[WS_VEC], ws[WS_MAT], ws[WS_R3], np.empty((3, k_max, NCOL)),
+            np.empty((3, k_max, 3), dtype=np.int64), ws[WS_DET], ws[WS_OWN], ws[WS_Q],
+            ws[WS_AXIS], ws[WS_LIM], ws[WS_ROWVEC], ws[WS_KEEP], ws[WS_PAIRS], ws[WS_SLOTS],
+            ws[WS_CHAIN_SLOT])
 
 
 @njit(cache=True, inline='always')
@@ -608,8 +622,8 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
 
 @njit(cache=True, inline='always')
 def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
-    """The contact rows into ``R``, ``I`` (segment-major, from row 0; new tables if they could
-    be too small, with room for the limit rows): returns ``(number, R, I)``.
+    """The contact rows into ``R``, ``I`` (segment-major, from row 0, with room left for the
+    limit rows): returns ``(number, R, I)``, number -1 if the tables could be too small.
     ``ws``: the workspace (its half-vectors and detection tables are overwritten); only the
     pairs ``near_pairs`` keeps are detected."""
     seg, seg_length, friction = det[D_SEG], det[D_LENGTH], det[D_FRICTION]
@@ -630,7 +644,8 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     most = 2 * model[LIMITED].shape[0]
     for c in range(count.shape[0]):
         most += (end_seg[c] - first_seg[c]) * count[c]
-    R, I = rows_room(R, I, most)
+    if most > R.shape[0]:
+        return -1, R, I             # the caller grows the tables (``grown``) and starts over
     k = 0
     for i in range(m):
         g = seg[i]
@@ -663,7 +678,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     return k, R, I
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     """The limit rows (swing rows, then twist rows) into ``R``, ``I`` from row ``k`` on;
     returns the new number of rows. A limit is kept if violated, within ``ANGLE_SKIN`` plus
@@ -674,7 +689,10 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     nl = lim_idx.shape[0]
     limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
                 swing_limit, twist_limit, axis, gap, sep)
-    skin = ANGLE_SKIN + 4.0 * max(-np.min(gap), 0.0)
+    lowest = gap[0] if gap.shape[0] else 0.0
+    for r in range(gap.shape[0]):
+        lowest = min(lowest, gap[r])
+    skin = ANGLE_SKIN + 4.0 * max(-lowest, 0.0)
     for r in range(2 * nl):
         joint = lim_idx[r % nl]
         limit = swing_limit[joint] if r < nl else twist_limit[joint]
@@ -696,17 +714,20 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
 
 @njit(cache=True, inline='always')
 def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws):
-    """``build_rows`` into the workspace's row table: ``(R, I)`` are views of it (or of new
-    tables if it is too small), valid until the next call."""
+    """``build_rows`` into the workspace's row table: ``(fits, R, I)``, ``R``, ``I`` views of
+    it valid until the next call; ``fits`` False (and no rows) when the table is too small
+    (``grown`` gives a workspace whose tables hold every candidate row)."""
     nl = model[LIMITED].shape[0]
     R, I = ws[WS_TABLES][T_ROWS], ws[WS_IDS][T_ROWS]
     k = 0
     if has_colliders and near(anchor[0], pose, v, w, det, dt):
         k, R, I = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
+        if k < 0:
+            return False, R[:0], I[:0]
     if nl:
         k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_LIM][L_GAP],
                        ws[WS_LIM][L_SEP])
-    return R[:k], I[:k]
+    return True, R[:k], I[:k]
 
 
 @njit(cache=True)
@@ -718,25 +739,31 @@ def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
     phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
     """
     ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
-    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
+    fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                                 dt, ws)
+    if not fits:
+        ws = grown(ws)
+        fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
+                                     has_colliders, dt, ws)
     return R.copy(), I.copy()
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def take(R, I, keep, R2, I2):
-    """The rows where ``keep``, into ``R2``, ``I2`` (or new tables if they are too small):
+    """The rows where ``keep``, into ``R2``, ``I2`` (tables at least as long as ``R``, ``I``):
     views of their first rows."""
-    R2, I2 = rows_room(R2, I2, R.shape[0])
     k = 0
     for r in range(keep.shape[0]):
         if keep[r]:
-            R2[k] = R[r]
-            I2[k] = I[r]
+            for c in range(NCOL):
+                R2[k, c] = R[r, c]
+            for c in range(3):
+                I2[k, c] = I[r, c]
             k += 1
     return R2[:k], I2[:k]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def moved_rows(R, I, dx, dth):
     """The rows after a small displacement (centres ``dx``, rotations ``dth``), to first order,
     in place: depths change by -J_r·(dx, dth); lever arms turn with their segments (a contact's
@@ -758,7 +785,7 @@ def moved_rows(R, I, dx, dth):
                 R[r, ANG + a] = ang[a]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def refresh_sep(R, I, v, w, anchor_omega, chain_of):
     """The rows' separation rates for new velocities (geometry unchanged), in place."""
     for r in range(R.shape[0]):
@@ -771,13 +798,15 @@ def refresh_sep(R, I, v, w, anchor_omega, chain_of):
 
 
 # -- small dense problems ------------------------------------------------------------------------
-@njit(cache=True)
-def lu_solve_into(A, b, M, x):
+@njit(cache=True, _nrt=False)
+def lu_solve_into(A, b, M, x):  # noqa: C901 (elimination loops)
     """x with A x = b (dense, Gaussian elimination with partial pivoting); A, b are kept,
     ``M`` (like A) receives the factors."""
     n = b.shape[0]
-    M[:] = A
-    x[:] = b
+    for r in range(n):
+        x[r] = b[r]
+        for c in range(n):
+            M[r, c] = A[r, c]
     for c in range(n):
         p = c
         for r in range(c + 1, n):
@@ -828,7 +857,7 @@ def square(A, k):
     return A[:k, :k]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def solve_active_into(Ws, bs, active, lam, sq_a, sq_m, rhs, sol, idx):
     """λ_A = -W_AA⁻¹ b_A on the active set A, λ = 0 elsewhere (into ``lam``); ``sq_a``,
     ``sq_m`` (≥ k×k), ``rhs``, ``sol``, ``idx`` (≥ k): scratch."""
@@ -859,7 +888,7 @@ def solve_active(Ws, bs, active, lam):
                       np.empty(k), np.empty(k, dtype=np.int64))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def row_dot(A, i, x):
     """Σ_j A[i, j] x[j] (no BLAS)."""
     s = 0.0
@@ -868,7 +897,7 @@ def row_dot(A, i, x):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def entering_variable(Ws, bs, lam, passive):
     """Lawson–Hanson: the bound variable with the largest dual -(Wλ + b)_i > 1e-12, or -1."""
     best, j = 1e-12, -1
@@ -889,7 +918,8 @@ def step_to_feasible(Ws, bs, passive, lam, z):
     for _ in range(3 * k + 3):
         solve_active(Ws, bs, passive, z)
         if not np.any(passive & (z <= 0.0)):
-            lam[:] = z
+            for a in range(lam.shape[0]):
+                lam[a] = z[a]
             return
         alpha = 1.0
         for i in range(k):
@@ -919,7 +949,7 @@ def nnls_quadratic(Ws, bs):
     return lam
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sign_violations(Ws, bs, active, lam, bad):
     """Principal pivoting: which rows violate their sign condition (an active row pulling,
     λ < 0, or an inactive one penetrating, (Wλ + b) < 0, beyond ``PIVOT_TOL``), into ``bad``;
@@ -933,7 +963,7 @@ def sign_violations(Ws, bs, active, lam, bad):
     return first
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def lcp_into(W, b, out, ds, Ws):  # noqa: C901 - the pivoting loop reads as the algorithm
     """``lcp`` into ``out`` (k,), with the scratch ``ds`` (``dense_scratch`` of ≥ k rows;
     ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix."""
@@ -996,7 +1026,7 @@ def lcp(W, b):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def friction_step_into(W, slip, bound, lam, ds):
     """``friction_step`` into ``lam`` (k,), with the scratch ``ds`` (``dense_scratch`` of
     ≥ k rows)."""
@@ -1005,7 +1035,9 @@ def friction_step_into(W, slip, bound, lam, ds):
     for i in range(k):
         tr += W[i, i]
     A = square(ds[DS_SQ][1], k)
-    A[:] = W
+    for a in range(W.shape[0]):
+        for b in range(W.shape[1]):
+            A[a, b] = W[a, b]
     for i in range(k):
         A[i, i] += REG * tr / k
     lu_solve_into(A, slip, square(ds[DS_SQ][2], k), lam)
@@ -1038,7 +1070,7 @@ def friction_step(W, slip, bound):
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def row_response(R, I, r, h, inv_I, C, Lo, first, inv_mass, has_child, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
     impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
@@ -1101,7 +1133,7 @@ def group_rows(I, chain_of, chain_start, chain_end, members, start):
     return n_groups, kg_max, nc_max
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def delassus(R, I, members, s, rv, rw, model, W, mobile):
     """W[a, b] = J_a · (response to a unit impulse along row b), the Delassus matrix of one
     chain's rows (segments from s), and which rows the jointed chain can move: W_aa above
@@ -1122,7 +1154,7 @@ def delassus(R, I, members, s, rv, rw, model, W, mobile):
         mobile[a] = W[a, a] > MOBILITY * free
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def chain_impulses(W, mobile, b, bound, members, lam, ds):
     """λ ``(kg,)`` of one chain's rows (index into ``members``): the mobile rows' LCP on the
     symmetrised W (or, when ``bound`` is not empty, the friction step), zero for the others.
@@ -1151,7 +1183,7 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
         lam[sel[a]] = lc[a]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
     """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
     rows of this call (a few allocations, whatever the number of chains and rows)."""
@@ -1226,7 +1258,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
             v[i, a] += dv[i, a]
             w[i, a] += dw[i, a]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
-    Rf, If = rows_room(ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC], k)
+    Rf, If = ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC]     # as long as the rows' table
     speed, bound = ws[WS_ROWVEC][R_SPEED], ws[WS_ROWVEC][R_BOUND]
     kf = 0
     for r in range(k):
@@ -1266,7 +1298,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
 
 
 # -- the pass after a step ------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def deepest(R, I, with_limits):
     """The deepest violation (≥ 0) of the contact rows (and of the limit rows if asked)."""
     worst = 0.0
@@ -1276,7 +1308,7 @@ def deepest(R, I, with_limits):
     return worst
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def rotate_segments(q, dth, length):
     """Turn every segment by its rotation vector ``dth`` (clamped in place to
     ``MAX_ROTATION``): q ← normalise(exp(dth) ⊗ q). Returns whether the pass was small: no
@@ -1307,7 +1339,7 @@ def factor_ws(q, model, ws):
 
 
 @njit(cache=True, inline='always')
-def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):  # noqa: C901, E501
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
     rows and those within the skin (plus 4× the deepest violation), each displacement
     ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
@@ -1316,7 +1348,10 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     workspace ``ws``)."""
     length = model[LENGTH]
     h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
-    R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws)
+    fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
+                                 dt, ws)
+    if not fits:
+        return NO_ROOM, False, R, I
     moved = False
     for passes in range(POSITION_ITERATIONS):
         if R.shape[0] == 0:
@@ -1345,7 +1380,9 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         stats[2] = passes + 1
         moved = True
         x_old = ws[WS_VEC][V_N0]
-        x_old[:] = x
+        for i in range(x.shape[0]):
+            for a in range(3):
+                x_old[i, a] = x[i, a]
         half_vectors(length, q, h)
         project_positions(anchor[0], h, model, x)
         if small:
@@ -1355,8 +1392,10 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
                     dx[i, a] = x[i, a] - x_old[i, a]
             moved_rows(R, I, dx, dth)
             break
-        R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
-                               dt, ws)
+        fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
+                                     has_colliders, dt, ws)
+        if not fits:
+            return NO_ROOM, moved, R, I
     return OK, moved, R, I
 
 
@@ -1369,14 +1408,16 @@ def limit_stage(x, q, anchor, q_rest, model, ws):
                           model[CHAIN_START], model[CHAIN_END], model[LIMITED],
                           model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
         return False
-    q[:] = q_lim
+    for i in range(q.shape[0]):
+        for a in range(4):
+            q[i, a] = q_lim[i, a]
     h = ws[WS_VEC][V_N1]
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, x)
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def unprojected_positions(x0, q0, q, anchor, model, x, h, p0, p1):
     """Without projection the centres move by the rotations about the joints only:
     x = x0 + (joint-closed centres at q) - (joint-closed centres at q0). ``h``, ``p0``,
@@ -1422,15 +1463,42 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
                  project, dt, stats, ws):
     """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state), with
     its workspace ``ws`` given (``resolve_workspace`` of this model, detector and colliders: a
     step loop allocates it once for all its steps; every stage writes what it reads there
     first, as it must of ``np.empty``'s contents). ``x0``, ``q0``: a copy of the step's
-    positions (read only without ``project``; they must not be ``x``, ``q`` themselves).
-    Returns the status."""
+    positions (they must not be ``x``, ``q`` themselves). Returns the status: ``NO_ROOM``,
+    with the state as on entry, if the candidate rows overflow the workspace's row tables (a
+    segment near more than ``ROW_COLLIDERS`` colliders): resolve again with ``grown(ws)``.
+
+    The stages run borrowing (``_resolve_stages``)."""
+    vec = ws[WS_VEC]
+    v0, w0 = vec[V_V0], vec[V_W0]
+    for i in range(v.shape[0]):
+        for a in range(3):
+            v0[i, a] = v[i, a]
+            w0[i, a] = w[i, a]
+    status = _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest,
+                             has_colliders, project, dt, stats, ws)
+    if status == NO_ROOM:
+        for i in range(x.shape[0]):
+            for a in range(3):
+                x[i, a] = x0[i, a]
+                v[i, a] = v0[i, a]
+                w[i, a] = w0[i, a]
+            for a in range(4):
+                q[i, a] = q0[i, a]
+    return status
+
+
+@njit(cache=True, _nrt=False)
+def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                    project, dt, stats, ws):
+    """``resolve_into``'s stages, in order, borrowing every array (no reference counting);
+    ``NO_ROOM`` if the row tables overflow."""
     stats[:] = 0
     h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
@@ -1449,8 +1517,10 @@ def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colli
         joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec[V_N0], vec[V_N2],
                          vec[V_N3])
         if stale:
-            R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
-                                   dt, ws)
+            fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
+                                         has_colliders, dt, ws)
+            if not fits:
+                return NO_ROOM
         else:
             refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
     if R.shape[0]:
@@ -1482,7 +1552,10 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     place, on a workspace kept across steps).
     """
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
+    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
     status = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
-                          has_colliders, project, dt, stats,
-                          resolve_workspace(x.shape[0], model, det, pose, has_colliders))
+                          has_colliders, project, dt, stats, ws)
+    if status == NO_ROOM:
+        status = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
+                              has_colliders, project, dt, stats, grown(ws))
     return status, x1, q1, v1, w1

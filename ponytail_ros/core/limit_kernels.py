@@ -215,7 +215,7 @@ def limit_terms(q, w, anchor_q, anchor_omega, q_rest, is_first, chain_of, idx, s
                        + sign * g[2] * d_omega[2])
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def project_limits(q, anchor_q, q_rest, is_first, chain_of, chain_start, chain_end, idx,
                    swing_limit, twist_limit, tolerance, out):
     """Orientations with every joint within its limits into ``out`` ``(n, 4)``; returns False

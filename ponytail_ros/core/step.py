@@ -77,8 +77,16 @@ StepModel = namedtuple('StepModel', [
 AnchorTable = namedtuple('AnchorTable', ['position', 'velocity', 'acceleration',
                                          'orientation', 'angular_velocity'])
 
-_jit = nb.njit(cache=True)
+# Reference counting. numba counts references to every array a function binds, slices or is
+# passed, with an atomic increment and decrement each (they were about half of a contact
+# step's time). The per-step kernels borrow every array they touch: they allocate nothing and
+# return no array, their callers own all of them for the call, so they are compiled without
+# it (``_borrow``: ``_nrt=False``, which a callee inherits unless it sets its own). A function
+# that allocates sets ``_nrt=True`` (``_jit``): a borrowing caller may call it, since it
+# returns no array.
+_jit = nb.njit(cache=True, _nrt=True)
 _inline = nb.njit(cache=True, inline='always')
+_borrow = nb.njit(cache=True, _nrt=False)
 
 
 # -- small vector and quaternion algebra -------------------------------------------------------
@@ -529,7 +537,7 @@ def _accelerations(row, x, q, v, w, F, T, hv, Iinv, C, Lo, acc, alpha, f_c, half
     return True
 
 
-@_jit
+@_borrow
 def _baumgarte(row, x, v, w, hv, i, a, wxh, chain_of, is_first, anchor_position,
                anchor_velocity, baumgarte_stiffness, baumgarte_damping):
     """Joint i's Baumgarte term 2ζ Ċ + κ C along axis ``a`` (``wxh`` = (ω × h)_a of segment
@@ -708,7 +716,7 @@ def _solve3(J, r0, r1, r2):
             (c02 * r0 + c12 * r1 + c22 * r2) / det)
 
 
-@_jit
+@_borrow
 def _torque_kick(M, q, e, Iinv, w, T, h, out):
     """ω + h I⁻¹ T at fixed orientations, no gyroscopic term (``integrators.torque_kick``)."""
     n = w.shape[0]
@@ -756,7 +764,7 @@ def _axial_part(M, i, e, w0, w1, w2, ratio):
     return s * e[i, 0], s * e[i, 1], s * e[i, 2]
 
 
-@_jit
+@_borrow
 def _gap_rhs(M, A, row, x, v, w, hv, e, h, precession, end, out):
     """Where the free motion (v, ω) held for ``h`` would open every joint, divided by ``h``
     (the joint impulses' right-hand side; the segment axes turned by their swing rate,
@@ -781,7 +789,7 @@ def _gap_rhs(M, A, row, x, v, w, hv, e, h, precession, end, out):
             out[i, a] = (parent - (xi - end[i, a])) / h
 
 
-@_jit
+@_borrow
 def _velocity_errors(M, A, row, v, w, hv, out):
     """Parent side minus child side of every joint's velocity (m/s)."""
     n = v.shape[0]
@@ -800,7 +808,7 @@ def _velocity_errors(M, A, row, v, w, hv, out):
                 out[i, a] = par[a] - child[a]
 
 
-@_jit
+@_borrow
 def _drift(M, x, q, v, w, e, h, precession):
     """Move for ``h`` at (v, ω), in place: symplectic Euler's ``drift`` (``precession``
     False: spin about the axis by h ω_a, swing by h ω⊥) or RATTLE's exact torque-free
@@ -1122,7 +1130,7 @@ def _chain_model(M, s, e):
         M.external_on, M.baumgarte_stiffness, M.baumgarte_damping)
 
 
-@_jit
+@_borrow
 def _chain_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws):
     """Steps ``k0 .. k0 + n_steps - 1`` of the table of one chain (or any set of whole
     chains)."""
@@ -1192,7 +1200,7 @@ def _chain_views(W, R, m):
              R[7][:m], R[8][:m], R[9][:m], R[10][:m], R[11][:m], R[12][:m]))
 
 
-@_jit
+@_borrow
 def substeps(M, A, row, w, h, substep_angle, max_substeps):
     """Sub-steps of a step of a scene with contacts or limits: ⌈h |ω_rel|max / angle⌉ (at
     least 1, at most ``max_substeps``), ω_rel every joint's relative angular velocity at the
@@ -1255,6 +1263,12 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         status = contact_kernels.resolve_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
             M.projection, h, stats, cws)
+        if status == contact_kernels.NO_ROOM:
+            # Its rows overflow the usual tables: grown ones, kept for the rest of the call.
+            cws = contact_kernels.grown(cws)
+            status = contact_kernels.resolve_into(
+                x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
+                M.projection, h, stats, cws)
         if status != contact_kernels.OK:
             return JOINT_SOLVE_FAILED, k
     return OK, n_steps
