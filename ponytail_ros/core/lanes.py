@@ -51,7 +51,7 @@ __all__ = ['LANES', 'MIN_CHAINS', 'advance', 'advance_lanes', 'crowd_layout', 's
 # Chains per block. A compile-time constant: the lane loops' trip count, which LLVM splits
 # into whole vectors. Chosen by measurement (``bench.step_cost``; the module docstring of
 # ``bench.step_cost`` gives the figures).
-LANES = 16
+LANES = 8
 # Fewer chains than this run through ``step.advance``: a block padded with more copies than
 # chains costs more than the chains one after another.
 MIN_CHAINS = 4
@@ -79,7 +79,7 @@ def _offsets(*widths):
 #   the joint solve: _F, _T applied forces/torques, _HV h = (l/2) e, _IINV world I⁻¹
 #                    (row-major), _G = [h]× I⁻¹ [h]× (upper triangle), _C = P⁻¹ (upper
 #                    triangle), _LO = 𝓛 (row-major), _PA the distal point's acceleration,
-#                    _FC the forward-substituted rhs, then λ = f_c; _BAD 1 where P failed;
+#                    _FC the forward-substituted rhs, then λ = f_c; _BAD failed pivots so far;
 #   the projection:  _PE, _UE the distal joint's position and velocity;
 #   external:        _EXTF, _EXTT;
 #   the model:       _HALF l/2, _IM 1/m, _I0, _I1 axial and perpendicular moments, _II0, _II1
@@ -285,8 +285,8 @@ def _forward(m, row, R, E):
     """Root to tip (``step._accelerations``' first sweep): per segment its free motion, joint
     i's right-hand side (parent point minus child point acceleration), joint i's row of
     A = J M⁻¹ Jᵀ factorised (``_C`` = P⁻¹, ``_LO`` = 𝓛) and the right-hand side
-    forward-substituted (``_FC``). ``_BAD`` is 1 where the pivot was not positive definite
-    (the chain's joint solve failed)."""
+    forward-substituted (``_FC``). ``_BAD`` counts, root to segment, the pivots that were not
+    positive definite (the chain's joint solve failed)."""
     for l in range(LANES):              # joint 0: the parent point is the anchor
         ac, t, g = _free(R, 0, l)
         for j in range(3):
@@ -324,7 +324,7 @@ def _forward(m, row, R, E):
                 R[i, _C + j, l] = pinv[j]
             for j in range(9):
                 R[i, _LO + j, l] = lo[j]
-            R[i, _BAD, l] = 0.0 if ok else 1.0
+            R[i, _BAD, l] = R[i - 1, _BAD, l] + (0.0 if ok else 1.0)
             z0, z1, z2 = R[i - 1, _FC, l], R[i - 1, _FC + 1, l], R[i - 1, _FC + 2, l]
             r0 -= lo[0] * z0 + lo[1] * z1 + lo[2] * z2
             r1 -= lo[3] * z0 + lo[4] * z1 + lo[5] * z2
@@ -334,12 +334,12 @@ def _forward(m, row, R, E):
 
 @_inline
 def _failed(m, R):
-    """Whether some lane's joint solve failed at the last ``_forward``."""
-    bad = 0.0
-    for i in range(m):
-        for l in range(LANES):
-            bad += R[i, _BAD, l]
-    return bad != 0.0
+    """Whether some lane's joint solve failed at the last ``_forward`` (``_BAD`` counts the
+    failed pivots from the root: the tip's count is the chain's)."""
+    bad = False
+    for l in range(LANES):
+        bad |= R[m - 1, _BAD, l] != 0.0
+    return bad
 
 
 @_inline
