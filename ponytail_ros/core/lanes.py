@@ -49,11 +49,13 @@ __all__ = ['LANES', 'MIN_CHAINS', 'advance', 'advance_lanes', 'crowd_layout', 's
            'kernel_for']
 
 # Chains per block. A compile-time constant: the lane loops' trip count, which LLVM splits
-# into whole vectors. Chosen by measurement (``bench.step_cost``; the module docstring of
-# ``bench.step_cost`` gives the figures).
-LANES = 8
-# Fewer chains than this run through ``step.advance``: a block padded with more copies than
-# chains costs more than the chains one after another.
+# into whole vectors (<4 x double>: AVX2, and AVX-512 parts prefer 256-bit vectors). Chosen by
+# measurement, crowds of 16-segment chains, µs per chain-step (best of 3, a busy 2-core
+# machine): 4 lanes 2.7 (10 chains), 1.8 (100), 1.7 (1000); 8 lanes 3.1, 2.9, 1.8;
+# 16 lanes 4.5, 3.3, 2.9 (the record of a wider block outgrows L1, and a partial block pads
+# more copies).
+LANES = 4
+# Fewer chains than this run through ``step.advance`` (a padded block costs a full block).
 MIN_CHAINS = 4
 
 _jit = nb.njit(cache=True, error_model='numpy')
