@@ -3,11 +3,12 @@ MuJoCo's ``mj_step``, measured in the same run on the same chain (RK4, head driv
 
 Ours is timed two ways: the kernel alone (the compiled step the ``Simulator`` dispatches to,
 over a precomputed anchor table: the physics; ``step.advance``, or for a crowd
-``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a node pays,
-Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of binding
-per call). Crowds: C chains of 16 segments in one scene, per chain-step (the lanes kernel:
-``lanes.LANES`` chains per SIMD block), against one 16-segment chain in MuJoCo (MuJoCo is left out beyond 300 segments: its serial chain's dense
-mass matrix makes a step O(n³)). Prints a table; ``--json`` writes the rows.
+``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a
+node pays, Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of
+binding per call). Crowds: C chains of 16 segments in one scene, per chain-step (the lanes
+kernel: ``lanes.LANES`` chains per SIMD block), against one 16-segment chain in MuJoCo
+(MuJoCo is left out beyond 300 segments: its serial chain's dense mass matrix makes a step
+O(n³)). Prints a table; ``--json`` writes the rows.
 """
 import argparse
 import json

@@ -6,7 +6,8 @@ after an install) would stall a node's first tick, or a replay's, without a word
 points (node, replay, demo, bench, the test suite) call ``report_compile`` at start instead:
 it runs a small scene through every kernel of the step -- the free step, a crowd's step in
 lanes, the step with contacts and limits, the depth and joint-angle queries, the head's pose
-fit, the guard and the published poses -- and says in one line when that compiled rather than loaded.
+fit, the guard and the published poses -- and says in one line when that compiled rather than
+loaded.
 """
 import sys
 import time
@@ -45,7 +46,8 @@ def _warm_up():
     head.state_at(0.015)
     _ = head.sample_period          # compiles median_interval
     return sum(sum(k.stats.cache_misses.values()) for k in (
-        step.advance, step.advance_unilateral, lanes.advance_lanes, head_kernels.loess_fit, head_kernels.track_table,
+        step.advance, step.advance_unilateral, lanes.advance_lanes, head_kernels.loess_fit,
+        head_kernels.track_table,
         head_kernels.point_kinematics, head_kernels.median_interval, state_kernels.guard_measures,
         state_kernels.segment_poses))
 

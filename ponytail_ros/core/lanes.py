@@ -204,45 +204,58 @@ def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, drag_on, exter
                 R[i, _F + a, l] = R[i, _FG + a, l]
                 R[i, _T + a, l] = 0.0
     if explicit_damping:
-        for l in range(LANES):          # the first joint: the anchor body is the parent
-            k = R[0, _DAMP, l]
-            for a in range(3):
-                R[0, _T + a, l] += 0.0 - k * (R[0, _WS + a, l] - E[row, _AW + a, l])
-        for i in range(1, m):
-            for l in range(LANES):
-                k = R[i, _DAMP, l]
-                for a in range(3):
-                    tau = 0.0 - k * (R[i, _WS + a, l] - R[i - 1, _WS + a, l])
-                    R[i, _T + a, l] += tau
-                    R[i - 1, _T + a, l] -= tau
+        _joint_damping(m, row, R, E)
     if drag_on:
-        for i in range(m):
-            for l in range(LANES):
-                u0 = R[i, _VS, l] - wind0
-                u1 = R[i, _VS + 1, l] - wind1
-                u2 = R[i, _VS + 2, l] - wind2
-                speed = _sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-                c1 = R[i, _DL, l]
-                k = (c1 + R[i, _DQ, l] * speed) * R[i, _LEN, l]
-                R[i, _F, l] -= k * u0
-                R[i, _F + 1, l] -= k * u1
-                R[i, _F + 2, l] -= k * u2
-                x, y, z, w = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
-                e0 = 1.0 - 2.0 * (y * y + z * z)
-                e1 = 2.0 * (x * y + w * z)
-                e2 = 2.0 * (x * z - w * y)
-                w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
-                wa = w0 * e0 + w1 * e1 + w2 * e2
-                kt = R[i, _KT, l]
-                R[i, _T, l] -= kt * (w0 - wa * e0)
-                R[i, _T + 1, l] -= kt * (w1 - wa * e1)
-                R[i, _T + 2, l] -= kt * (w2 - wa * e2)
+        _drag(m, R, wind0, wind1, wind2)
     if external_on:
         for i in range(m):
             for l in range(LANES):
                 for a in range(3):
                     R[i, _F + a, l] += R[i, _EXTF + a, l]
                     R[i, _T + a, l] += R[i, _EXTT + a, l]
+
+
+@_inline
+def _joint_damping(m, row, R, E):
+    """τ = -c (ω_child - ω_parent) at every joint, on the child, and -τ on the parent."""
+    for l in range(LANES):              # the first joint: the anchor body is the parent
+        k = R[0, _DAMP, l]
+        for a in range(3):
+            R[0, _T + a, l] += 0.0 - k * (R[0, _WS + a, l] - E[row, _AW + a, l])
+    for i in range(1, m):
+        for l in range(LANES):
+            k = R[i, _DAMP, l]
+            for a in range(3):
+                tau = 0.0 - k * (R[i, _WS + a, l] - R[i - 1, _WS + a, l])
+                R[i, _T + a, l] += tau
+                R[i - 1, _T + a, l] -= tau
+
+
+@_inline
+def _drag(m, R, wind0, wind1, wind2):
+    """Linear and quadratic drag on the velocity relative to the wind, and the linear
+    drag's torque on the swing (ω less its axial part)."""
+    for i in range(m):
+        for l in range(LANES):
+            u0 = R[i, _VS, l] - wind0
+            u1 = R[i, _VS + 1, l] - wind1
+            u2 = R[i, _VS + 2, l] - wind2
+            speed = _sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            c1 = R[i, _DL, l]
+            k = (c1 + R[i, _DQ, l] * speed) * R[i, _LEN, l]
+            R[i, _F, l] -= k * u0
+            R[i, _F + 1, l] -= k * u1
+            R[i, _F + 2, l] -= k * u2
+            x, y, z, w = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
+            e0 = 1.0 - 2.0 * (y * y + z * z)
+            e1 = 2.0 * (x * y + w * z)
+            e2 = 2.0 * (x * z - w * y)
+            w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
+            wa = w0 * e0 + w1 * e1 + w2 * e2
+            kt = R[i, _KT, l]
+            R[i, _T, l] -= kt * (w0 - wa * e0)
+            R[i, _T + 1, l] -= kt * (w1 - wa * e1)
+            R[i, _T + 2, l] -= kt * (w2 - wa * e2)
 
 
 @_inline
