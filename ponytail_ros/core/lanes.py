@@ -8,16 +8,24 @@ does exactly the floating-point operations of ``step.advance`` on its chain, in 
 IEEE arithmetic is the same in a SIMD lane as in a scalar register (no ``fastmath``, no FMA
 contraction), so the results are identical bit for bit, which ``test/test_lanes.py`` checks.
 
-What makes the loops vectorise (checked with ``inspect_asm``; see ``vector_report``):
-  * the working arrays are allocated inside the kernel: LLVM then knows that they do not
-    alias, where arrays passed in as arguments might (it gives up on a loop that stores to
-    one array and loads from another it cannot tell apart);
+What makes the loops vectorise (checked with LLVM's remarks: ``llvmlite.binding.set_option('',
+'-pass-remarks=loop-vectorize')`` and ``-pass-remarks-missed=...``, then ``advance_lanes.py_func``
+compiled uncached with ``debug=True, boundscheck=False`` for line numbers):
+  * everything a block's steps touch per segment lives in one record array allocated inside
+    the kernel, ``R[segment, field + component, lane]`` with compile-time field count and
+    lane count: every address in a lane loop is a constant offset from one base, so LLVM
+    proves the loop free of dependences (with one array per field, as a first version had,
+    it could not tell them apart from each other or from the arguments and gave up);
   * ``sqrt`` is LLVM's intrinsic (``_sqrt``), not numba's call to libm's ``sqrt`` (a call
     stops the vectoriser; both are IEEE's correctly rounded square root, so the same bits);
   * ``error_model='numpy'``: a division is then a plain ``fdiv``, not a test for zero that
     raises (only a blown-up chain divides by zero: its status or the guard reports it);
   * what differs between the first joint and the others (the anchor as parent, the first
     pivot), or between the tip and the others, is chosen outside the lane loop: two loops.
+At 4 lanes the loops of the joint solve (all joints but the first, both sweeps), the RK4 stage
+updates, the step's start and the applied forces' gravity are vectorised (<4 x double>); the
+first joint's loop, the projection, the joint damping and the drag loops are not (LLVM asks
+for runtime checks it will not make there) and run lane by lane: the same bits, more time.
 
 Covered (the rest goes to ``step.advance``, see ``supports``): RK4, axisymmetric segments
 (the gyroscopic term ω × Iω), gravity, explicit joint damping, linear and quadratic drag with
