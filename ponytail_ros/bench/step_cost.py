@@ -1,12 +1,14 @@
 """``python -m ponytail_ros.bench.step_cost``: CPU per internal step, the compiled step against
 MuJoCo's ``mj_step``, measured in the same run on the same chain (RK4, head driven exactly).
 
-Ours is timed two ways: the kernel alone (``step.advance`` over a precomputed anchor table:
-the physics) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a node pays,
-Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of binding
-per call). Crowds: C chains of 16 segments in one scene, per chain-step, against one
-16-segment chain in MuJoCo (MuJoCo is left out beyond 300 segments: its serial chain's dense
-mass matrix makes a step O(n³)). Prints a table; ``--json`` writes the rows.
+Ours is timed two ways: the kernel alone (the compiled step the ``Simulator`` dispatches to,
+over a precomputed anchor table: the physics; ``step.advance``, or for a crowd
+``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a
+node pays, Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of
+binding per call). Crowds: C chains of 16 segments in one scene, per chain-step (the lanes
+kernel: ``lanes.LANES`` chains per SIMD block), against one 16-segment chain in MuJoCo
+(MuJoCo is left out beyond 300 segments: its serial chain's dense mass matrix makes a step
+O(n³)). Prints a table; ``--json`` writes the rows.
 """
 import argparse
 import json
@@ -36,19 +38,22 @@ def _best(f, repeats):
 
 
 def kernel_cost(scene, motion, integrator='rk4', n_steps=1000, repeats=5):
-    """CPU seconds per step of ``step.advance`` alone (anchor table precomputed)."""
+    """CPU seconds per step of the compiled step alone (anchor table precomputed): the kernel
+    the ``Simulator`` runs for this scene (``step.advance``, or ``lanes.advance_lanes`` for a
+    crowd)."""
     sim = Simulator(scene, motion, 0.0)
     times = sim._stage_times(n_steps)
     tab = stack_anchors([sim.anchors(motion.state_at(t)) for t in times])
     A = compiled.AnchorTable(*(np.ascontiguousarray(a) for a in tab.__dict__.values()))
     M = sim._step_model()
+    kernel = sim._kernel(M)
     st = sim.state
     zeros = np.zeros((sim.model.n, 3))
     f_c = np.zeros((sim.model.n, 3))
 
     def run():
         x, q, v, w = (a.copy() for a in (st.x, st.q, st.v, st.w))
-        status = compiled.advance(M, A, n_steps, scene.solver.dt, x, q, v, w, zeros, zeros, f_c)
+        status = kernel(M, A, n_steps, scene.solver.dt, x, q, v, w, zeros, zeros, f_c)
         assert status == compiled.OK
     run()
     return _best(run, repeats) / n_steps

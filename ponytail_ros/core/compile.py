@@ -4,9 +4,10 @@ numba compiles a kernel at its first call, or loads it from its on-disk cache
 (``kernel_cache``). Left to the first step, the compile (tens of seconds on the first start
 after an install) would stall a node's first tick, or a replay's, without a word. The entry
 points (node, replay, demo, bench, the test suite) call ``report_compile`` at start instead:
-it runs a small scene through every kernel of the step -- the free step, the step with
-contacts and limits, the depth and joint-angle queries, the head's pose fit, the guard and the
-published poses -- and says in one line when that compiled rather than loaded.
+it runs a small scene through every kernel of the step -- the free step, a crowd's step in
+lanes, the step with contacts and limits, the depth and joint-angle queries, the head's pose
+fit, the guard and the published poses -- and says in one line when that compiled rather than
+loaded.
 """
 import sys
 import time
@@ -17,7 +18,7 @@ _result = None
 
 
 def _warm_up():
-    from . import head_kernels, state_kernels, step
+    from . import head_kernels, lanes, state_kernels, step
     from .head import KinematicState
     from .head_estimation import HeadEstimator
     from .scene import ChainSpec, ColliderSpec, Scene, SolverSpec
@@ -26,6 +27,11 @@ def _warm_up():
                            solver=SolverSpec(integrator='rk4', dt=0.01)))
     free.advance_frame(0.02, KinematicState.still())
     free.segment_poses(free.t + 0.001)
+    # A crowd: equal chains step in SIMD lanes (``lanes``; undamped: implicit damping would
+    # take the general step).
+    crowd = Simulator(Scene(chains=[ChainSpec(n_segments=2, damping=0.0)] * lanes.MIN_CHAINS,
+                            solver=SolverSpec(integrator='rk4', dt=0.01)))
+    crowd.advance_frame(0.02, KinematicState.still())
     # A far floor (never touched) and a cone limit: the contacts-and-limits loop runs.
     bounded = Simulator(Scene(chains=[ChainSpec(n_segments=2, swing_limit=1.0)],
                               colliders=[ColliderSpec.plane(point=(0.0, 0.0, -10.0),
@@ -40,7 +46,8 @@ def _warm_up():
     head.state_at(0.015)
     _ = head.sample_period          # compiles median_interval
     return sum(sum(k.stats.cache_misses.values()) for k in (
-        step.advance, step.advance_unilateral, head_kernels.loess_fit, head_kernels.track_table,
+        step.advance, step.advance_unilateral, lanes.advance_lanes, head_kernels.loess_fit,
+        head_kernels.track_table,
         head_kernels.point_kinematics, head_kernels.median_interval, state_kernels.guard_measures,
         state_kernels.segment_poses))
 

@@ -28,7 +28,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from . import collision
+from . import collision, lanes
 from . import step as compiled
 from .head import (STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion, KinematicState,
                    frame_ends, point_table, stack_anchors)
@@ -136,6 +136,8 @@ class Simulator:
         self.unilateral = (collision.Unilateral(m, self.dynamics, self.dt)
                            if m.has_colliders or m.has_limits else None)
         self._needs_bodies = bool(m.has_colliders and np.any(m.collider_body >= 0))
+        # A crowd of equal chains steps in SIMD lanes when its terms allow (``lanes``).
+        self._crowd = lanes.crowd_layout(m)
         if head is None:
             head = KinematicState.still(np.zeros((scene.n_kinematic_bodies, 3)))
         if isinstance(head, HeadMotion):
@@ -437,13 +439,18 @@ class Simulator:
         """``_run_compiled`` with the compiled ``AnchorTable`` ``A`` (and ``StepModel``)."""
         ext_F, ext_T = self._external_arrays()
         f_c = np.zeros((self.model.n, 3))
-        status = compiled.advance(self._step_model() if model is None else model, A, n_steps,
-                                  h, x, q, v, w, ext_F, ext_T, f_c)
+        model = self._step_model() if model is None else model
+        status = self._kernel(model)(model, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
         self.dynamics.last_f_c = f_c
         if status == compiled.JOINT_SOLVE_FAILED:
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         if status == compiled.DAMPING_SOLVE_FAILED:
             raise np.linalg.LinAlgError('implicit damping KKT system is singular')
+
+    def _kernel(self, model):
+        """The compiled step for ``model`` (a ``StepModel``): ``lanes.advance_lanes`` for a
+        crowd whose terms it covers, else ``step.advance`` (the same results bit for bit)."""
+        return lanes.kernel_for(model, self._crowd)
 
     def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
                  body_table=None):

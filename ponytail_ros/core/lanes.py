@@ -1,0 +1,607 @@
+"""The RK4 step of a crowd, chains side by side in SIMD lanes: bit for bit ``step.advance``.
+
+A crowd (many chains of one segment count) is stepped ``LANES`` chains at a time: every
+per-segment quantity of a block of chains is stored ``(segment, component, lane)``, and every
+loop that does arithmetic runs innermost over the lanes, with a constant trip count, no
+branches and no calls, so that LLVM vectorises it across chains (``<4 x double>``). Each lane
+does exactly the floating-point operations of ``step.advance`` on its chain, in the same order:
+IEEE arithmetic is the same in a SIMD lane as in a scalar register (no ``fastmath``, no FMA
+contraction), so the results are identical bit for bit, which ``test/test_lanes.py`` checks.
+
+What makes the loops vectorise (checked with LLVM's remarks: ``llvmlite.binding.set_option('',
+'-pass-remarks=loop-vectorize')`` and ``-pass-remarks-missed=...``, then ``advance_lanes.py_func``
+compiled uncached with ``debug=True, boundscheck=False`` for line numbers):
+  * everything a block's steps touch per segment lives in one record array allocated inside
+    the kernel, ``R[segment, field + component, lane]`` with compile-time field count and
+    lane count: every address in a lane loop is a constant offset from one base, so LLVM
+    proves the loop free of dependences (with one array per field, as a first version had,
+    it could not tell them apart from each other or from the arguments and gave up);
+  * ``sqrt`` is LLVM's intrinsic (``_sqrt``), not numba's call to libm's ``sqrt`` (a call
+    stops the vectoriser; both are IEEE's correctly rounded square root, so the same bits);
+  * ``error_model='numpy'``: a division is then a plain ``fdiv``, not a test for zero that
+    raises (only a blown-up chain divides by zero: its status or the guard reports it);
+  * what differs between the first joint and the others (the anchor as parent, the first
+    pivot), or between the tip and the others, is chosen outside the lane loop: two loops.
+At 4 lanes the loops of the joint solve (all joints but the first, both sweeps), the RK4 stage
+updates, the step's start and the applied forces' gravity are vectorised (<4 x double>); the
+first joint's loop, the projection, the joint damping and the drag loops are not (LLVM asks
+for runtime checks it will not make there) and run lane by lane: the same bits, more time.
+
+Covered (the rest goes to ``step.advance``, see ``supports``): RK4, axisymmetric segments
+(the gyroscopic term ω × Iω), gravity, explicit joint damping, linear and quadratic drag with
+wind, external forces and torques, the O(n) joint solve (``chain_solve``'s block LDLᵀ, as
+``step._accelerations`` does it), the projection (positions and velocities rebuilt from the
+anchor), every chain of the same segment count. The state is transposed into the lane layout
+once per call and back at its end; a last, partial block is filled with copies of its last
+chain (their results discarded).
+
+Frames and units: world frame, SI, as ``step``: ``x`` ``(n, 3)`` centres (m), ``q`` ``(n, 4)``
+(x, y, z, w) body to world, ``v`` ``(n, 3)`` (m/s), ``w`` ``(n, 3)`` ω in the world frame
+(rad/s); ``f_c`` ``(n, 3)`` the joint forces on the children at the last stage (N).
+"""
+import numba as nb
+import numpy as np
+from llvmlite import ir as llvm_ir
+from numba.core import types
+from numba.extending import intrinsic
+
+from . import step
+from .chain_solve import invert_pivot, pivot
+from .kernel_cache import ensure_fresh
+from .step import (JOINT_SOLVE_FAILED, OK, RK4, _G_axisymmetric, _cross,
+                   _inv_inertia_axisymmetric, _qmul, _qrot)
+
+ensure_fresh()
+
+__all__ = ['LANES', 'MIN_CHAINS', 'advance', 'advance_lanes', 'crowd_layout', 'supports',
+           'kernel_for']
+
+# Chains per block. A compile-time constant: the lane loops' trip count, which LLVM splits
+# into whole vectors (<4 x double>: AVX2, and AVX-512 parts prefer 256-bit vectors). Chosen by
+# measurement, crowds of 16-segment chains, µs per chain-step (best of 3, a busy 2-core
+# machine): 4 lanes 2.7 (10 chains), 1.8 (100), 1.7 (1000); 8 lanes 3.1, 2.9, 1.8;
+# 16 lanes 4.5, 3.3, 2.9 (the record of a wider block outgrows L1, and a partial block pads
+# more copies).
+LANES = 4
+# Fewer chains than this run through ``step.advance`` (a padded block costs a full block).
+MIN_CHAINS = 4
+
+_jit = nb.njit(cache=True, error_model='numpy')
+_inline = nb.njit(cache=True, error_model='numpy', inline='always')
+
+
+
+def _offsets(*widths):
+    """The first component of each field of widths ``widths``, and the total."""
+    out = [0]
+    for k in widths:
+        out.append(out[-1] + k)
+    return tuple(out)
+
+
+# One block's record: ``R[i, field + component, lane]``, ``(m, _NF, LANES)``, one array for
+# everything the steps touch per segment, so that every address in a lane loop is a constant
+# offset from one base (``_NF`` and ``LANES`` are compile-time constants): LLVM proves the
+# loops free of dependences without alias analysis or runtime checks.
+#   the state:       _X, _Q, _V, _W (ω world); _WB ω in the body frame;
+#   an RK4 stage:    _XS, _QS, _VS, _WBS, _WS (its state, ω_b and ω world), _ACC (a), _ALPHA (α);
+#                    _SX, _SV, _SQ, _SWB the stage derivatives' weighted sums;
+#   the joint solve: _F, _T applied forces/torques, _HV h = (l/2) e, _IINV world I⁻¹
+#                    (row-major), _G = [h]× I⁻¹ [h]× (upper triangle), _C = P⁻¹ (upper
+#                    triangle), _LO = 𝓛 (row-major), _PA the distal point's acceleration,
+#                    _FC the forward-substituted rhs, then λ = f_c; _BAD failed pivots so far;
+#   the projection:  _PE, _UE the distal joint's position and velocity;
+#   external:        _EXTF, _EXTT;
+#   the model:       _HALF l/2, _IM 1/m, _I0, _I1 axial and perpendicular moments, _II0, _II1
+#                    their inverses, _FG m g (gravity on), _DAMP c, _DL, _DQ drag
+#                    coefficients, _LEN l, _KT c_lin l³/12 (the same expressions as
+#                    ``step``'s, so the same bits).
+(_X, _Q, _V, _W, _WB, _XS, _QS, _VS, _WBS, _WS, _ACC, _ALPHA, _SX, _SV, _SQ, _SWB, _F, _T,
+ _HV, _IINV, _G, _C, _LO, _PA, _FC, _BAD, _PE, _UE, _EXTF, _EXTT, _HALF, _IM, _I0, _I1, _II0,
+ _II1, _FG, _DAMP, _DL, _DQ, _LEN, _KT, _NF) = _offsets(
+    3, 4, 3, 3, 3, 3, 4, 3, 3, 3, 3, 3, 3, 3, 4, 3, 3, 3,
+    3, 9, 6, 6, 9, 3, 3, 1, 3, 3, 3, 3, 1, 1, 1, 1, 1,
+    1, 3, 1, 1, 1, 1, 1)
+
+
+@intrinsic
+def _sqrt(typingctx, x):
+    """IEEE square root as LLVM's ``llvm.sqrt.f64``: vectorisable, unlike numba's libm call
+    (which returns the same, correctly rounded, value)."""
+    sig = types.float64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic('llvm.sqrt', [llvm_ir.DoubleType()])
+        return builder.call(fn, args)
+    return sig, codegen
+
+
+# -- layout: the crowd into blocks of lanes and back -------------------------------------------
+@_inline
+def _chain_of_lane(b, l, n_chains):
+    """The chain lane ``l`` of block ``b`` carries (a copy of the last chain past the end)."""
+    return min(b * LANES + l, n_chains - 1)
+
+
+@_inline
+def _load_model(M, b, n_chains, m, R):
+    """Block ``b``'s per-lane model into the record ``R`` from the ``StepModel`` ``M``."""
+    for l in range(LANES):
+        s = _chain_of_lane(b, l, n_chains) * m
+        for i in range(m):
+            j = s + i
+            R[i, _HALF, l] = M.half[j]
+            R[i, _IM, l] = M.inv_mass[j]
+            R[i, _I0, l] = M.inertia[j, 0]
+            R[i, _I1, l] = M.inertia[j, 1]
+            R[i, _II0, l] = M.inv_inertia[j, 0]
+            R[i, _II1, l] = M.inv_inertia[j, 1]
+            for a in range(3):
+                R[i, _FG + a, l] = M.mass[j] * M.gravity[a] if M.gravity_on else 0.0
+            R[i, _DAMP, l] = M.damping[j]
+            R[i, _DL, l] = M.drag_linear[j]
+            R[i, _DQ, l] = M.drag_quadratic[j]
+            R[i, _LEN, l] = M.length[j]
+            R[i, _KT, l] = M.drag_linear[j] * (M.length[j] ** 3 / 12.0)
+
+
+@_inline
+def _gather(src, b, n_chains, m, R, f):
+    """Block ``b``'s rows of ``src`` ``(n, k)`` into the record's field ``f``."""
+    for l in range(LANES):
+        s = _chain_of_lane(b, l, n_chains) * m
+        for i in range(m):
+            for a in range(src.shape[1]):
+                R[i, f + a, l] = src[s + i, a]
+
+
+@_inline
+def _scatter(R, f, b, n_chains, m, dst):
+    """The record's field ``f`` back into block ``b``'s rows of ``dst`` ``(n, k)`` (real
+    chains only)."""
+    for l in range(min(LANES, n_chains - b * LANES)):
+        s = (b * LANES + l) * m
+        for i in range(m):
+            for a in range(dst.shape[1]):
+                dst[s + i, a] = R[i, f + a, l]
+
+
+@_inline
+def _gather_anchors(A, b, n_chains, E):
+    """Block ``b``'s anchors ``E`` ``(S, 12, LANES)``: position, velocity, acceleration and
+    angular velocity (components 0, 3, 6, 9) at every stage time of the table ``A``."""
+    for r in range(A.position.shape[0]):
+        for l in range(LANES):
+            c = _chain_of_lane(b, l, n_chains)
+            for a in range(3):
+                E[r, _AX + a, l] = A.position[r, c, a]
+                E[r, _AV + a, l] = A.velocity[r, c, a]
+                E[r, _AA + a, l] = A.acceleration[r, c, a]
+                E[r, _AW + a, l] = A.angular_velocity[r, c, a]
+
+
+_AX, _AV, _AA, _AW = 0, 3, 6, 9
+
+
+# -- the stages, each over all segments of a block ---------------------------------------------
+@_inline
+def _start(m, R):
+    """The step's first stage: ω in the body frame, the stage state = the state."""
+    for i in range(m):
+        for l in range(LANES):
+            qx, qy, qz, qw = R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l]
+            b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, R[i, _W, l], R[i, _W + 1, l],
+                               R[i, _W + 2, l])
+            R[i, _WB, l], R[i, _WB + 1, l], R[i, _WB + 2, l] = b0, b1, b2
+            for a in range(3):
+                R[i, _XS + a, l] = R[i, _X + a, l]
+                R[i, _VS + a, l] = R[i, _V + a, l]
+            R[i, _WBS, l], R[i, _WBS + 1, l], R[i, _WBS + 2, l] = b0, b1, b2
+            R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l] = qx, qy, qz, qw
+            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = _qrot(qx, qy, qz, qw, b0, b1, b2)
+
+
+@_inline
+def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, drag_on, external_on):
+    """Applied forces and torques (N, N·m, world) at the stage state, ``step._applied``'s
+    terms in its order: gravity, joint damping (τ on the child, -τ on the parent), drag,
+    external."""
+    for i in range(m):
+        for l in range(LANES):
+            for a in range(3):
+                R[i, _F + a, l] = R[i, _FG + a, l]
+                R[i, _T + a, l] = 0.0
+    if explicit_damping:
+        _joint_damping(m, row, R, E)
+    if drag_on:
+        _drag(m, R, wind0, wind1, wind2)
+    if external_on:
+        for i in range(m):
+            for l in range(LANES):
+                for a in range(3):
+                    R[i, _F + a, l] += R[i, _EXTF + a, l]
+                    R[i, _T + a, l] += R[i, _EXTT + a, l]
+
+
+@_inline
+def _joint_damping(m, row, R, E):
+    """τ = -c (ω_child - ω_parent) at every joint, on the child, and -τ on the parent."""
+    for l in range(LANES):              # the first joint: the anchor body is the parent
+        k = R[0, _DAMP, l]
+        for a in range(3):
+            R[0, _T + a, l] += 0.0 - k * (R[0, _WS + a, l] - E[row, _AW + a, l])
+    for i in range(1, m):
+        for l in range(LANES):
+            k = R[i, _DAMP, l]
+            for a in range(3):
+                tau = 0.0 - k * (R[i, _WS + a, l] - R[i - 1, _WS + a, l])
+                R[i, _T + a, l] += tau
+                R[i - 1, _T + a, l] -= tau
+
+
+@_inline
+def _drag(m, R, wind0, wind1, wind2):
+    """Linear and quadratic drag on the velocity relative to the wind, and the linear
+    drag's torque on the swing (ω less its axial part)."""
+    for i in range(m):
+        for l in range(LANES):
+            u0 = R[i, _VS, l] - wind0
+            u1 = R[i, _VS + 1, l] - wind1
+            u2 = R[i, _VS + 2, l] - wind2
+            speed = _sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            c1 = R[i, _DL, l]
+            k = (c1 + R[i, _DQ, l] * speed) * R[i, _LEN, l]
+            R[i, _F, l] -= k * u0
+            R[i, _F + 1, l] -= k * u1
+            R[i, _F + 2, l] -= k * u2
+            x, y, z, w = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
+            e0 = 1.0 - 2.0 * (y * y + z * z)
+            e1 = 2.0 * (x * y + w * z)
+            e2 = 2.0 * (x * z - w * y)
+            w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
+            wa = w0 * e0 + w1 * e1 + w2 * e2
+            kt = R[i, _KT, l]
+            R[i, _T, l] -= kt * (w0 - wa * e0)
+            R[i, _T + 1, l] -= kt * (w1 - wa * e1)
+            R[i, _T + 2, l] -= kt * (w2 - wa * e2)
+
+
+@_inline
+def _free(R, i, l):
+    """Segment i's part of ``step._accelerations``' root-to-tip sweep, stored in the record:
+    its world I⁻¹, h = (l/2) e, free accelerations α (rad/s²) and a (m/s², without f_c), G;
+    returns a, G and t = α × h + ω × (ω × h), the acceleration of its distal point relative
+    to its centre."""
+    qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
+    w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
+    e0 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    e1 = 2.0 * (qx * qy + qw * qz)
+    e2 = 2.0 * (qx * qz - qw * qy)
+    X = _inv_inertia_axisymmetric(e0, e1, e2, R[i, _II0, l], R[i, _II1, l])
+    hl = R[i, _HALF, l]
+    h0, h1, h2 = hl * e0, hl * e1, hl * e2
+    s = (R[i, _I0, l] - R[i, _I1, l]) * (e0 * w0 + e1 * w1 + e2 * w2)    # ω × Iω
+    c0, c1, c2 = _cross(w0, w1, w2, e0, e1, e2)
+    y0, y1, y2 = s * c0, s * c1, s * c2
+    v0, v1, v2 = R[i, _T, l] - y0, R[i, _T + 1, l] - y1, R[i, _T + 2, l] - y2
+    a0 = X[0] * v0 + X[1] * v1 + X[2] * v2
+    a1 = X[3] * v0 + X[4] * v1 + X[5] * v2
+    a2 = X[6] * v0 + X[7] * v1 + X[8] * v2
+    im = R[i, _IM, l]
+    ac0, ac1, ac2 = R[i, _F, l] * im, R[i, _F + 1, l] * im, R[i, _F + 2, l] * im
+    c0, c1, c2 = _cross(a0, a1, a2, h0, h1, h2)
+    u0, u1, u2 = _cross(w0, w1, w2, h0, h1, h2)              # ω × h
+    d0, d1, d2 = _cross(w0, w1, w2, u0, u1, u2)
+    g = _G_axisymmetric(h0, h1, h2, R[i, _II1, l])
+    for j in range(9):
+        R[i, _IINV + j, l] = X[j]
+    for j in range(6):
+        R[i, _G + j, l] = g[j]
+    R[i, _HV, l], R[i, _HV + 1, l], R[i, _HV + 2, l] = h0, h1, h2
+    R[i, _ALPHA, l], R[i, _ALPHA + 1, l], R[i, _ALPHA + 2, l] = a0, a1, a2
+    R[i, _ACC, l], R[i, _ACC + 1, l], R[i, _ACC + 2, l] = ac0, ac1, ac2
+    return (ac0, ac1, ac2), (c0 + d0, c1 + d1, c2 + d2), g
+
+
+@_inline
+def _forward(m, row, R, E):
+    """Root to tip (``step._accelerations``' first sweep): per segment its free motion, joint
+    i's right-hand side (parent point minus child point acceleration), joint i's row of
+    A = J M⁻¹ Jᵀ factorised (``_C`` = P⁻¹, ``_LO`` = 𝓛) and the right-hand side
+    forward-substituted (``_FC``). ``_BAD`` counts, root to segment, the pivots that were not
+    positive definite (the chain's joint solve failed)."""
+    for l in range(LANES):              # joint 0: the parent point is the anchor
+        ac, t, g = _free(R, 0, l)
+        for j in range(3):
+            R[0, _FC + j, l] = E[row, _AA + j, l] - (ac[j] - t[j])
+            R[0, _PA + j, l] = ac[j] + t[j]
+        im = R[0, _IM, l]
+        g00, g01, g02, g11, g12, g22 = g
+        ok, pinv = invert_pivot((im - g00, -g01, -g02, im - g11, -g12, im - g22))
+        for j in range(6):
+            R[0, _C + j, l] = pinv[j]
+        for j in range(9):
+            R[0, _LO + j, l] = 0.0
+        R[0, _BAD, l] = 0.0 if ok else 1.0
+    for i in range(1, m):
+        for l in range(LANES):
+            ac, t, g = _free(R, i, l)
+            r0 = R[i - 1, _PA, l] - (ac[0] - t[0])
+            r1 = R[i - 1, _PA + 1, l] - (ac[1] - t[1])
+            r2 = R[i - 1, _PA + 2, l] - (ac[2] - t[2])
+            for j in range(3):
+                R[i, _PA + j, l] = ac[j] + t[j]
+            im, imp = R[i, _IM, l], R[i - 1, _IM, l]
+            g00, g01, g02, g11, g12, g22 = g
+            p00, p01, p02, p11, p12, p22 = (R[i - 1, _G, l], R[i - 1, _G + 1, l],
+                                            R[i - 1, _G + 2, l], R[i - 1, _G + 3, l],
+                                            R[i - 1, _G + 4, l], R[i - 1, _G + 5, l])
+            s = im + imp
+            d = (s - g00 - p00, -g01 - p01, -g02 - p02, s - g11 - p11, -g12 - p12,
+                 s - g22 - p22)
+            lb = (-imp - p00, -p01, -p02, -p01, -imp - p11, -p12, -p02, -p12, -imp - p22)
+            pp = (R[i - 1, _C, l], R[i - 1, _C + 1, l], R[i - 1, _C + 2, l],
+                  R[i - 1, _C + 3, l], R[i - 1, _C + 4, l], R[i - 1, _C + 5, l])
+            ok, lo, pinv = pivot(d, lb, pp)
+            for j in range(6):
+                R[i, _C + j, l] = pinv[j]
+            for j in range(9):
+                R[i, _LO + j, l] = lo[j]
+            R[i, _BAD, l] = R[i - 1, _BAD, l] + (0.0 if ok else 1.0)
+            z0, z1, z2 = R[i - 1, _FC, l], R[i - 1, _FC + 1, l], R[i - 1, _FC + 2, l]
+            r0 -= lo[0] * z0 + lo[1] * z1 + lo[2] * z2
+            r1 -= lo[3] * z0 + lo[4] * z1 + lo[5] * z2
+            r2 -= lo[6] * z0 + lo[7] * z1 + lo[8] * z2
+            R[i, _FC, l], R[i, _FC + 1, l], R[i, _FC + 2, l] = r0, r1, r2
+
+
+@_inline
+def _failed(m, R):
+    """Whether some lane's joint solve failed at the last ``_forward`` (``_BAD`` counts the
+    failed pivots from the root: the tip's count is the chain's)."""
+    bad = False
+    for l in range(LANES):
+        bad |= R[m - 1, _BAD, l] != 0.0
+    return bad
+
+
+@_inline
+def _pinv_z(R, i, l):
+    """P_i⁻¹ z_i (P⁻¹ symmetric, from its upper triangle, as ``step._block`` reads it)."""
+    p0, p1, p2 = R[i, _C, l], R[i, _C + 1, l], R[i, _C + 2, l]
+    p3, p4, p5 = R[i, _C + 3, l], R[i, _C + 4, l], R[i, _C + 5, l]
+    z0, z1, z2 = R[i, _FC, l], R[i, _FC + 1, l], R[i, _FC + 2, l]
+    return (p0 * z0 + p1 * z1 + p2 * z2, p1 * z0 + p3 * z1 + p4 * z2,
+            p2 * z0 + p4 * z1 + p5 * z2)
+
+
+@_inline
+def _joint_forces(R, i, l, f0, f1, f2, g0, g1, g2):
+    """Segment i's joint forces applied: + λ_i = f at its proximal end, - λ_{i+1} = g at its
+    distal end (``step._accelerations``' second sweep); λ_i stored as f_c."""
+    R[i, _FC, l], R[i, _FC + 1, l], R[i, _FC + 2, l] = f0, f1, f2
+    im = R[i, _IM, l]
+    R[i, _ACC, l] += (f0 - g0) * im
+    R[i, _ACC + 1, l] += (f1 - g1) * im
+    R[i, _ACC + 2, l] += (f2 - g2) * im
+    # (-h) × f_c + h × (-f_next) = (f_c + f_next) × h
+    t0, t1, t2 = _cross(f0 + g0, f1 + g1, f2 + g2, R[i, _HV, l], R[i, _HV + 1, l],
+                        R[i, _HV + 2, l])
+    for a in range(3):
+        R[i, _ALPHA + a, l] += (R[i, _IINV + 3 * a, l] * t0 + R[i, _IINV + 3 * a + 1, l] * t1
+                                + R[i, _IINV + 3 * a + 2, l] * t2)
+
+
+@_inline
+def _backward(m, R):
+    """Tip to root: (1 + 𝓛)ᵀ λ = P⁻¹ z, the joint forces λ into ``_FC`` and each segment's
+    applied to its accelerations."""
+    for l in range(LANES):              # the tip: no joint beyond it
+        f0, f1, f2 = _pinv_z(R, m - 1, l)
+        _joint_forces(R, m - 1, l, f0, f1, f2, 0.0, 0.0, 0.0)
+    for i in range(m - 2, -1, -1):
+        for l in range(LANES):
+            f0, f1, f2 = _pinv_z(R, i, l)
+            l0, l1, l2 = R[i + 1, _FC, l], R[i + 1, _FC + 1, l], R[i + 1, _FC + 2, l]  # λ_i+1
+            f0 -= R[i + 1, _LO, l] * l0 + R[i + 1, _LO + 3, l] * l1 + R[i + 1, _LO + 6, l] * l2
+            f1 -= (R[i + 1, _LO + 1, l] * l0 + R[i + 1, _LO + 4, l] * l1
+                   + R[i + 1, _LO + 7, l] * l2)
+            f2 -= (R[i + 1, _LO + 2, l] * l0 + R[i + 1, _LO + 5, l] * l1
+                   + R[i + 1, _LO + 8, l] * l2)
+            _joint_forces(R, i, l, f0, f1, f2, l0, l1, l2)
+
+
+@_inline
+def _derivatives(R, i, l):
+    """Stage derivatives of segment i: ẋ = v, v̇ = a, ω̇_b = Rᵀ α, q̇ = ½ q ⊗ ω_b."""
+    qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
+    d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, R[i, _WBS, l], R[i, _WBS + 1, l],
+                           R[i, _WBS + 2, l], 0.0)
+    e0, e1, e2 = _qrot(-qx, -qy, -qz, qw, R[i, _ALPHA, l], R[i, _ALPHA + 1, l],
+                       R[i, _ALPHA + 2, l])
+    return ((R[i, _VS, l], R[i, _VS + 1, l], R[i, _VS + 2, l]),
+            (R[i, _ACC, l], R[i, _ACC + 1, l], R[i, _ACC + 2, l]),
+            (e0, e1, e2), (0.5 * d0, 0.5 * d1, 0.5 * d2, 0.5 * d3))
+
+
+@_inline
+def _stage_sum(s, weight, total, d):
+    """``step._rk4_sum``: d for the first stage, else total + weight·d (a select, not a
+    branch: the loop stays vectorisable)."""
+    return d if s == 0 else total + weight * d
+
+
+@_inline
+def _next_stage(m, s, weight, c, R):
+    """After stage ``s`` (0-2): its derivatives summed into RK4's d₁ + 2 d₂ + 2 d₃ + d₄, and
+    the next stage's state at offset ``c`` from the step's start."""
+    for i in range(m):
+        for l in range(LANES):
+            dx, dv, dwb, dq = _derivatives(R, i, l)
+            for a in range(3):
+                R[i, _SX + a, l] = _stage_sum(s, weight, R[i, _SX + a, l], dx[a])
+                R[i, _SV + a, l] = _stage_sum(s, weight, R[i, _SV + a, l], dv[a])
+                R[i, _SWB + a, l] = _stage_sum(s, weight, R[i, _SWB + a, l], dwb[a])
+            for a in range(4):
+                R[i, _SQ + a, l] = _stage_sum(s, weight, R[i, _SQ + a, l], dq[a])
+            for a in range(3):
+                R[i, _XS + a, l] = R[i, _X + a, l] + c * dx[a]
+                R[i, _VS + a, l] = R[i, _V + a, l] + c * dv[a]
+                R[i, _WBS + a, l] = R[i, _WB + a, l] + c * dwb[a]
+            for a in range(4):
+                R[i, _QS + a, l] = R[i, _Q + a, l] + c * dq[a]
+            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = _qrot(
+                R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l],
+                R[i, _WBS, l], R[i, _WBS + 1, l], R[i, _WBS + 2, l])
+
+
+@_inline
+def _finish(m, h, R):
+    """The last stage's derivatives summed (weight 1: d added, the same bits as 1·d) and the
+    step taken: x, v, ω_b, q advanced by h/6 of the sums, q normalised, ω back in the world
+    frame."""
+    sixth = h / 6.0
+    for i in range(m):
+        for l in range(LANES):
+            dx, dv, dwb, dq = _derivatives(R, i, l)
+            for a in range(3):
+                R[i, _X + a, l] = R[i, _X + a, l] + sixth * (R[i, _SX + a, l] + dx[a])
+                R[i, _V + a, l] = R[i, _V + a, l] + sixth * (R[i, _SV + a, l] + dv[a])
+                R[i, _WB + a, l] = R[i, _WB + a, l] + sixth * (R[i, _SWB + a, l] + dwb[a])
+            q0 = R[i, _Q, l] + sixth * (R[i, _SQ, l] + dq[0])
+            q1 = R[i, _Q + 1, l] + sixth * (R[i, _SQ + 1, l] + dq[1])
+            q2 = R[i, _Q + 2, l] + sixth * (R[i, _SQ + 2, l] + dq[2])
+            q3 = R[i, _Q + 3, l] + sixth * (R[i, _SQ + 3, l] + dq[3])
+            r = 1.0 / _sqrt(q0 ** 2 + q1 ** 2 + q2 ** 2 + q3 ** 2)
+            q0, q1, q2, q3 = q0 * r, q1 * r, q2 * r, q3 * r
+            R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l] = q0, q1, q2, q3
+            R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l] = _qrot(
+                q0, q1, q2, q3, R[i, _WB, l], R[i, _WB + 1, l], R[i, _WB + 2, l])
+
+
+@_inline
+def _project_segment(R, i, l, p0, p1, p2, u0, u1, u2):
+    """Segment i's centre on its proximal joint at p (velocity u); its distal joint's kept."""
+    qx, qy, qz, qw = R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l]
+    hl = R[i, _HALF, l]
+    h0 = hl * (1.0 - 2.0 * (qy * qy + qz * qz))
+    h1 = hl * (2.0 * (qx * qy + qw * qz))
+    h2 = hl * (2.0 * (qx * qz - qw * qy))
+    x0, x1, x2 = p0 + h0, p1 + h1, p2 + h2
+    R[i, _X, l], R[i, _X + 1, l], R[i, _X + 2, l] = x0, x1, x2
+    R[i, _PE, l], R[i, _PE + 1, l], R[i, _PE + 2, l] = x0 + h0, x1 + h1, x2 + h2
+    c0, c1, c2 = _cross(R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l], h0, h1, h2)
+    v0, v1, v2 = u0 + c0, u1 + c1, u2 + c2
+    R[i, _V, l], R[i, _V + 1, l], R[i, _V + 2, l] = v0, v1, v2
+    R[i, _UE, l], R[i, _UE + 1, l], R[i, _UE + 2, l] = v0 + c0, v1 + c1, v2 + c2
+
+
+@_inline
+def _project(m, row, R, E):
+    """Centres rebuilt so every joint closes exactly from the anchor outward, and the centre
+    velocities from the anchor point's velocity and ω (``step._project`` for RK4)."""
+    for l in range(LANES):
+        _project_segment(R, 0, l, E[row, _AX, l], E[row, _AX + 1, l], E[row, _AX + 2, l],
+                         E[row, _AV, l], E[row, _AV + 1, l], E[row, _AV + 2, l])
+    for i in range(1, m):
+        for l in range(LANES):
+            _project_segment(R, i, l, R[i - 1, _PE, l], R[i - 1, _PE + 1, l],
+                             R[i - 1, _PE + 2, l], R[i - 1, _UE, l], R[i - 1, _UE + 1, l],
+                             R[i - 1, _UE + 2, l])
+
+
+# -- the call ----------------------------------------------------------------------------------
+@_inline
+def _block_steps(M, n_steps, h, R, E):
+    """All ``n_steps`` RK4 steps of one block (``step._rk4``, then ``step._project``), its
+    record ``R`` and anchors ``E`` given. Returns ``OK`` or ``JOINT_SOLVE_FAILED`` (some
+    lane's A was not positive definite)."""
+    m = R.shape[0]
+    wind0, wind1, wind2 = M.wind[0], M.wind[1], M.wind[2]
+    hh = 0.5 * h
+    for k in range(n_steps):
+        _start(m, R)
+        for s in range(4):
+            row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
+            _applied(m, row, R, E, wind0, wind1, wind2, M.explicit_damping, M.drag_on,
+                     M.external_on)
+            _forward(m, row, R, E)
+            if _failed(m, R):
+                return JOINT_SOLVE_FAILED
+            _backward(m, R)
+            if s < 3:
+                _next_stage(m, s, 1.0 if s == 0 else 2.0, hh if s < 2 else h, R)
+            else:
+                _finish(m, h, R)
+        if M.projection:
+            _project(m, 2 * k + 2, R, E)
+    return OK
+
+
+@_jit
+def advance_lanes(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
+    """``step.advance`` for a crowd that ``supports`` and ``crowd_layout`` allow (the same
+    arguments, results bit for bit and status): the chains in blocks of ``LANES``, each block
+    through all the steps of the call before the next (its record stays in the cache). The
+    record and anchors are allocated here, where the loops are (``_block_steps`` is inlined):
+    that is what lets LLVM see they are distinct from the arguments."""
+    if n_steps <= 0:
+        return OK
+    n_chains = 0
+    for i in range(M.is_first.shape[0]):
+        n_chains += 1 if M.is_first[i] else 0
+    m = x.shape[0] // n_chains
+    R = np.zeros((m, _NF, LANES))
+    E = np.empty((A.position.shape[0], 12, LANES))
+    for b in range((n_chains + LANES - 1) // LANES):
+        _load_model(M, b, n_chains, m, R)
+        _gather(x, b, n_chains, m, R, _X)
+        _gather(q, b, n_chains, m, R, _Q)
+        _gather(v, b, n_chains, m, R, _V)
+        _gather(w, b, n_chains, m, R, _W)
+        if M.external_on:
+            _gather(ext_F, b, n_chains, m, R, _EXTF)
+            _gather(ext_T, b, n_chains, m, R, _EXTT)
+        _gather_anchors(A, b, n_chains, E)
+        status = _block_steps(M, n_steps, h, R, E)
+        if status != OK:
+            return status
+        _scatter(R, _X, b, n_chains, m, x)
+        _scatter(R, _Q, b, n_chains, m, q)
+        _scatter(R, _V, b, n_chains, m, v)
+        _scatter(R, _W, b, n_chains, m, w)
+        _scatter(R, _FC, b, n_chains, m, f_c)
+    return OK
+
+
+# -- dispatch ----------------------------------------------------------------------------------
+def crowd_layout(model):
+    """``(chains, segments per chain)`` if ``model``'s structure suits the lanes (at least
+    ``MIN_CHAINS`` chains, all of one segment count, no colliders or joint limits), else None.
+    The structure of a ``Model`` never changes: the simulator asks once."""
+    counts = np.asarray(model.chain_end) - np.asarray(model.chain_start)
+    if (model.n_chains < MIN_CHAINS or np.any(counts != counts[0]) or model.has_colliders
+            or model.has_limits):
+        return None
+    return int(model.n_chains), int(counts[0])
+
+
+def supports(M):
+    """Whether the lanes kernel runs the ``StepModel`` ``M``'s switches: RK4, axisymmetric
+    segments, no implicit damping, no bending stiffness, no Baumgarte terms (the rest:
+    gravity, explicit damping, drag, external forces, projection on or off, are covered)."""
+    return bool(M.integrator == RK4 and M.axisymmetric and not M.implicit_damping
+                and not M.stiffness_on and M.baumgarte_stiffness == 0.0
+                and M.baumgarte_damping == 0.0)
+
+
+def kernel_for(M, layout):
+    """The compiled step for the ``StepModel`` ``M`` of a model of ``crowd_layout``
+    ``layout``: ``advance_lanes`` if it runs it, else ``step.advance`` (same arguments, same
+    results)."""
+    return advance_lanes if layout is not None and supports(M) else step.advance
+
+
+def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, layout):
+    """``step.advance`` through ``kernel_for(M, layout)``."""
+    return kernel_for(M, layout)(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
