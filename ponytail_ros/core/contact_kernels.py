@@ -1188,7 +1188,6 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
     """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
     rows of this call (a few allocations, whatever the number of chains and rows)."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
-    inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
     k = R.shape[0]
     if k == 0:
         return
@@ -1201,6 +1200,16 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
     rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
     c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
     ds = dense_scratch(kg_max)
+    _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members, start,
+                  n_groups, mobile, rv_all, rw_all, c_dot_all, W_all, lc_all, ds)
+
+
+@njit(cache=True, _nrt=False)
+def _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members, start,
+                  n_groups, mobile, rv_all, rw_all, c_dot_all, W_all, lc_all, ds):
+    """``solve_rows_into``'s loop over the chains' row groups, borrowing its scratch."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
     for gi in range(n_groups):
         mem = members[start[gi]:start[gi + 1]]
         kg = mem.shape[0]

@@ -1118,7 +1118,7 @@ def _project(M, A, row, x, q, v, w, velocities):
 
 
 # -- the call ----------------------------------------------------------------------------------
-@_jit
+@_inline
 def _chain_model(M, s, e):
     """The ``StepModel`` of segments ``s:e`` (one chain): views, no copies."""
     return StepModel(
@@ -1168,6 +1168,20 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
         ws, rws = _chain_views(W, R, e - s)
         status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
                               v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+        if status != OK:
+            return status
+    return OK
+
+
+@_borrow
+def _chains_step(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends):
+    """Step ``k`` of the table, chain by chain (each chain's views borrowed: no reference
+    counts however many chains there are)."""
+    for c in range(starts.shape[0]):
+        s, e = starts[c], ends[c]
+        ws, rws = _chain_views(W, R, e - s)
+        status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
+                              w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
         if status != OK:
             return status
     return OK
@@ -1232,25 +1246,12 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
                                             has_colliders)
     x0, q0 = np.empty_like(x), np.empty_like(q)
-    # One chain: its views made once, not every step (each view costs a reference count).
-    single = starts.shape[0] == 1
-    e1 = ends[0] if single else 0
-    M1 = _chain_model(M, 0, e1)
-    ws1, rws1 = _chain_views(W, R, e1)
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
             return SUBSTEPS, k
-        if single:
-            status = _chain_steps(M1, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, ws1, rws1)
-            if status != OK:
-                return status, k
-        for c in range(0 if single else starts.shape[0]):
-            s, e = starts[c], ends[c]
-            ws, rws = _chain_views(W, R, e - s)
-            status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
-                                  w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
-            if status != OK:
-                return status, k
+        status = _chains_step(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends)
+        if status != OK:
+            return status, k
         r = 2 * k + 2
         anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
         if moving:
