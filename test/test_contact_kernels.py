@@ -125,6 +125,19 @@ def _caged():
 SCENES['caged: the row tables grow'] = (_caged, ShakeMotion, 0.6)
 
 
+def test_the_caged_chain_overflows_the_usual_row_tables():
+    """The premise of the caged scene: every collider is within the chain's reach of its
+    anchor (so the broad phase keeps every pair), and the candidate rows, segments × colliders,
+    exceed the usual tables (segments × ``ROW_COLLIDERS``): its steps take the grown path."""
+    from ponytail_ros.core import contact_kernels
+    scene = _caged()
+    chain = scene.chains[0]
+    reach = chain.length + chain.radius
+    for col in scene.colliders:
+        assert np.linalg.norm(np.asarray(col.center)) - col.radius < reach
+    assert len(scene.colliders) > contact_kernels.ROW_COLLIDERS
+
+
 def _per_step(sim):
     """Make ``sim`` take every step through ``Unilateral.resolve`` (the per-step path it uses
     for sub-stepped steps) instead of its compiled step loop, so that calls can be recorded;

@@ -67,8 +67,8 @@ SEG, PAR, CONTACT = 0, 1, 2
  D_FRICTION) = range(16)
 P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
 
-# Status of ``resolve`` (``NO_ROOM``: internal, the row tables overflowed; ``resolve_into``
-# grows them and resolves the step again).
+# Status of ``resolve`` (``NO_ROOM``: internal to ``resolve_into``, the row tables overflowed:
+# it grows them and resolves the step again).
 OK, NOT_POSITIVE_DEFINITE, NO_ROOM = 0, 1, 2
 
 
@@ -435,7 +435,7 @@ def surface_speed(pose, v, w, det):
         v2 = max(v2, dot(v3(v, i), v3(v, i)))
         w2 = max(w2, dot(v3(w, i), v3(w, i)))
     col_speed = pose[P_SPEED]
-    fastest = col_speed[0] if col_speed.shape[0] else 0.0
+    fastest = 0.0
     for j in range(col_speed.shape[0]):
         fastest = max(fastest, col_speed[j])
     return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + fastest
@@ -689,10 +689,10 @@ def limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, axis, gap, sep):
     nl = lim_idx.shape[0]
     limit_terms(q, w, anchor[2], anchor[3], q_rest, model[IS_FIRST], model[CHAIN_OF], lim_idx,
                 swing_limit, twist_limit, axis, gap, sep)
-    lowest = gap[0] if gap.shape[0] else 0.0
+    deepest_gap = 0.0
     for r in range(gap.shape[0]):
-        lowest = min(lowest, gap[r])
-    skin = ANGLE_SKIN + 4.0 * max(-lowest, 0.0)
+        deepest_gap = max(deepest_gap, -gap[r])
+    skin = ANGLE_SKIN + 4.0 * deepest_gap
     for r in range(2 * nl):
         joint = lim_idx[r % nl]
         limit = swing_limit[joint] if r < nl else twist_limit[joint]
@@ -1479,9 +1479,10 @@ def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colli
     its workspace ``ws`` given (``resolve_workspace`` of this model, detector and colliders: a
     step loop allocates it once for all its steps; every stage writes what it reads there
     first, as it must of ``np.empty``'s contents). ``x0``, ``q0``: a copy of the step's
-    positions (they must not be ``x``, ``q`` themselves). Returns the status: ``NO_ROOM``,
-    with the state as on entry, if the candidate rows overflow the workspace's row tables (a
-    segment near more than ``ROW_COLLIDERS`` colliders): resolve again with ``grown(ws)``.
+    positions (they must not be ``x``, ``q`` themselves). Returns ``(status, ws)``: the
+    workspace to keep for the next steps, ``grown(ws)`` if this step's candidate rows
+    overflowed its row tables (a segment near more than ``ROW_COLLIDERS`` colliders; the step
+    is then resolved again from its entry state).
 
     The stages run borrowing (``_resolve_stages``)."""
     vec = ws[WS_VEC]
@@ -1492,15 +1493,18 @@ def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colli
             w0[i, a] = w[i, a]
     status = _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest,
                              has_colliders, project, dt, stats, ws)
-    if status == NO_ROOM:
-        for i in range(x.shape[0]):
-            for a in range(3):
-                x[i, a] = x0[i, a]
-                v[i, a] = v0[i, a]
-                w[i, a] = w0[i, a]
-            for a in range(4):
-                q[i, a] = q0[i, a]
-    return status
+    if status != NO_ROOM:
+        return status, ws
+    for i in range(x.shape[0]):
+        for a in range(3):
+            x[i, a] = x0[i, a]
+            v[i, a] = v0[i, a]
+            w[i, a] = w0[i, a]
+        for a in range(4):
+            q[i, a] = q0[i, a]
+    ws = grown(ws)
+    return _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
+                           project, dt, stats, ws), ws
 
 
 @njit(cache=True, _nrt=False)
@@ -1561,10 +1565,7 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     place, on a workspace kept across steps).
     """
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
-    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
-    status = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
-                          has_colliders, project, dt, stats, ws)
-    if status == NO_ROOM:
-        status = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
-                              has_colliders, project, dt, stats, grown(ws))
+    status, _ = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
+                             has_colliders, project, dt, stats,
+                             resolve_workspace(x.shape[0], model, det, pose, has_colliders))
     return status, x1, q1, v1, w1

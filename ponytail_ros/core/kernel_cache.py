@@ -38,11 +38,10 @@ def _cache_dirs(here):
     root = os.environ.get('NUMBA_CACHE_DIR')
     if root:
         # numba's layout there: <dir name>_<sha1 of the source directory's absolute path>
-        # (``_CacheLocator.get_suitable_cache_subpath``); older numba mirrored the path.
+        # (``_CacheLocator.get_suitable_cache_subpath``; a test holds the two together).
         src = os.path.abspath(str(here))
         hashed = hashlib.sha1(src.encode()).hexdigest()
         dirs.append(Path(root) / f'{os.path.basename(src)}_{hashed}')
-        dirs.append(Path(root) / src.lstrip(os.sep))
     return dirs
 
 

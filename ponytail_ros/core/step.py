@@ -1163,25 +1163,20 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     """
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
-    for c in range(starts.shape[0]):
-        s, e = starts[c], ends[c]
-        ws, rws = _chain_views(W, R, e - s)
-        status = _chain_steps(_chain_model(M, s, e), A, 0, n_steps, h, x[s:e], q[s:e],
-                              v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
-        if status != OK:
-            return status
-    return OK
+    return _chains_steps(M, A, 0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
+                         ends)
 
 
 @_borrow
-def _chains_step(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends):
-    """Step ``k`` of the table, chain by chain (each chain's views borrowed: no reference
-    counts however many chains there are)."""
+def _chains_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends):
+    """Steps ``k0 .. k0 + n_steps - 1`` of the table, chain by chain, each chain through all
+    of them (its working set stays in the cache; its views borrowed: no reference counts
+    however many chains there are)."""
     for c in range(starts.shape[0]):
         s, e = starts[c], ends[c]
         ws, rws = _chain_views(W, R, e - s)
-        status = _chain_steps(_chain_model(M, s, e), A, k, 1, h, x[s:e], q[s:e], v[s:e],
-                              w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+        status = _chain_steps(_chain_model(M, s, e), A, k0, n_steps, h, x[s:e], q[s:e],
+                              v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
         if status != OK:
             return status
     return OK
@@ -1249,7 +1244,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
             return SUBSTEPS, k
-        status = _chains_step(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends)
+        status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
+                               ends)
         if status != OK:
             return status, k
         r = 2 * k + 2
@@ -1261,15 +1257,10 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             pose = static_pose
         x0[:] = x
         q0[:] = q
-        status = contact_kernels.resolve_into(
+        # (a workspace grown for one step's rows is kept for the rest of the call)
+        status, cws = contact_kernels.resolve_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
             M.projection, h, stats, cws)
-        if status == contact_kernels.NO_ROOM:
-            # Its rows overflow the usual tables: grown ones, kept for the rest of the call.
-            cws = contact_kernels.grown(cws)
-            status = contact_kernels.resolve_into(
-                x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
-                M.projection, h, stats, cws)
         if status != contact_kernels.OK:
             return JOINT_SOLVE_FAILED, k
     return OK, n_steps
