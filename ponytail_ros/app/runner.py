@@ -84,7 +84,6 @@ segments is resolved by the contact position stage, which pushes them out of it 
 """
 from collections import Counter, deque
 from dataclasses import dataclass, fields, replace
-import math
 
 import numpy as np
 
@@ -424,7 +423,10 @@ class ChainRunner:
                  or t_tick - self._last_accept_tick > s.stale_timeout)
         while self._queue:
             t, p, q, frame = self._queue.popleft()
-            valid = _valid_sample(t, p, q, s.quat_tolerance)
+            checked = est.check(t, p, q)            # (the values checked once, here)
+            valid = checked[3] is None
+            if valid:
+                t, p, q = checked[:3]
             restart = None
             if self.frame_id is not None and frame != self.frame_id:
                 if not (valid and self._all_quiet(t_tick)):
@@ -432,7 +434,7 @@ class ChainRunner:
                     continue
                 restart = 'frame_changed'
                 self._reset_frames()      # in the old frame (all stale)
-            elif valid and est.detect_teleport(p, q, s.teleport_distance, s.teleport_angle):
+            elif valid and est.jumped(p, q, s.teleport_distance, s.teleport_angle):
                 restart = 'teleport'
             elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
                 # The stream restarted with an earlier time base (a publisher restarted, a bag
@@ -444,7 +446,7 @@ class ChainRunner:
                     self.history_restarts += 1
                 else:
                     self._pending_reset = restart
-            reason = est.add(t, p, q)
+            reason = est.add_checked(checked)
             if reason is not None:
                 self._drop(reason, t)
                 continue
@@ -461,11 +463,14 @@ class ChainRunner:
 
     def _drain_frame(self, i, t_tick):
         """Frame ``i``'s queued samples, as :meth:`_drain_head` (no teleport detection)."""
-        est, s, name = self.frame_estimators[i], self.settings, self.frames[i]
+        est, name = self.frame_estimators[i], self.frames[i]
         queue = self._frame_queues[i]
         while queue:
             t, p, q, frame = queue.popleft()
-            valid = _valid_sample(t, p, q, s.quat_tolerance)
+            checked = est.check(t, p, q)
+            valid = checked[3] is None
+            if valid:
+                t = checked[0]
             adopt = False
             if self.frame_id is not None and frame != self.frame_id:
                 if not (valid and self._all_quiet(t_tick)):
@@ -482,7 +487,7 @@ class ChainRunner:
                   and t < est.last_stamp):
                 est.reset()                   # the stream restarted with an earlier time base
                 self.history_restarts += 1
-            reason = est.add(t, p, q)
+            reason = est.add_checked(checked)
             if reason is not None:
                 self._drop(reason, t, name)
                 continue
@@ -643,17 +648,4 @@ def _used_frames(scene, n_frames):
     """Indices ``i`` of the extra frames (bodies ``1 + i``) the scene uses."""
     used = _used_bodies(scene)
     return [i for i in range(n_frames) if 1 + i in used]
-
-
-def _valid_sample(t, p, q, quat_tolerance):
-    """Would ``HeadEstimator.add`` accept the values (ignoring the stamp order)?"""
-    try:
-        t = float(t)
-        p = np.asarray(p, dtype=float).reshape(3)
-        q = np.asarray(q, dtype=float).reshape(4)
-    except (TypeError, ValueError):
-        return False
-    if not (math.isfinite(t) and np.isfinite(p).all() and np.isfinite(q).all()):
-        return False
-    return abs(math.sqrt(float(q @ q)) - 1.0) <= quat_tolerance
 

@@ -221,13 +221,27 @@ class HeadEstimator:
         ``'stamp_backwards'``: call ``reset()``. A sample more than ``max_gap`` after the
         previous one is accepted and starts a new history.
         """
+        return self.add_checked(self.check(t, position, orientation))
+
+    def check(self, t, position, orientation):
+        """A sample's values checked as ``add`` checks them, whatever the history (the stamp
+        order is ``add``'s): ``(t, p, q, None)``, ``t`` a float and ``q`` normalised, or
+        ``(None, None, None, reason)``. Never raises; counts nothing (``add`` counts)."""
         try:
             t = float(t)
         except Exception:  # noqa: BLE001 - whatever the input, never raise
-            return self._reject('malformed')
+            return None, None, None, 'malformed'
         p, q, reason = self._check_pose(position, orientation)
         if reason is None and not math.isfinite(t):
             reason = 'nonfinite'
+        if reason is not None:
+            return None, None, None, reason
+        return t, p, q, None
+
+    def add_checked(self, checked):
+        """``add`` of a sample whose values ``check`` returned as ``checked``: a caller that
+        needs them first (``jumped``) checks once."""
+        t, p, q, reason = checked
         if reason is not None:
             return self._reject(reason)
         n = self._n
@@ -258,7 +272,12 @@ class HeadEstimator:
         if not self._n:
             return False
         p, q, reason = self._check_pose(position, orientation)
-        if reason is not None:
+        return reason is None and self.jumped(p, q, max_distance, max_angle)
+
+    def jumped(self, p, q, max_distance, max_angle):
+        """``detect_teleport`` of a pose ``check`` has accepted (``p`` ``(3,)``, ``q`` ``(4,)``
+        unit)."""
+        if not self._n:
             return False
         last = self._p[self._n - 1]
         if math.dist(p.tolist(), last.tolist()) > max_distance:
