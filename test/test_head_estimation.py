@@ -516,3 +516,52 @@ def test_junk_never_raises(inputs):
         est.detect_teleport(p, q, 1.0, 1.0)
     if len(est):
         assert est.state_at(est.last_stamp + 0.01).is_finite()
+
+
+def _weighted_vandermonde(rng, k, degree, one_sided):
+    """A fit's matrix: tricube weights times powers of τ in [-1, 0] (or [-1, 1])."""
+    tau = np.sort(rng.uniform(-1.0, 0.0 if one_sided else 1.0, k))
+    wt = np.sqrt((1.0 - np.abs(tau) ** 3) ** 3)
+    return wt[:, None] * tau[:, None] ** np.arange(degree + 1)[None], wt
+
+
+@pytest.mark.parametrize('k, degree', [(12, 3), (16, 3), (100, 3), (6, 2), (30, 5)])
+def test_svd_lstsq_is_numpys_least_squares_solution(k, degree):
+    """The fit's Jacobi SVD solve (``head_kernels.svd_lstsq``) returns LAPACK's gelsd solution
+    (``np.linalg.lstsq``, the cutoff the fit uses) to rounding on the fit's matrices."""
+    from ponytail_ros.core.head_kernels import EPS, svd_lstsq
+    rng = np.random.default_rng(k + degree)
+    for one_sided in (True, False):
+        for _ in range(20):
+            V, wt = _weighted_vandermonde(rng, k, degree, one_sided)
+            Y = rng.standard_normal((k, 6)) * wt[:, None]
+            rcond = EPS * k
+            expected = np.linalg.lstsq(V, Y, rcond=rcond)[0]
+            X = np.empty((degree + 1, 6))
+            svd_lstsq(V.copy(), Y, rcond, X)
+            assert np.max(np.abs(X - expected)) <= 1e-11 * np.max(np.abs(expected))
+
+
+def test_svd_lstsq_drops_a_weightless_sample_and_is_minimum_norm():
+    """A sample at the bandwidth's edge (weight ~1e-22) is truncated with its singular value:
+    ten samples and ten coefficients, one of them weightless, give the minimum-norm solution
+    through the other nine, as gelsd does (a QR solve would fit the tenth coefficient to the
+    weightless sample); and a matrix with two equal columns gets the minimum-norm split."""
+    from ponytail_ros.core.head_kernels import EPS, svd_lstsq
+    rng = np.random.default_rng(7)
+    V, wt = _weighted_vandermonde(rng, 10, 9, one_sided=False)
+    V[-1] *= 1e-22 / wt[-1]
+    Y = rng.standard_normal((10, 6))
+    Y[-1] *= 1e-22
+    expected = np.linalg.lstsq(V, Y, rcond=EPS * 10)[0]
+    X = np.empty((10, 6))
+    svd_lstsq(V.copy(), Y, EPS * 10, X)
+    assert np.max(np.abs(X - expected)) <= 1e-9 * np.max(np.abs(expected))
+    assert np.max(np.abs(X)) < 1e6                  # not fitted to the weightless sample
+    A = rng.standard_normal((8, 2))
+    A = np.column_stack([A, A[:, 1]])               # rank 2: columns 1 and 2 equal
+    B = rng.standard_normal((8, 1))
+    X = np.empty((3, 1))
+    svd_lstsq(A.copy(), B, EPS * 8, X)
+    assert np.allclose(X, np.linalg.lstsq(A, B, rcond=EPS * 8)[0], rtol=0, atol=1e-12)
+    assert X[1, 0] == pytest.approx(X[2, 0], abs=1e-12)    # the equal split: minimum norm

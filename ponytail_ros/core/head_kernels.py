@@ -23,11 +23,15 @@ from numba import njit
 from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
                             qto_rotvec, scale)
 
-__all__ = ['loess_fit', 'track_table', 'point_kinematics', 'frame_ends', 'median_interval',
-           'FIT_SIZE']
+__all__ = ['loess_fit', 'svd_lstsq', 'track_table', 'point_kinematics', 'frame_ends',
+           'median_interval', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
+EPS = np.finfo(np.float64).eps
+#: Sweeps of ``svd_lstsq``'s Jacobi rotations, at most (it converges quadratically: a fit's
+#: few columns are orthogonal to working precision after a handful).
+JACOBI_SWEEPS = 30
 
 
 @njit(cache=True)
@@ -64,6 +68,77 @@ def _left_jacobian_rates(phi, phid, phidd):
     alpha = add(alpha, add(add(scale(da * pd, pxd), scale(db * pd, ppxd)),
                            scale(b, cross(phid, pxd))))
     return omega, alpha
+
+
+@njit(cache=True)
+def svd_lstsq(A, B, rcond, X):
+    """The minimum-norm least-squares solution ``X`` ``(p, m)`` of ``A X ≈ B`` (``A``
+    ``(k, p)``, ``k ≥ p``; ``A`` is overwritten), singular values below ``rcond`` times the
+    largest taken as zero: what LAPACK's ``gelsd`` (``np.linalg.lstsq``) returns, equal to
+    rounding.
+
+    One-sided Jacobi (Hestenes): plane rotations of column pairs, accumulated in ``W``,
+    until every pair of columns of ``A W = U Σ`` is orthogonal to working precision; then
+    ``X = W Σ⁺ Uᵀ B``. For the fit's few columns (a weighted Vandermonde matrix, ``p ≤ 10``)
+    this is a few hundred flops per sweep and a handful of sweeps, without LAPACK's workspace
+    query, allocations and copies into Fortran order, which cost more than the solve itself
+    at this size. Jacobi's singular values are accurate to the columns' own rounding.
+    """
+    k, p = A.shape
+    m = B.shape[1]
+    W = np.zeros((p, p))
+    for i in range(p):
+        W[i, i] = 1.0
+    for _ in range(JACOBI_SWEEPS):
+        rotated = False
+        for i in range(p - 1):
+            for j in range(i + 1, p):
+                alpha = 0.0
+                beta = 0.0
+                gamma = 0.0
+                for r in range(k):
+                    alpha += A[r, i] * A[r, i]
+                    beta += A[r, j] * A[r, j]
+                    gamma += A[r, i] * A[r, j]
+                if gamma == 0.0 or abs(gamma) <= EPS * math.sqrt(alpha * beta):
+                    continue
+                rotated = True
+                zeta = (beta - alpha) / (2.0 * gamma)
+                t = (1.0 if zeta >= 0.0 else -1.0) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                c = 1.0 / math.sqrt(1.0 + t * t)
+                s = c * t
+                for r in range(k):
+                    ai, aj = A[r, i], A[r, j]
+                    A[r, i] = c * ai - s * aj
+                    A[r, j] = s * ai + c * aj
+                for r in range(p):
+                    wi, wj = W[r, i], W[r, j]
+                    W[r, i] = c * wi - s * wj
+                    W[r, j] = s * wi + c * wj
+        if not rotated:
+            break
+    sigma = np.empty(p)
+    s_max = 0.0
+    for i in range(p):
+        s2 = 0.0
+        for r in range(k):
+            s2 += A[r, i] * A[r, i]
+        sigma[i] = math.sqrt(s2)
+        s_max = max(s_max, sigma[i])
+    for i in range(p):
+        for a in range(m):
+            X[i, a] = 0.0
+    for i in range(p):
+        if sigma[i] <= rcond * s_max or sigma[i] == 0.0:
+            continue
+        for a in range(m):
+            # (u_i · b_a) / σ_i with u_i = A[:, i] / σ_i
+            d = 0.0
+            for r in range(k):
+                d += A[r, i] * B[r, a]
+            d /= sigma[i] * sigma[i]
+            for row in range(p):
+                X[row, a] += W[row, i] * d
 
 
 @njit(cache=True)
@@ -130,10 +205,11 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
         for a in range(3):
             Y[r, a] = (ps[i, a] - mean[a]) * wt
             Y[r, 3 + a] = phi[a] * wt
-    # LAPACK's SVD solve (gelsd) with NumPy's default cutoff: a sample at the bandwidth's edge
-    # enters with a weight ~1e-22, and truncating that singular value keeps the fit the
-    # lower-degree one of the others (a QR solve would fit the tenth coefficient to it).
-    c = np.linalg.lstsq(V, Y, rcond=np.finfo(np.float64).eps * max(k, npar))[0]
+    # An SVD solve with NumPy's default cutoff: a sample at the bandwidth's edge enters with a
+    # weight ~1e-22, and truncating that singular value keeps the fit the lower-degree one of
+    # the others (a QR solve would fit the tenth coefficient to it).
+    c = np.empty((npar, 6))
+    svd_lstsq(V, Y, EPS * max(k, npar), c)
     val = np.zeros(6)
     vel = np.zeros(6)
     acc = np.zeros(6)
