@@ -26,11 +26,17 @@ axis) and ``G = (h hᵀ - |h|² 1)/I_p``: no rotation matrices are formed. Other
 first joint that reaction is the one the kinematic head never feels).
 """
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, lapack
 
 from .rotations import cross, quat_axis_x, quat_to_matrix, skew
 
 __all__ = ['Dynamics', 'JointResponse']
+
+def _linalg():
+    """``scipy.linalg``, imported at the first NumPy-reference solve: the compiled step never
+    needs it, and importing it costs every process start ~0.15 s."""
+    import scipy.linalg
+    return scipy.linalg
+
 
 _KD = 5  # half-bandwidth of a block-tridiagonal matrix with 3×3 blocks
 
@@ -161,8 +167,8 @@ class Dynamics:
 
     def solve_banded(self, D, L, b):
         n = self.model.n
-        _, x, info = lapack.dpbsv(self.band(D, L), b.reshape(-1), lower=0, overwrite_ab=1,
-                                  overwrite_b=0)
+        _, x, info = _linalg().lapack.dpbsv(self.band(D, L), b.reshape(-1), lower=0,
+                                            overwrite_ab=1, overwrite_b=0)
         if info != 0:
             raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbsv info={info})')
         return x.reshape(n, 3)
@@ -286,7 +292,7 @@ class Dynamics:
         put(LAM[ip], V[ip - 1], np.broadcast_to(eye, (ip.size, 3, 3)))
         put(LAM[ip], W[ip - 1], -S[ip - 1])
         rhs[m.is_first, 2] = -anchor.velocity
-        _, _, x_sol, info = lapack.dgbsv(kl, ku, ab, rhs.reshape(-1), overwrite_ab=1)
+        _, _, x_sol, info = _linalg().lapack.dgbsv(kl, ku, ab, rhs.reshape(-1), overwrite_ab=1)
         if info != 0:
             raise np.linalg.LinAlgError(f'implicit damping KKT system is singular (gbsv info={info})')
         sol = x_sol.reshape(n, 3, 3)
@@ -318,20 +324,20 @@ class Dynamics:
         h, G, inv_I, _ = self.inertia_terms(q)
         D, L = self.blocks(G)
         if self.linear_solver == 'banded':
-            c, info = lapack.dpbtrf(self.band(D, L), lower=0, overwrite_ab=1)
+            c, info = _linalg().lapack.dpbtrf(self.band(D, L), lower=0, overwrite_ab=1)
             if info != 0:
                 raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbtrf info={info})')
 
             def solve(b):
-                x, info = lapack.dpbtrs(c, b.reshape(-1, 1), lower=0)
+                x, info = _linalg().lapack.dpbtrs(c, b.reshape(-1, 1), lower=0)
                 if info != 0:
                     raise np.linalg.LinAlgError(f'banded triangular solve failed (pbtrs info={info})')
                 return x.reshape(-1, 3)
         else:
-            factor = cho_factor(self.assemble_dense(D, L))
+            factor = _linalg().cho_factor(self.assemble_dense(D, L))
 
             def solve(b):
-                return cho_solve(factor, b.reshape(-1)).reshape(-1, 3)
+                return _linalg().cho_solve(factor, b.reshape(-1)).reshape(-1, 3)
         self._response = JointResponse(self, q.copy(), h, h / self._half[:, None], inv_I, solve)
         return self._response
 
