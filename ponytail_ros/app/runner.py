@@ -639,9 +639,15 @@ class ChainRunner:
 
 
 def _used_bodies(scene):
-    """Indices of the kinematic bodies some chain hangs from or some collider is fixed in."""
-    return ({c.anchor_body for c in scene.chains}
-            | {c.body for c in scene.colliders if c.body is not None})
+    """Indices of the kinematic bodies some chain hangs from or some collider is fixed in
+    (a frozenset; asked every tick, so kept for the last scene: a ``Scene`` is immutable)."""
+    if _USED[0] is not scene:
+        _USED[:] = [scene, frozenset({c.anchor_body for c in scene.chains}
+                                     | {c.body for c in scene.colliders if c.body is not None})]
+    return _USED[1]
+
+
+_USED: list = [None, frozenset()]
 
 
 def _used_frames(scene, n_frames):

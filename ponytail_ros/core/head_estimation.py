@@ -154,6 +154,7 @@ class HeadEstimator:
         # tick asks for the same instants several times (the frame, its start, the bodies).
         self._memo = {}
         self._version = 0
+        self._period = (-1, 0.0)            # (version, sample_period) of the last asked
         #: Count of rejected samples per reason code (diagnostics).
         self.rejected = {r: 0 for r in REJECT_REASONS}
 
@@ -180,7 +181,9 @@ class HeadEstimator:
         ``delay`` is one or two of these."""
         if self._n < 2:
             return None
-        return float(median_interval(self._t, self._n))
+        if self._period[0] != self._version:        # (asked every tick; new samples change it)
+            self._period = (self._version, float(median_interval(self._t, self._n)))
+        return self._period[1]
 
     def reset(self):
         """Forget the history (after a teleport): the next accepted sample starts anew."""
