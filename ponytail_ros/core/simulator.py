@@ -130,6 +130,7 @@ class Simulator:
         self._anchor_body = np.ascontiguousarray(self.model.anchor_body, dtype=np.int64)
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
+        self._step_model_cache = None
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
         m = self.model
@@ -218,10 +219,12 @@ class Simulator:
             else:
                 setattr(m, name, value)
         m.refresh_terms()
+        self._step_model_cache = None
 
     def set_external(self, force=None, torque=None):
         """Hold applied forces/torques ``(n, 3)`` (N, N·m) at the centres until cleared (None)."""
         n = self.model.n
+        self._step_model_cache = None
         if force is None and torque is None:
             self.external = None
             return
@@ -412,7 +415,15 @@ class Simulator:
         return times
 
     def _step_model(self):
-        """The compiled step's ``StepModel``: the model's current arrays and switches."""
+        """The compiled step's ``StepModel``: the model's current arrays and switches, built
+        again only after ``set_parameters`` or ``set_external`` (its arrays are the model's
+        own, so values written into them in place, as ``reset`` writes ``q_rest``, need no
+        rebuild)."""
+        if self._step_model_cache is None:
+            self._step_model_cache = self._build_step_model()
+        return self._step_model_cache
+
+    def _build_step_model(self):
         m, s = self.model, self.scene.solver
         damping = m.active_terms['damping']
         return compiled.StepModel(
@@ -670,7 +681,7 @@ class Simulator:
             return f'solver failure: {failure}'
         if not g[0]:
             return 'non-finite state'
-        _, max_gap, speed, rate, checked, precession = (float(a) for a in g)
+        _, max_gap, speed, rate, checked, precession = g.tolist()
         if speed > s.guard_max_speed:
             return f'speed {speed:.3g} m/s > guard_max_speed {s.guard_max_speed:g}'
         # Rotations faster than the integrator follows within one (sub-)step: a spin-up the
