@@ -12,6 +12,9 @@ rest on.
 colliders on its own kinematic body (the head moving as above, the characters 1 m apart): one
 tick of the core for all of them, head estimation and ROS not included (a crowd node's floor).
 
+Each line also gives the medians of the compiled step's stages (``StepReport.timings``:
+``integrate``, the chains' own steps, and ``contacts``, the contact and limit stage), ms.
+
 ``--idle S``: sleep S s between ticks, as a node does between its timer's ticks (1/120 s at
 120 Hz): the tick then starts with caches and predictors cold, and costs more than back to
 back.
@@ -32,25 +35,38 @@ from ponytail_ros.testing import load_config
 __all__ = ['measure', 'main']
 
 
+STAGES = ('integrate', 'contacts')
+
+
+def _stage_medians(reports):
+    """Median s per tick of each of the compiled step's stages (``StepReport.timings``)."""
+    return {k: float(np.median([r.timings.get(k, 0.0) for r in reports])) for k in STAGES}
+
+
+def _stages_text(stages):
+    return ', '.join(f'{k} {1e3 * v:.3f}' for k, v in stages.items())
+
+
 def measure(params, chain, n_segments, collide, ticks, idle=0.0):
-    """``(median s, max s, reset reasons)`` per tick of ``ticks`` ticks (``idle`` s of sleep
-    between ticks)."""
+    """``(median s, max s, reset reasons, stage medians)`` per tick of ``ticks`` ticks
+    (``idle`` s of sleep between ticks)."""
     cfg = load_config(params, {f'{chain}.n_segments': n_segments, f'{chain}.collide': collide})
     rate = cfg.values['rate']
     motion = SwayYawMotion()
     sim = Simulator(cfg.scene, motion.state_at(0.0))
-    wall, resets = [], []
+    wall, resets, reports = [], [], []
     for k in range(1, ticks + 3):
         t = k / rate
         t0 = time.perf_counter()
         report = sim.advance_frame(t, motion.state_at(t))
         if k > 2:
             wall.append(time.perf_counter() - t0)
+            reports.append(report)
         if report.reset_reason:
             resets.append(report.reset_reason)
         if idle:
             time.sleep(idle)
-    return float(np.median(wall)), float(max(wall)), resets
+    return float(np.median(wall)), float(max(wall)), resets, _stage_medians(reports)
 
 
 def crowd_scene(params, n):
@@ -77,21 +93,23 @@ def crowd_scene(params, n):
 
 
 def crowd(params, n, ticks):
-    """``(median s, max s, reset reasons)`` per tick of ``n`` characters in one scene."""
+    """``(median s, max s, reset reasons, stage medians)`` per tick of ``n`` characters in
+    one scene."""
     cfg = load_config(params)
     scene, heads = crowd_scene(params, n)
     rate = cfg.values['rate']
     sim = Simulator(scene, heads(0.0))
-    wall, resets = [], []
+    wall, resets, reports = [], [], []
     for k in range(1, ticks + 3):
         t = k / rate
         t0 = time.perf_counter()
         report = sim.advance_frame(t, heads(t))
         if k > 2:
             wall.append(time.perf_counter() - t0)
+            reports.append(report)
         if report.reset_reason:
             resets.append(report.reset_reason)
-    return float(np.median(wall)), float(max(wall)), resets
+    return float(np.median(wall)), float(max(wall)), resets, _stage_medians(reports)
 
 
 def main(argv=None):
@@ -110,24 +128,26 @@ def main(argv=None):
     report_compile()
     rows = []
     for n in args.characters or []:
-        med, worst, resets = crowd(args.params, n, args.ticks)
-        rows.append(dict(characters=n, median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets))
+        med, worst, resets, stages = crowd(args.params, n, args.ticks)
+        rows.append(dict(characters=n, median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets,
+                         stages_ms={k: 1e3 * v for k, v in stages.items()}))
         print(f'{n:5d} characters: {1e3 * med:9.1f} ms per tick (max {1e3 * worst:.1f}; '
-              f'120 Hz allows 8.3), resets: {resets or "none"}')
+              f'120 Hz allows 8.3; {_stages_text(stages)}), resets: {resets or "none"}')
     for n in [] if args.characters else args.segments:
         for collide in (False, True):
             for idle in args.idle:
                 try:
-                    med, worst, resets = measure(args.params, args.chain, n, collide, args.ticks,
-                                                 idle)
+                    med, worst, resets, stages = measure(args.params, args.chain, n, collide,
+                                                         args.ticks, idle)
                 except ValueError as err:               # out of the range that runs: say so
                     print(f'{n:5d} segments, collide {collide!s:5}: refused: {err}')
                     break
                 rows.append(dict(n_segments=n, collide=collide, idle_s=idle,
-                                 median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets))
+                                 median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets,
+                                 stages_ms={k: 1e3 * v for k, v in stages.items()}))
                 print(f'{n:5d} segments, collide {collide!s:5}, idle {idle:g} s: '
-                      f'{1e3 * med:9.3f} ms per tick (max {1e3 * worst:.1f}), '
-                      f'resets: {resets or "none"}')
+                      f'{1e3 * med:9.3f} ms per tick (max {1e3 * worst:.1f}; '
+                      f'{_stages_text(stages)}), resets: {resets or "none"}')
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)

@@ -77,7 +77,11 @@ class StepReport:
 
     ``timings``: wall seconds of the call's stages, like Box2D's ``b2Profile``: ``steps``
     (the anchor table and the compiled steps, contacts and limits included) and ``guard``
-    (the checks of the state after the call, and a reset if one was needed).
+    (the checks of the state after the call, and a reset if one was needed); when the
+    compiled step ran, also the split of its calls' time into ``integrate`` (the chains' own
+    steps: forces, joint solves, integration, projection) and ``contacts`` (the contact and
+    limit stage; 0 without colliders and limits), by the CPU's cycle counter
+    (``step.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time).
     """
 
     steps: int = 0
@@ -131,6 +135,10 @@ class Simulator:
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self._step_model_cache = None
+        # The compiled calls of the current ``advance``: their wall time (s) and the cycles of
+        # their stages (``step.PROFILE_STAGES``, then the calls' total).
+        self._call_wall = 0.0
+        self._profile = np.zeros(len(compiled.PROFILE_STAGES) + 1, dtype=np.int64)
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
         m = self.model
@@ -329,6 +337,7 @@ class Simulator:
             report = StepReport(steps=int(n_steps))
             t_start = time.perf_counter()
             failure = None
+            self._call_wall = 0.0
             if n_steps > 0:
                 A = compiled.AnchorTable(*(a[row:row + 2 * n_steps + 1] for a in table))
                 try:
@@ -346,6 +355,8 @@ class Simulator:
             anchor = AnchorKinematics(*(a[row] for a in table))
             reason = self._end_call(report, anchor, failure, motion.state_at)
             report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
+            self._profile[:] = 0            # (the free step: its whole call is integrate)
+            self._split_timings(report)
             out.reports.append(report)
             self._store(out, k0 + k)
             if reason is not None:
@@ -451,7 +462,9 @@ class Simulator:
         ext_F, ext_T = self._external_arrays()
         f_c = np.zeros((self.model.n, 3))
         model = self._step_model() if model is None else model
+        t0 = time.perf_counter()
         status = self._kernel(model)(model, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
+        self._call_wall += time.perf_counter() - t0
         self.dynamics.last_f_c = f_c
         if status == compiled.JOINT_SOLVE_FAILED:
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
@@ -487,6 +500,8 @@ class Simulator:
         system = _System(self, anchor_at)
         failure = None
         self._end_row = None            # the last anchor table's end row: the anchor at self.t
+        self._call_wall = 0.0
+        self._profile[:] = 0
         t_start = time.perf_counter()
         try:
             if self.unilateral is not None:
@@ -526,7 +541,23 @@ class Simulator:
             end.angular_velocity[-1])
         self._end_call(report, anchor, failure, head_at)
         report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
+        self._split_timings(report)
         return report
+
+    def _split_timings(self, report):
+        """``report.timings``' ``integrate`` and ``contacts``: the compiled calls' wall time
+        split by the cycles the kernel counted in each stage (all of it ``integrate`` for the
+        free step, which counts none)."""
+        if not self._compiled:
+            return
+        prof, wall = self._profile, self._call_wall
+        if prof[-1] > 0:
+            share = prof[:-1] / prof[-1]
+            report.timings['integrate'] = wall * float(share[0])
+            report.timings['contacts'] = wall * float(share[1])
+        else:
+            report.timings['integrate'] = wall
+            report.timings['contacts'] = 0.0
 
     def _end_call(self, report, anchor, failure, head_at):
         """The end of a call at ``self.t`` with the anchor there: its joint gap into
@@ -596,12 +627,14 @@ class Simulator:
         f_c = np.zeros((self.model.n, 3))
         stats = uni._stats
         cols = uni.colliders
-        status, k = compiled.advance_unilateral(
-            self._step_model(), A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B, moving,
-            cols.args if cols is not None else _NO_COLLIDER_ARGS,
-            uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
-            uni.detector_args, np.ascontiguousarray(self.model.q_rest),
-            uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS)
+        args = (self._step_model(), A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
+                moving, cols.args if cols is not None else _NO_COLLIDER_ARGS,
+                uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
+                uni.detector_args, np.ascontiguousarray(self.model.q_rest),
+                uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile)
+        t0 = time.perf_counter()
+        status, k = compiled.advance_unilateral(*args)
+        self._call_wall += time.perf_counter() - t0
         self.dynamics.last_f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                     'position_passes': int(stats[2])}

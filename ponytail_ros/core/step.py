@@ -24,10 +24,14 @@ reproducible bit for bit on one machine).
 Frames and units: world frame (REP 103), SI. State arrays: ``x`` ``(n, 3)`` centres, ``q``
 ``(n, 4)`` (x, y, z, w) body to world, ``v`` ``(n, 3)``, ``w`` ``(n, 3)`` ω in the world frame.
 """
+import platform
 from collections import namedtuple
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils
+from numba.core.extending import intrinsic
 
 from . import contact_kernels
 from .chain_solve import invert_pivot, pivot, solve, store_factors
@@ -36,10 +40,33 @@ from .limit_kernels import qmatrix, qto_rotvec
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
            'SYMPLECTIC_EULER', 'RATTLE',
            'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'advance_unilateral',
-           'substeps']
+           'substeps', 'PROFILE_STAGES', 'HAS_CYCLE_COUNTER']
 
 RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
 OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
+
+#: The stages ``advance_unilateral`` times (its ``profile`` array: CPU cycles spent in each,
+#: then in the whole call), like Box2D's ``b2Profile``: the chains' own steps (forces, joint
+#: solves, integration, projection) and the contact and limit stage (``resolve``).
+PROFILE_STAGES = ('integrate', 'contacts')
+#: Whether ``_cycles`` reads a counter here (x86-64's time-stamp counter); elsewhere it is 0
+#: and the profile stays empty. (A counter that user code may read exists on other CPUs, e.g.
+#: AArch64's CNTVCT_EL0, but not through one LLVM intrinsic: ``readcyclecounter`` there is the
+#: privileged PMU counter.)
+HAS_CYCLE_COUNTER = platform.machine().lower() in ('x86_64', 'amd64')
+
+
+@intrinsic
+def _cycles(typingctx):
+    """The CPU's time-stamp counter (``rdtsc``), or 0 where ``HAS_CYCLE_COUNTER`` is False:
+    ~20 ns to read, ordered with nothing (enough for stages of microseconds and more)."""
+    def codegen(context, builder, signature, args):
+        if not HAS_CYCLE_COUNTER:
+            return ir.Constant(ir.IntType(64), 0)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(64), []),
+                                            'llvm.readcyclecounter')
+        return builder.call(fn, [])
+    return nb.types.int64(), codegen
 
 Integrator = namedtuple('Integrator', ['name', 'id', 'order', 'solves_per_step',
                                        'rebuilds_velocities', 'explicit_gyroscopic',
@@ -1228,26 +1255,34 @@ def substeps(M, A, row, w, h, substep_angle, max_substeps):
 @nb.njit(cache=True, nogil=True)
 def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
                        static_pose, umodel, det, q_rest, has_colliders, stats,
-                       substep_angle, max_substeps):
+                       substep_angle, max_substeps, profile):
     """``advance`` for scenes with colliders or joint limits: each step is integrated chain by
     chain, then its contacts and limits are resolved (``contact_kernels.resolve``) at the
     step's end, the colliders posed from the kinematic bodies' table ``B`` (rows as ``A``) if
     ``moving``, else ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when
     the next step needs sub-steps (``substeps`` > 1; it is not taken: the simulator takes
-    it), else as ``advance``."""
+    it), else as ``advance``. Adds the cycles spent in each of ``PROFILE_STAGES``, then in
+    the whole call, to ``profile`` ``(3,)`` int64."""
+    t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
     # The contact stage's workspace and the step's positions before it, for all the steps.
     cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
                                             has_colliders)
     x0, q0 = np.empty_like(x), np.empty_like(q)
+    status, done = OK, n_steps
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
-            return SUBSTEPS, k
+            status, done = SUBSTEPS, k
+            break
+        t0 = _cycles()
         status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
                                ends)
+        t1 = _cycles()
+        profile[0] += t1 - t0
         if status != OK:
-            return status, k
+            done = k
+            break
         r = 2 * k + 2
         anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
         if moving:
@@ -1258,9 +1293,12 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         x0[:] = x
         q0[:] = q
         # (a workspace grown for one step's rows is kept for the rest of the call)
-        status, cws = contact_kernels.resolve_into(
+        resolved, cws = contact_kernels.resolve_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
             M.projection, h, stats, cws)
-        if status != contact_kernels.OK:
-            return JOINT_SOLVE_FAILED, k
-    return OK, n_steps
+        profile[1] += _cycles() - t1
+        if resolved != contact_kernels.OK:
+            status, done = JOINT_SOLVE_FAILED, k
+            break
+    profile[2] += _cycles() - t_call
+    return status, done
