@@ -13,7 +13,8 @@ relative to the RMS of the true signal, in %:
 Then, at 120 Hz with a delay of one period, the same for polynomial degrees 2–4 and windows
 0.05–0.2 s, exact and noisy: the bias/noise trade behind the defaults.
 
-Run: ``python -m ponytail_ros.bench.head_estimation_bench [--quick]``.
+Run: ``python -m ponytail_ros.bench.head_estimation_bench [--quick]``; ``--cost``: instead,
+the CPU time of one pose fit at each rate.
 """
 import argparse
 
@@ -98,15 +99,46 @@ def design_table(rate=120.0, delay_periods=1, pos_noise=0.0, rot_noise=0.0, n_ti
     return '\n'.join(lines)
 
 
+def fit_cost(rates=RATES, repeats=2000, **kw):
+    """CPU µs per ``state_at`` (one pose fit, the memo bypassed) with a full history at each
+    rate, best of five rounds: what each of a tick's three fits costs."""
+    import time
+    out = {}
+    motion = SwayYawMotion()
+    for rate in rates:
+        e = HeadEstimator(**kw)
+        for t, p, q in zip(*sample_stream(motion, rate, 1.5)):
+            e.add(t, p, q)
+        t_eval = e.last_stamp - 0.5 / rate
+        e._state_at(t_eval)
+        best = np.inf
+        for _ in range(5):
+            t0 = time.process_time()
+            for _ in range(repeats):
+                e._state_at(t_eval)
+            best = min(best, (time.process_time() - t0) / repeats)
+        out[rate] = 1e6 * best
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--quick', action='store_true', help='fewer ticks, no design table')
+    parser.add_argument('--cost', action='store_true',
+                        help='only the CPU time of one pose fit at each rate')
     parser.add_argument('--window', type=float, default=None)
     parser.add_argument('--degree', type=int, default=None)
     parser.add_argument('--min-samples', type=int, default=None)
     args = parser.parse_args(argv)
     kw = {k: v for k, v in (('window', args.window), ('degree', args.degree),
                             ('min_samples', args.min_samples)) if v is not None}
+    if args.cost:
+        e = HeadEstimator(**kw)
+        for rate, us in fit_cost(**kw).items():
+            stored = min(e.max_samples, int(rate * 1.5))
+            print(f'{rate:6.0f} Hz: {us:6.2f} µs per pose fit (~{stored} samples stored, '
+                  f'window {e.window} s)')
+        return
     n = 200 if args.quick else 600
     e = HeadEstimator(**kw)
     print(f'HeadEstimator(window={e.window}, degree={e.degree}, min_samples={e.min_samples}, '
