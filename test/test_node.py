@@ -409,3 +409,26 @@ def test_timer_callback_receives_the_timer_info(ros_context):
         assert got[0].actual_call_time.nanoseconds >= got[0].expected_call_time.nanoseconds
     finally:
         node.destroy_node()
+
+
+def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
+    """``/diagnostics`` carries the compiled step's stage means (``StepReport.timings``):
+    with a skull collider both stages take time and fit within the solve time; without
+    colliders there is no contact stage."""
+    from ponytail_ros.core.step import HAS_CYCLE_COUNTER
+    skull = overrides(colliders=['skull'], skull__kind='sphere', skull__radius=0.09,
+                      skull__friction=0.3)
+    for params, colliding in ((skull, True), (overrides(), False)):
+        h = harness(params)
+        h.head = still()
+        assert h.spin_until(lambda: len(h.poses['segment_poses']) >= 10, 5.0)
+        d = h.fresh_diagnostics(3.0)
+        integrate, contact = (float(d[k]) for k in ('integrate time mean (ms)',
+                                                     'contact time mean (ms)'))
+        assert integrate > 0.0
+        assert integrate + contact <= float(d['solve time mean (ms)'])
+        if not colliding:
+            assert contact == 0.0
+        elif HAS_CYCLE_COUNTER:
+            assert contact > 0.0
+        h.close()

@@ -30,8 +30,9 @@ LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_
                  'min_samples', 'max_extrapolation', 'max_gap', 'quat_tolerance')
 
 #: Diagnostics keys of wall-clock timing (the node measures them; a replay has none).
-TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'tick time p99 (ms)',
-               'tick time max (ms)', 'timer lateness max (ms)')
+TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time mean (ms)',
+               'contact time mean (ms)', 'tick time p99 (ms)', 'tick time max (ms)',
+               'timer lateness max (ms)')
 
 
 def time_msg(t_ns: int) -> Time:

@@ -24,8 +24,9 @@ Topics (all relative, so a namespace per character scales out; no global state):
   recorder is one more ``TickSink`` (``app/sink.py``) next to the publishers;
 * publishes ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every
   ``diagnostics_period`` s of wall time): one status named ``ponytail: <node FQN>`` with the
-  solve time, joint gap, dropped inputs by reason, resets by reason, dropped time, head state
-  and each frame's (``frame <name>``: none, stale or ok).
+  solve time (and its compiled stages' means: integrate, contacts), joint gap, dropped inputs
+  by reason, resets by reason, dropped time, head state and each frame's (``frame <name>``:
+  none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
   name carries the namespace;
 * publishes ``/tf`` (``tf2_msgs/TFMessage``) when ``tf2_msgs`` is importable (a sourced ROS 2
@@ -152,6 +153,9 @@ class _Timing:
 
     def __init__(self):
         self.solve = []
+        # the compiled step's stages per tick (``StepReport.timings``)
+        self.integrate = []
+        self.contacts = []
         self.tick_wall = []
         self.lateness = 0.0
         self.wall0 = time.monotonic()
@@ -161,6 +165,8 @@ class _Timing:
         return {
             'solve time mean (ms)': f'{1e3 * float(np.mean(solve)):.3f}',
             'solve time max (ms)': f'{1e3 * float(np.max(solve)):.3f}',
+            'integrate time mean (ms)': f'{1e3 * float(np.mean(self.integrate or [0.0])):.3f}',
+            'contact time mean (ms)': f'{1e3 * float(np.mean(self.contacts or [0.0])):.3f}',
             # of the window's ticks (~120 at 120 Hz and a 1 s period: its second largest)
             'tick time p99 (ms)': f'{1e3 * float(np.percentile(self.tick_wall or [0.0], 99)):.3f}',
             'tick time max (ms)': f'{1e3 * max(self.tick_wall, default=0.0):.3f}',
@@ -546,6 +552,8 @@ class PonytailNode(Node):
         wall_published = self._publisher_sink.poses_published_at
         out, rep = tick.output, tick.output.report
         timing.solve.append(wall1 - wall0)
+        timing.integrate.append(rep.timings.get('integrate', 0.0))
+        timing.contacts.append(rep.timings.get('contacts', 0.0))
         timing.tick_wall.append(time.perf_counter() - wall0)
         if out.reset_reason is not None:
             level = 'warning' if out.reset_reason in ('guard', 'clock_backwards') else 'info'
