@@ -201,12 +201,25 @@ class HeadEstimator:
     def _check_pose(self, position, orientation):
         """``(p, q, None)`` validated and normalised, or ``(None, None, reason)``."""
         try:
-            p = np.asarray(position, dtype=float).reshape(3)
-            q = np.asarray(orientation, dtype=float).reshape(4)
-        except Exception:  # noqa: BLE001 - whatever the input, never raise
-            return None, None, 'malformed'
-        if not (np.isfinite(p).all() and np.isfinite(q).all()):
-            return None, None, 'nonfinite'
+            # Three and four numbers (a message's fields, a tuple, a flat array): checked as
+            # floats, which costs a few NumPy calls less per sample than arrays.
+            px, py, pz = position
+            qx, qy, qz, qw = orientation
+            v = (float(px), float(py), float(pz), float(qx), float(qy), float(qz), float(qw))
+        except Exception:  # noqa: BLE001 - any other shape: the array path below decides
+            v = None
+        if v is not None:
+            if not all(map(math.isfinite, v)):
+                return None, None, 'nonfinite'
+            p, q = np.array(v[:3]), np.array(v[3:])
+        else:
+            try:
+                p = np.asarray(position, dtype=float).reshape(3)
+                q = np.asarray(orientation, dtype=float).reshape(4)
+            except Exception:  # noqa: BLE001 - whatever the input, never raise
+                return None, None, 'malformed'
+            if not (np.isfinite(p).all() and np.isfinite(q).all()):
+                return None, None, 'nonfinite'
         norm = math.sqrt(float(q @ q))
         if norm < 1e-9:
             return None, None, 'zero_quaternion'
