@@ -152,6 +152,32 @@ def test_runner_capsule_on_a_frame_pushes_the_chain_aside():
 
 # -- parameters (ROS-free) -----------------------------------------------------------------------
 
+def test_runner_bodies_from_the_estimator_bank_equal_each_estimators_own():
+    """With frames the runner fits every input in one call (``HeadEstimatorBank``): the same
+    bodies, bit for bit, as each estimator's own ``state_at`` stacked, before and after the
+    frame's first pose and when the head goes stale."""
+    r = ChainRunner(arm_scene(), frames=('arm',))
+    a = P_STILL + ATTACH
+    seen = 0
+    for k in range(80):
+        t = 10.0 + k / 100.0
+        if k < 60:
+            r.push(t, P_STILL + [0.0, 0.01 * math.sin(3 * t), 0.0], Q_ID, 'world')
+        if k >= 5:
+            r.push_frame(0, t, arm_path(t - 10.0, a), Q_ID, 'world')
+        r.tick(t + 0.004)
+        for tq in (t - 0.03, t, t + 0.02):
+            banked = r.bodies_at(tq)
+            bank, r._bank = r._bank, None
+            own = r.bodies_at(tq)
+            r._bank = bank
+            seen += banked.n_bodies
+            for name in ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                         'linear_acceleration', 'angular_acceleration'):
+                assert np.array_equal(getattr(banked, name), getattr(own, name)), (k, name)
+    assert seen == 80 * 3 * 2
+
+
 def base_values(**changes):
     values = {'chains': ['ponytail'], 'frames': ['arm'], 'colliders': ['box'],
               'box.kind': 'capsule', 'box.frame': 'arm', 'box.axis': [0.0, 1.0, 0.0],

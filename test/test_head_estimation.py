@@ -565,3 +565,31 @@ def test_svd_lstsq_drops_a_weightless_sample_and_is_minimum_norm():
     svd_lstsq(A.copy(), B, EPS * 8, X)
     assert np.allclose(X, np.linalg.lstsq(A, B, rcond=EPS * 8)[0], rtol=0, atol=1e-12)
     assert X[1, 0] == pytest.approx(X[2, 0], abs=1e-12)    # the equal split: minimum norm
+
+
+def test_a_bank_fits_every_body_as_its_own_estimator_does():
+    """``HeadEstimatorBank.states_at`` equals each estimator's ``state_at`` stacked, bit for
+    bit, for bodies with no sample (still at the origin), one, a few and a full history, in
+    the history, extrapolated and braked past the newest sample, and held beyond."""
+    from ponytail_ros.core.head import KinematicState
+    from ponytail_ros.core.head_estimation import HeadEstimatorBank
+    rng = np.random.default_rng(11)
+    motion = SwayYawMotion()
+    counts = (0, 1, 2, 5, 40, 200)
+    ests = [HeadEstimator() for _ in counts]
+    bank = HeadEstimatorBank(ests)
+    for e, n in zip(ests, counts):
+        t = rng.uniform(0.0, 0.01)
+        for _ in range(n):
+            s = motion.state_at(t)
+            e.add(t, s.position[0] + rng.normal(0, 1e-4, 3), s.orientation[0])
+            t += rng.uniform(0.006, 0.012)
+    for t in np.linspace(0.0, 2.6, 157):
+        got = bank.states_at(float(t))
+        want = [e.state_at(float(t)) if len(e) else KinematicState.still() for e in ests]
+        for name in ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+                     'linear_acceleration', 'angular_acceleration'):
+            expected = np.concatenate([getattr(s, name) for s in want])
+            assert np.array_equal(getattr(got, name), expected), (t, name)
+    with pytest.raises(ValueError):
+        bank.states_at(float('nan'))

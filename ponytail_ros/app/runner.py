@@ -88,7 +88,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ponytail_ros.core.head import KinematicState
-from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
+from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator, HeadEstimatorBank
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
@@ -233,6 +233,9 @@ class ChainRunner:
         self.estimator = self.settings.estimator()
         #: One ``HeadEstimator`` per extra frame.
         self.frame_estimators = [self.settings.estimator() for _ in self.frames]
+        # With frames, all the inputs' fits at one time in one compiled call (a crowd's node).
+        self._bank = (HeadEstimatorBank([self.estimator, *self.frame_estimators])
+                      if self.frames else None)
         self.sim = None
         self.frame_id = None
         self._queue = deque(maxlen=max(1, int(self.settings.max_queue)))
@@ -343,6 +346,10 @@ class ChainRunner:
         """The scene's kinematic bodies at head time ``t``: the estimated head, then each
         frame's estimate (each still at the origin while it has no pose), then the static world
         if the scene has it."""
+        if self._bank is not None and self._bank.holds([self.estimator,
+                                                        *self.frame_estimators]):
+            head = self._bank.states_at(t)
+            return head.with_static_bodies(self.scene.n_kinematic_bodies - 1 - len(self.frames))
         head = (self.estimator.state_at(t) if self.has_head
                 else KinematicState.still())
         if self.frames:

@@ -5,7 +5,8 @@ costs microseconds instead of hundreds of NumPy calls:
 
 * ``loess_fit``: ``HeadEstimator``'s local weighted least-squares polynomial fit of the pose
   samples around one instant (the equations and the bandwidth rule are in
-  ``head_estimation``'s docstrings), solved as NumPy's ``lstsq`` does (LAPACK's SVD solve);
+  ``head_estimation``'s docstrings), solved as NumPy's ``lstsq`` does (an SVD solve:
+  ``svd_lstsq``); ``loess_fit_many`` fits several bodies' histories in one call;
 * ``track_table``: ``AnchorTrack``'s quintic Hermite of each attachment point between two
   frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
   stage times of a call (the compiled step's anchor table);
@@ -23,8 +24,8 @@ from numba import njit
 from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
                             qto_rotvec, scale)
 
-__all__ = ['loess_fit', 'svd_lstsq', 'track_table', 'point_kinematics', 'frame_ends',
-           'median_interval', 'FIT_SIZE']
+__all__ = ['loess_fit', 'loess_fit_many', 'svd_lstsq', 'track_table', 'point_kinematics',
+           'frame_ends', 'median_interval', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -232,6 +233,18 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
         out[16 + a] = alpha[a]
     for a in range(4):
         out[3 + a] = q[a]
+
+
+@njit(cache=True)
+def loess_fit_many(ts, ps, qs, ns, warp, window, degree, min_samples, out):
+    """``loess_fit`` of ``K`` bodies' histories (rows of ``ts`` ``(K, M)``, ``ps``
+    ``(K, M, 3)``, ``qs`` ``(K, M, 4)``; the first ``ns[k]`` samples) into the rows of
+    ``out`` ``(K, FIT_SIZE)``, each at ``warp[k] = (te, rate, rate_d)``; a body with fewer
+    than two samples is left as it is in ``out``."""
+    for k in range(ns.shape[0]):
+        if ns[k] >= 2:
+            loess_fit(ts[k], ps[k], qs[k], ns[k], warp[k, 0], window, degree, min_samples,
+                      warp[k, 1], warp[k, 2], out[k])
 
 
 @njit(cache=True)
