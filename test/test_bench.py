@@ -199,3 +199,22 @@ def test_mujoco_model_matches_the_scene():
     ts, tips, head_err, unstable = mc.run(0.2)
     assert not unstable and head_err < 1e-9
     assert math.isfinite(float(np.sum(tips)))
+
+
+def test_tick_cost_and_fit_cost_commands_print_their_figures(capsys):
+    """``tick_cost --characters --runner`` (the crowd through the runner, frames and head
+    estimation included) and ``head_estimation_bench --cost`` run and print one line per
+    case, with the compiled stages' split and no reset."""
+    from ponytail_ros.bench import head_estimation_bench, tick_cost
+    from ponytail_ros.resources import config_path
+    tick_cost.main(['--params', str(config_path('ponytail.yaml')), '--characters', '1', '3',
+                    '--runner', '--ticks', '3'])
+    lines = capsys.readouterr().out.splitlines()
+    assert [ln.split()[0] for ln in lines] == ['1', '3']
+    for ln in lines:
+        assert 'integrate' in ln and 'contacts' in ln and 'the rest' in ln
+        assert ln.endswith('resets: none')
+    head_estimation_bench.main(['--cost'])
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == len(head_estimation_bench.RATES)
+    assert all('µs per pose fit' in ln for ln in lines)

@@ -15,6 +15,11 @@ tick of the core for all of them, head estimation and ROS not included (a crowd 
 Each line also gives the medians of the compiled step's stages (``StepReport.timings``:
 ``integrate``, the chains' own steps, and ``contacts``, the contact and limit stage), ms.
 
+``--characters N --runner``: the same crowd through ``ChainRunner`` as a node runs it (the
+first character on the head, the others on extra frames, one pose each per tick): head
+estimation and the runner's bookkeeping included ("the rest": the tick minus the compiled
+stages), ROS not.
+
 ``--idle S``: sleep S s between ticks, as a node does between its timer's ticks (1/120 s at
 120 Hz): the tick then starts with caches and predictors cold, and costs more than back to
 back.
@@ -112,6 +117,39 @@ def crowd(params, n, ticks):
     return float(np.median(wall)), float(max(wall)), resets, _stage_medians(reports)
 
 
+def crowd_runner(params, n, ticks):
+    """``crowd`` through ``ChainRunner`` as a node runs it: the first character on the head,
+    the others on ``n - 1`` extra frames, one pose sample of each per tick (so the head
+    estimation, the sample checks and the runner's bookkeeping are included; ROS is not).
+    ``(median s, max s, reset reasons, stage medians, median s of the runner's Python)``."""
+    from ponytail_ros.app.runner import ChainRunner, RunnerSettings
+    cfg = load_config(params)
+    scene, heads = crowd_scene(params, n)
+    rate = cfg.values['rate']
+    runner = ChainRunner(scene, RunnerSettings(), frames=[f'character_{k}' for k in range(1, n)])
+    wall, python, resets, reports = [], [], [], []
+    for k in range(1, ticks + 3 + START_TICKS):
+        t = k / rate
+        st = heads(t)
+        runner.push(t, st.position[0], st.orientation[0], 'world')
+        for i in range(1, n):
+            runner.push_frame(i - 1, t, st.position[i], st.orientation[i], 'world')
+        t0 = time.perf_counter()
+        out = runner.tick(t)
+        if out is not None and k > 2 + START_TICKS:
+            wall.append(time.perf_counter() - t0)
+            python.append(wall[-1] - sum(out.report.timings.get(s, 0.0) for s in STAGES))
+            reports.append(out.report)
+        if out is not None and out.reset_reason:
+            resets.append(out.reset_reason)
+    return (float(np.median(wall)), float(max(wall)), resets, _stage_medians(reports),
+            float(np.median(python)))
+
+
+# Ticks before the runner publishes (the first poses: a velocity needs three).
+START_TICKS = 3
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.tick_cost',
                                 description=__doc__.split('\n\n')[0])
@@ -123,16 +161,27 @@ def main(argv=None):
                    help='also measure with this many seconds of sleep between ticks')
     p.add_argument('--characters', type=int, nargs='+',
                    help='measure crowds of this many characters instead')
+    p.add_argument('--runner', action='store_true',
+                   help='crowds through ChainRunner, each character but the first on a frame '
+                        '(head estimation included)')
     p.add_argument('--json', help='write the rows to this file')
     args = p.parse_args(argv)
     report_compile()
     rows = []
     for n in args.characters or []:
-        med, worst, resets, stages = crowd(args.params, n, args.ticks)
-        rows.append(dict(characters=n, median_ms=1e3 * med, max_ms=1e3 * worst, resets=resets,
-                         stages_ms={k: 1e3 * v for k, v in stages.items()}))
+        python = None
+        if args.runner:
+            med, worst, resets, stages, python = crowd_runner(args.params, n, args.ticks)
+        else:
+            med, worst, resets, stages = crowd(args.params, n, args.ticks)
+        rows.append(dict(characters=n, runner=args.runner, median_ms=1e3 * med,
+                         max_ms=1e3 * worst, resets=resets,
+                         stages_ms={k: 1e3 * v for k, v in stages.items()},
+                         **({} if python is None else {'python_ms': 1e3 * python})))
+        extra = '' if python is None else f', the rest {1e3 * python:.2f}'
         print(f'{n:5d} characters: {1e3 * med:9.1f} ms per tick (max {1e3 * worst:.1f}; '
-              f'120 Hz allows 8.3; {_stages_text(stages)}), resets: {resets or "none"}')
+              f'120 Hz allows 8.3; {_stages_text(stages)}{extra}), '
+              f'resets: {resets or "none"}')
     for n in [] if args.characters else args.segments:
         for collide in (False, True):
             for idle in args.idle:
