@@ -550,11 +550,11 @@ class Simulator:
         free step, which counts none)."""
         if not self._compiled:
             return
-        prof, wall = self._profile, self._call_wall
-        if prof[-1] > 0:
-            share = prof[:-1] / prof[-1]
-            report.timings['integrate'] = wall * float(share[0])
-            report.timings['contacts'] = wall * float(share[1])
+        integrate, contacts, total = self._profile.tolist()
+        wall = self._call_wall
+        if total > 0:
+            report.timings['integrate'] = wall * (integrate / total)
+            report.timings['contacts'] = wall * (contacts / total)
         else:
             report.timings['integrate'] = wall
             report.timings['contacts'] = 0.0
