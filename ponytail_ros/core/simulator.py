@@ -135,9 +135,11 @@ class Simulator:
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self._step_model_cache = None
-        # The compiled calls of the current ``advance``: their wall time (s) and the cycles of
-        # their stages (``step.PROFILE_STAGES``, then the calls' total).
+        # The compiled calls of the current ``advance``: the free step's wall time and the
+        # contact step's (s), and the cycles of the latter's stages (``step.PROFILE_STAGES``,
+        # then its calls' total).
         self._call_wall = 0.0
+        self._uni_wall = 0.0
         self._profile = np.zeros(len(compiled.PROFILE_STAGES) + 1, dtype=np.int64)
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
@@ -337,7 +339,7 @@ class Simulator:
             report = StepReport(steps=int(n_steps))
             t_start = time.perf_counter()
             failure = None
-            self._call_wall = 0.0
+            self._call_wall = self._uni_wall = 0.0
             if n_steps > 0:
                 A = compiled.AnchorTable(*(a[row:row + 2 * n_steps + 1] for a in table))
                 try:
@@ -500,7 +502,7 @@ class Simulator:
         system = _System(self, anchor_at)
         failure = None
         self._end_row = None            # the last anchor table's end row: the anchor at self.t
-        self._call_wall = 0.0
+        self._call_wall = self._uni_wall = 0.0
         self._profile[:] = 0
         t_start = time.perf_counter()
         try:
@@ -545,18 +547,18 @@ class Simulator:
         return report
 
     def _split_timings(self, report):
-        """``report.timings``' ``integrate`` and ``contacts``: the compiled calls' wall time
-        split by the cycles the kernel counted in each stage (all of it ``integrate`` for the
-        free step, which counts none)."""
+        """``report.timings``' ``integrate`` and ``contacts``: the contact step's calls' wall
+        time split by the cycles it counted in each stage, plus the free step's (sub-steps
+        after an impact) as ``integrate``."""
         if not self._compiled:
             return
         integrate, contacts, total = self._profile.tolist()
-        wall = self._call_wall
+        free, uni = self._call_wall, self._uni_wall
         if total > 0:
-            report.timings['integrate'] = wall * (integrate / total)
-            report.timings['contacts'] = wall * (contacts / total)
+            report.timings['integrate'] = free + uni * (integrate / total)
+            report.timings['contacts'] = uni * (contacts / total)
         else:
-            report.timings['integrate'] = wall
+            report.timings['integrate'] = free + uni
             report.timings['contacts'] = 0.0
 
     def _end_call(self, report, anchor, failure, head_at):
@@ -634,7 +636,7 @@ class Simulator:
                 uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile)
         t0 = time.perf_counter()
         status, k = compiled.advance_unilateral(*args)
-        self._call_wall += time.perf_counter() - t0
+        self._uni_wall += time.perf_counter() - t0
         self.dynamics.last_f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                     'position_passes': int(stats[2])}
