@@ -177,60 +177,80 @@ def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
 
 
 @njit(cache=True, inline='always')
-def joint_row(G, inv_mass, is_first, i):
-    """Block row i of A (``joint_blocks``, the same operations) as scalars: D_i's upper
-    triangle ``(00, 01, 02, 11, 12, 22)`` and L_i row-major (zeros where ``is_first[i]``)."""
-    im = inv_mass[i]
-    d00 = 1.0 * im - G[i, 0, 0]
-    d01 = 0.0 * im - G[i, 0, 1]
-    d02 = 0.0 * im - G[i, 0, 2]
-    d11 = 1.0 * im - G[i, 1, 1]
-    d12 = 0.0 * im - G[i, 1, 2]
-    d22 = 1.0 * im - G[i, 2, 2]
-    if is_first[i]:
+def axisymmetric_G(hi, half, inv_inertia, i, inv_I):
+    """``axisymmetric_terms`` with G returned (row-major 9-tuple, the same operations)
+    instead of stored: I⁻¹ into ``inv_I[i]``."""
+    e = (hi[0] / half, hi[1] / half, hi[2] / half)
+    k = inv_inertia[i, 0] - inv_inertia[i, 1]
+    ip = inv_inertia[i, 1]
+    hh = dot(hi, hi)
+    for a in range(3):
+        for b in range(3):
+            inv_I[i, a, b] = k * e[a] * e[b]
+        inv_I[i, a, a] += ip
+    return ((hi[0] * hi[0] - hh) * ip, (hi[0] * hi[1]) * ip, (hi[0] * hi[2]) * ip,
+            (hi[1] * hi[0]) * ip, (hi[1] * hi[1] - hh) * ip, (hi[1] * hi[2]) * ip,
+            (hi[2] * hi[0]) * ip, (hi[2] * hi[1]) * ip, (hi[2] * hi[2] - hh) * ip)
+
+
+@njit(cache=True, inline='always')
+def joint_row(gi, gp, im, ip, first):
+    """Block row i of A (``joint_blocks``, the same operations) as scalars, from G_i ``gi``,
+    G_{i-1} ``gp`` (row-major 9-tuples) and 1/m_i, 1/m_{i-1}: D_i's upper triangle
+    ``(00, 01, 02, 11, 12, 22)`` and L_i row-major (zeros where ``first``)."""
+    d00 = 1.0 * im - gi[0]
+    d01 = 0.0 * im - gi[1]
+    d02 = 0.0 * im - gi[2]
+    d11 = 1.0 * im - gi[4]
+    d12 = 0.0 * im - gi[5]
+    d22 = 1.0 * im - gi[8]
+    if first:
         return (d00, d01, d02, d11, d12, d22), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    j = i - 1
-    ip = inv_mass[j]
-    d00 += 1.0 * ip - G[j, 0, 0]
-    d01 += 0.0 * ip - G[j, 0, 1]
-    d02 += 0.0 * ip - G[j, 0, 2]
-    d11 += 1.0 * ip - G[j, 1, 1]
-    d12 += 0.0 * ip - G[j, 1, 2]
-    d22 += 1.0 * ip - G[j, 2, 2]
+    d00 += 1.0 * ip - gp[0]
+    d01 += 0.0 * ip - gp[1]
+    d02 += 0.0 * ip - gp[2]
+    d11 += 1.0 * ip - gp[4]
+    d12 += 0.0 * ip - gp[5]
+    d22 += 1.0 * ip - gp[8]
     return ((d00, d01, d02, d11, d12, d22),
-            (-(1.0 * ip + G[j, 0, 0]), -(0.0 * ip + G[j, 0, 1]), -(0.0 * ip + G[j, 0, 2]),
-             -(0.0 * ip + G[j, 1, 0]), -(1.0 * ip + G[j, 1, 1]), -(0.0 * ip + G[j, 1, 2]),
-             -(0.0 * ip + G[j, 2, 0]), -(0.0 * ip + G[j, 2, 1]), -(1.0 * ip + G[j, 2, 2])))
+            (-(1.0 * ip + gp[0]), -(0.0 * ip + gp[1]), -(0.0 * ip + gp[2]),
+             -(0.0 * ip + gp[3]), -(1.0 * ip + gp[4]), -(0.0 * ip + gp[5]),
+             -(0.0 * ip + gp[6]), -(0.0 * ip + gp[7]), -(1.0 * ip + gp[8])))
 
 
 @njit(cache=True, _nrt=False)
 def factor_segments(q, model, s, e, h, inv_I, C, Lo, G, R3):
-    """``factor_chain_into`` for the whole chains of segments ``s:e`` only, with A's blocks
-    formed row by row in registers (``joint_row``) instead of the tables ``D``, ``L``: the
-    same operations in the same order, so the same factors, bit for bit (chains do not
-    couple: a chain's factors do not depend on the others'). ``G`` ``(n, 3, 3)``, ``R3``
-    ``(2, 3, 3)``: scratch."""
+    """``factor_chain_into`` for the whole chains of segments ``s:e`` only, with G and A's
+    blocks formed row by row in registers (``axisymmetric_G``, ``joint_row``) instead of the
+    tables ``G``, ``D``, ``L``: the same operations in the same order, so the same factors,
+    bit for bit (chains do not couple: a chain's factors do not depend on the others'). ``G``
+    ``(n, 3, 3)`` (a general inertia's G), ``R3`` ``(2, 3, 3)``: scratch."""
     length, inv_inertia = model[LENGTH], model[INV_INERTIA]
     inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
     axisymmetric = model[AXISYMMETRIC]
     pinv = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    gp = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for i in range(s, e):
         half = 0.5 * length[i]
         hi = scale(half, qaxis_x(q4(q, i)))
         for a in range(3):
             h[i, a] = hi[a]
         if axisymmetric:
-            axisymmetric_terms(hi, half, inv_inertia, i, inv_I, G)
+            gi = axisymmetric_G(hi, half, inv_inertia, i, inv_I)
         else:
             general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G, R3[0], R3[1])
-        d, l = joint_row(G, inv_mass, is_first, i)
-        if is_first[i]:
+            gi = (G[i, 0, 0], G[i, 0, 1], G[i, 0, 2], G[i, 1, 0], G[i, 1, 1], G[i, 1, 2],
+                  G[i, 2, 0], G[i, 2, 1], G[i, 2, 2])
+        first = is_first[i]
+        d, l = joint_row(gi, gp, inv_mass[i], inv_mass[i - 1] if not first else 0.0, first)
+        if first:
             ok, pinv = _invert_pivot(d)
         else:
             ok, l, pinv = _pivot(d, l, pinv)
         if not ok:
             return False
         _store_factors(C, Lo, i, pinv, l)
+        gp = gi
     return True
 
 
@@ -1176,34 +1196,98 @@ def friction_step(W, slip, bound):
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
+@njit(cache=True, inline='always')
+def joint_error(bv, bw, bv_prev, bw_prev, h, i, j, first_row):
+    """Joint i's velocity error (``row_response``): parent's distal point minus child's
+    proximal point, for centre and angular velocities ``bv``, ``bw`` of the child (segment
+    ``j`` of ``h``) and ``bv_prev``, ``bw_prev`` of the parent (read unless ``first_row``)."""
+    d = sub(cross(bw, v3(h, j)), bv)
+    if not first_row:
+        d = add(d, add(bv_prev, cross(bw_prev, v3(h, j - 1))))
+    return d
+
+
+@njit(cache=True, inline='always')
+def free_joint_errors(vg, wg, wp, has_parent, gl, s, h, c_dot):
+    """Ċ of a free response (``vg``, ``wg`` on local segment gl, ``wp`` on its parent if
+    ``has_parent``) into ``c_dot``: zero but at joints gl - 1 (with a parent), gl, gl + 1."""
+    zero = (0.0, 0.0, 0.0)
+    for i in range(c_dot.shape[0]):
+        for a in range(3):
+            c_dot[i, a] = 0.0
+    if has_parent:
+        d = joint_error(zero, wp, zero, zero, h, gl - 1, s + gl - 1, gl - 1 == 0)
+        for a in range(3):
+            c_dot[gl - 1, a] = d[a]
+    d = joint_error(vg, wg, zero, wp, h, gl, s + gl, gl == 0)
+    for a in range(3):
+        c_dot[gl, a] = d[a]
+    if gl + 1 < c_dot.shape[0]:
+        d = joint_error(zero, zero, vg, wg, h, gl + 1, s + gl + 1, False)
+        for a in range(3):
+            c_dot[gl + 1, a] = d[a]
+
+
+@njit(cache=True, _nrt=False)
+def solve_from(Pinv, Lo, is_first, b, i0):
+    """``chain_solve.solve`` for a right-hand side that is zero before row ``i0``: the forward
+    pass starts there (it would subtract zeros before), the backward pass is whole."""
+    n = b.shape[0]
+    for i in range(max(i0, 1), n):
+        if not is_first[i]:
+            z0, z1, z2 = b[i - 1, 0], b[i - 1, 1], b[i - 1, 2]
+            b[i, 0] -= Lo[i, 0, 0] * z0 + Lo[i, 0, 1] * z1 + Lo[i, 0, 2] * z2
+            b[i, 1] -= Lo[i, 1, 0] * z0 + Lo[i, 1, 1] * z1 + Lo[i, 1, 2] * z2
+            b[i, 2] -= Lo[i, 2, 0] * z0 + Lo[i, 2, 1] * z1 + Lo[i, 2, 2] * z2
+    for i in range(n - 1, -1, -1):
+        z0, z1, z2 = b[i, 0], b[i, 1], b[i, 2]
+        y0 = Pinv[i, 0, 0] * z0 + Pinv[i, 0, 1] * z1 + Pinv[i, 0, 2] * z2
+        y1 = Pinv[i, 1, 0] * z0 + Pinv[i, 1, 1] * z1 + Pinv[i, 1, 2] * z2
+        y2 = Pinv[i, 2, 0] * z0 + Pinv[i, 2, 1] * z1 + Pinv[i, 2, 2] * z2
+        if i + 1 < n and not is_first[i + 1]:
+            x0, x1, x2 = b[i + 1, 0], b[i + 1, 1], b[i + 1, 2]
+            y0 -= Lo[i + 1, 0, 0] * x0 + Lo[i + 1, 1, 0] * x1 + Lo[i + 1, 2, 0] * x2
+            y1 -= Lo[i + 1, 0, 1] * x0 + Lo[i + 1, 1, 1] * x1 + Lo[i + 1, 2, 1] * x2
+            y2 -= Lo[i + 1, 0, 2] * x0 + Lo[i + 1, 1, 2] * x1 + Lo[i + 1, 2, 2] * x2
+        b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
+
+
 @njit(cache=True, _nrt=False)
 def row_response(R, I, r, h, inv_I, C, Lo, first, inv_mass, has_child, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
     impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
     ``C``, ``Lo``, ``first``: the chain's factors and ``is_first`` (from s); ``c_dot``
-    ``(e - s, 3)``: scratch. Plain arrays, not the model's tuple: called per row."""
-    nc = e - s
+    ``(e - s, 3)``: scratch. Plain arrays, not the model's tuple: called per row.
+
+    The impulse moves segment g (and a limit's parent p = g - 1) only: Ċ is zero but at the
+    joints of g and g + 1 (and p), the solve's forward pass starts at the first of them
+    (``solve_from``), and the free response (M⁻¹ J_rᵀ) is added to the joints' term where
+    it is not zero: the operations of zeroing ``dv``, ``dw`` and adding both terms, less
+    those on zeros."""
     g, p = I[r, SEG], I[r, PAR]
-    dv[:] = 0.0
-    dw[:] = 0.0
+    gl = g - s
+    pl = p - s if p >= 0 else -2
+    zero = (0.0, 0.0, 0.0)
     lin = col3(R, r, LIN)
-    dwg = mat_vec(inv_I, g, col3(R, r, ANG))
-    for a in range(3):
-        dv[g - s, a] = lin[a] * inv_mass[g]
-        dw[g - s, a] = dwg[a]
-    if p >= 0:
-        dwp = mat_vec(inv_I, p, col3(R, r, APAR))
+    vg = (lin[0] * inv_mass[g], lin[1] * inv_mass[g], lin[2] * inv_mass[g])
+    wg = mat_vec(inv_I, g, col3(R, r, ANG))
+    wp = mat_vec(inv_I, p, col3(R, r, APAR)) if p >= 0 else zero
+    free_joint_errors(vg, wg, wp, p >= 0, gl, s, h, c_dot)
+    solve_from(C, Lo, first, c_dot, pl if p >= 0 else gl)
+    # apply_joint_impulses onto the free response.
+    for i in range(s, e):
+        ln = v3(c_dot, i - s + 1) if has_child[i] else zero
+        li = v3(c_dot, i - s)
+        dwi = mat_vec(inv_I, i, cross(add(li, ln), v3(h, i)))
+        if i - s == gl:
+            bv, bw = vg, wg
+        elif i - s == pl:
+            bv, bw = zero, wp
+        else:
+            bv, bw = zero, zero
         for a in range(3):
-            dw[p - s, a] = dwp[a]
-    # Joint velocity error: parent's distal point minus child's proximal point.
-    for i in range(nc):
-        d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
-        if i > 0:
-            d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
-        for a in range(3):
-            c_dot[i, a] = d[a]
-    _chain_solve(C, Lo, first, c_dot)
-    apply_joint_impulses(c_dot, h, inv_I, inv_mass, has_child, s, e, dv, dw)
+            dv[i - s, a] = bv[a] + (li[a] - ln[a]) * inv_mass[i]
+            dw[i - s, a] = bw[a] + dwi[a]
 
 
 @njit(cache=True)
@@ -1299,33 +1383,57 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
         lam[sel[a]] = lc[a]
 
 
-@njit(cache=True, _nrt=True)
+@njit(cache=True, _nrt=False)
 def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, sc):
     """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is ``sc``
-    (``solve_scratch``) when large enough for this call's rows, else sized by them (a few
-    allocations, whatever the number of chains and rows)."""
+    (``solve_scratch``) when large enough for this call's rows (borrowed, no reference
+    counting), else sized by them (``_solve_rows_alloc``: a few allocations, whatever the
+    number of chains and rows)."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
     k = R.shape[0]
     if k == 0:
         return
     n_chains = chain_start.shape[0]
+    ib = sc[SC_INT]
+    if ib.shape[0] < 4 * k + 1 + n_chains or sc[SC_MOBILE].shape[0] < k:
+        _solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
+        return
     # The rows grouped by chain (group g: members[start[g]:start[g + 1]]).
-    if sc[SC_INT].shape[0] >= 4 * k + 1 + n_chains:
-        ib = sc[SC_INT]
-    else:
-        ib = np.empty(4 * k + 1 + n_chains, dtype=np.int64)
     members, start = ib[:k], ib[k:2 * k + 1]
     n_groups, kg_max, nc_max = group_rows_into(I, chain_of, chain_start, chain_end, members,
                                                start, ib[2 * k + 1:4 * k + 1],
                                                ib[4 * k + 1:4 * k + 1 + n_chains])
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
     resp = sc[SC_RESP]
-    if (sc[SC_MOBILE].shape[0] >= k and resp.shape[1] >= kg_max and resp.shape[2] >= nc_max):
+    if resp.shape[1] >= kg_max and resp.shape[2] >= nc_max:
         _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
                       start, n_groups, sc[SC_MOBILE], resp[0], resp[1], sc[SC_CDOT], sc[SC_W],
                       sc[SC_LC], sc[SC_DS])
-        return
-    mobile = np.empty(k, dtype=np.bool_)
+    else:
+        _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
+                            members, start, n_groups, kg_max, nc_max, sc[SC_MOBILE])
+
+
+@njit(cache=True, _nrt=True)
+def _solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
+    """``solve_rows_into`` with all its scratch allocated here (returns no array)."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    k = R.shape[0]
+    n_chains = chain_start.shape[0]
+    ib = np.empty(4 * k + 1 + n_chains, dtype=np.int64)
+    members, start = ib[:k], ib[k:2 * k + 1]
+    n_groups, kg_max, nc_max = group_rows_into(I, chain_of, chain_start, chain_end, members,
+                                               start, ib[2 * k + 1:4 * k + 1],
+                                               ib[4 * k + 1:4 * k + 1 + n_chains])
+    _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
+                        start, n_groups, kg_max, nc_max, np.empty(k, dtype=np.bool_))
+
+
+@njit(cache=True, _nrt=True)
+def _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
+                        start, n_groups, kg_max, nc_max, mobile):
+    """``_solve_groups`` with the per-group scratch allocated for groups of up to ``kg_max``
+    rows and chains of up to ``nc_max`` segments (returns no array)."""
     rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
     c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
     ds = dense_scratch(kg_max)
