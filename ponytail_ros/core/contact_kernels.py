@@ -32,7 +32,10 @@ import numpy as np
 from numba import njit
 
 from .chain_solve import factor as _chain_factor
+from .chain_solve import invert_pivot as _invert_pivot
+from .chain_solve import pivot as _pivot
 from .chain_solve import solve as _chain_solve
+from .chain_solve import store_factors as _store_factors
 from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
                             qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
 
@@ -173,6 +176,84 @@ def factor_chain_into(q, model, h, inv_I, C, Lo, G, D, L, R3):
     return _chain_factor(D, L, model[IS_FIRST], C, Lo)
 
 
+@njit(cache=True, inline='always')
+def axisymmetric_G(hi, half, inv_inertia, i, inv_I):
+    """``axisymmetric_terms`` with G returned (row-major 9-tuple, the same operations)
+    instead of stored: I⁻¹ into ``inv_I[i]``."""
+    e = (hi[0] / half, hi[1] / half, hi[2] / half)
+    k = inv_inertia[i, 0] - inv_inertia[i, 1]
+    ip = inv_inertia[i, 1]
+    hh = dot(hi, hi)
+    for a in range(3):
+        for b in range(3):
+            inv_I[i, a, b] = k * e[a] * e[b]
+        inv_I[i, a, a] += ip
+    return ((hi[0] * hi[0] - hh) * ip, (hi[0] * hi[1]) * ip, (hi[0] * hi[2]) * ip,
+            (hi[1] * hi[0]) * ip, (hi[1] * hi[1] - hh) * ip, (hi[1] * hi[2]) * ip,
+            (hi[2] * hi[0]) * ip, (hi[2] * hi[1]) * ip, (hi[2] * hi[2] - hh) * ip)
+
+
+@njit(cache=True, inline='always')
+def joint_row(gi, gp, im, ip, first):
+    """Block row i of A (``joint_blocks``, the same operations) as scalars, from G_i ``gi``,
+    G_{i-1} ``gp`` (row-major 9-tuples) and 1/m_i, 1/m_{i-1}: D_i's upper triangle
+    ``(00, 01, 02, 11, 12, 22)`` and L_i row-major (zeros where ``first``)."""
+    d00 = 1.0 * im - gi[0]
+    d01 = 0.0 * im - gi[1]
+    d02 = 0.0 * im - gi[2]
+    d11 = 1.0 * im - gi[4]
+    d12 = 0.0 * im - gi[5]
+    d22 = 1.0 * im - gi[8]
+    if first:
+        return (d00, d01, d02, d11, d12, d22), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    d00 += 1.0 * ip - gp[0]
+    d01 += 0.0 * ip - gp[1]
+    d02 += 0.0 * ip - gp[2]
+    d11 += 1.0 * ip - gp[4]
+    d12 += 0.0 * ip - gp[5]
+    d22 += 1.0 * ip - gp[8]
+    return ((d00, d01, d02, d11, d12, d22),
+            (-(1.0 * ip + gp[0]), -(0.0 * ip + gp[1]), -(0.0 * ip + gp[2]),
+             -(0.0 * ip + gp[3]), -(1.0 * ip + gp[4]), -(0.0 * ip + gp[5]),
+             -(0.0 * ip + gp[6]), -(0.0 * ip + gp[7]), -(1.0 * ip + gp[8])))
+
+
+@njit(cache=True, _nrt=False)
+def factor_segments(q, model, s, e, h, inv_I, C, Lo, G, R3):
+    """``factor_chain_into`` for the whole chains of segments ``s:e`` only, with G and A's
+    blocks formed row by row in registers (``axisymmetric_G``, ``joint_row``) instead of the
+    tables ``G``, ``D``, ``L``: the same operations in the same order, so the same factors,
+    bit for bit (chains do not couple: a chain's factors do not depend on the others'). ``G``
+    ``(n, 3, 3)`` (a general inertia's G), ``R3`` ``(2, 3, 3)``: scratch."""
+    length, inv_inertia = model[LENGTH], model[INV_INERTIA]
+    inv_mass, is_first = model[INV_MASS], model[IS_FIRST]
+    axisymmetric = model[AXISYMMETRIC]
+    pinv = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    gp = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for i in range(s, e):
+        half = 0.5 * length[i]
+        hi = scale(half, qaxis_x(q4(q, i)))
+        for a in range(3):
+            h[i, a] = hi[a]
+        if axisymmetric:
+            gi = axisymmetric_G(hi, half, inv_inertia, i, inv_I)
+        else:
+            general_terms(q4(q, i), hi, inv_inertia, i, inv_I, G, R3[0], R3[1])
+            gi = (G[i, 0, 0], G[i, 0, 1], G[i, 0, 2], G[i, 1, 0], G[i, 1, 1], G[i, 1, 2],
+                  G[i, 2, 0], G[i, 2, 1], G[i, 2, 2])
+        first = is_first[i]
+        d, l = joint_row(gi, gp, inv_mass[i], inv_mass[i - 1] if not first else 0.0, first)
+        if first:
+            ok, pinv = _invert_pivot(d)
+        else:
+            ok, l, pinv = _pivot(d, l, pinv)
+        if not ok:
+            return False
+        _store_factors(C, Lo, i, pinv, l)
+        gp = gi
+    return True
+
+
 @njit(cache=True, _nrt=False)
 def apply_joint_impulses(lam, h, inv_I, inv_mass, has_child, s, e, dv, dw):
     """Add the velocity change of joint impulses ``lam`` (on the children, minus on the
@@ -261,20 +342,28 @@ def collider_pose(body_position, body_orientation, body_velocity, body_omega, co
     ``cols``: ``(body, local_a0, local_d2, local_normal, reach)``; the body arrays are the
     kinematic bodies' origins (``AnchorKinematics`` of the origins), world frame.
     """
+    K = cols[0].shape[0]
+    pose = (np.empty((K, 3)), np.empty((K, 3)), np.empty((K, 3)), np.empty((K, 3)),
+            np.empty((K, 3)), np.empty((K, 3)), np.empty(K))
+    collider_pose_into(body_position, body_orientation, body_velocity, body_omega, cols, pose)
+    return pose
+
+
+@njit(cache=True, _nrt=False)
+def collider_pose_into(body_position, body_orientation, body_velocity, body_omega, cols, pose):
+    """``collider_pose`` into the arrays of ``pose`` (a step loop allocates them once)."""
     body, local_a0, local_d2, local_normal, reach = cols
-    K = body.shape[0]
-    a0 = np.empty((K, 3))
-    d2 = np.empty((K, 3))
-    normal = np.empty((K, 3))
-    origin = np.zeros((K, 3))
-    velocity = np.zeros((K, 3))
-    omega = np.zeros((K, 3))
-    speed = np.zeros(K)
-    for j in range(K):
+    a0, d2, normal, origin, velocity, omega, speed = pose
+    for j in range(body.shape[0]):
         b = body[j]
         la0, ld2, ln = v3(local_a0, j), v3(local_d2, j), v3(local_normal, j)
         if b < 0:
             wa0, wd2, wn = la0, ld2, ln
+            for a in range(3):
+                origin[j, a] = 0.0
+                velocity[j, a] = 0.0
+                omega[j, a] = 0.0
+            speed[j] = 0.0
         else:
             qb = q4(body_orientation, b)
             o = v3(body_position, b)
@@ -291,7 +380,6 @@ def collider_pose(body_position, body_orientation, body_velocity, body_omega, co
             a0[j, a] = wa0[a]
             d2[j, a] = wd2[a]
             normal[j, a] = wn[a]
-    return a0, d2, normal, origin, velocity, omega, speed
 
 
 # -- detection ---------------------------------------------------------------------------------
@@ -468,12 +556,12 @@ def near(anchor_position, pose, v, w, det, dt):
 # candidate rows, cap the row tables' rows (``ROW_COLLIDERS``). Indices into the tuple, and
 # into the first axis of its stacked arrays:
 (WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
- WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT) = range(15)
+ WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT, WS_STATE, WS_BOX, WS_TOUCHED, WS_SOLVE) = range(19)
 # WS_VEC (7, n, 3): the half-vectors of the factorisation, four scratch vectors, then the
 # step's velocities on entry (kept to resolve it again if the row tables overflow).
 V_H, V_N0, V_N1, V_N2, V_N3, V_V0, V_W0 = range(7)
-# WS_MAT (6, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``factor_chain``), its blocks.
-M_INV_I, M_PIVOTS, M_LO, M_G, M_D, M_L = range(6)
+# WS_MAT (4, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``factor_chain``), the blocks G.
+M_INV_I, M_PIVOTS, M_LO, M_G = range(4)
 # WS_TABLES (3, cap, NCOL) floats and WS_IDS (3, cap, 3) integers: the row tables.
 T_ROWS, T_SEL, T_FRIC = range(3)
 # WS_DET (3, m, K): detection (``detect``); WS_LIM (2, 2 n_l): the limits' gaps and rates.
@@ -481,29 +569,53 @@ DT_DEPTH, DT_S, DT_T = range(3)
 L_GAP, L_SEP = range(2)
 # WS_ROWVEC (4, k_max): per-row right-hand side, impulses, slip speeds, friction bounds.
 R_B, R_LAM, R_SPEED, R_BOUND = range(4)
-# WS_PAIRS (2, nd, K) and WS_SLOTS (3, nd) integers: the per-pair broad phase (``near_pairs``).
-PR_STATE, PR_LIST = range(2)
+# WS_PAIRS (nd, K) and WS_SLOTS (3, nd) integers, WS_STATE (nd, K) bytes and WS_BOX (K, 6)
+# floats: the per-pair broad phase (``near_pairs``: kept pairs, slots, pair states, the
+# round colliders' boxes).
 S_COUNT, S_FIRST, S_END = range(3)
+# WS_TOUCHED (2, C) integers: a mark per chain and the list of the chains with rows
+# (``factor_touched``).
+# WS_SOLVE: ``solve_rows_into``'s scratch (``solve_scratch``), sized for the usual row groups.
+# Indices into it:
+SC_INT, SC_MOBILE, SC_RESP, SC_CDOT, SC_W, SC_LC, SC_DS = range(7)
+SOLVE_GROUP_ROWS = 32        # the workspace's solve scratch holds row groups up to this many
+                             # rows (a larger group's scratch is allocated by its call)
 
 
 @njit(cache=True, inline='always')
-def workspace(n, m, K, nl, nd, n_chains):
+def solve_scratch(k, kg, nc, n_chains):
+    """Scratch of ``solve_rows_into`` for up to ``k`` rows, groups of up to ``kg`` rows and
+    chains of up to ``nc`` segments (``n_chains`` chains): the row grouping's integers
+    (``group_rows_into``), the rows' mobility mask, the responses ``(2, kg, nc, 3)``, the joint
+    scratch ``(nc, 3)``, W ``(kg, kg)``, a group's λ ``(kg,)`` and the dense problems'
+    scratch (``dense_scratch``)."""
+    return (np.empty(4 * k + 1 + n_chains, dtype=np.int64), np.empty(k, dtype=np.bool_),
+            np.empty((2, kg, nc, 3)), np.empty((nc, 3)), np.empty((kg, kg)), np.empty(kg),
+            dense_scratch(kg))
+
+
+@njit(cache=True, inline='always')
+def workspace(n, m, K, nl, nd, n_chains, nc_max):
     """The workspace of ``resolve`` (indices ``WS_*`` and, within the stacked arrays, the
     names above): half-vectors and scratch vectors, the factorisation and its blocks, two 3×3,
     the row tables (all rows, a selection, friction rows; ``grown`` gives larger ones when
     needed), detection tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
-    gaps and rates, per-row vectors and a mask ``(k_max)``, and the per-pair broad phase's
-    tables (nd colliding chains of n_chains)."""
+    gaps and rates, per-row vectors and a mask ``(k_max)``, the per-pair broad phase's
+    tables (nd colliding chains of n_chains), the touched chains' marks and the row solve's
+    scratch (chains of up to ``nc_max`` segments)."""
     k_max = m * K + 2 * nl
     # The row tables' capacity: a crowd's segments each near a few colliders of many (a
     # workspace this small is reused by malloc, not mapped and faulted in at every call).
     cap = m * min(K, ROW_COLLIDERS) + 2 * nl
-    return (np.empty((7, n, 3)), np.empty((6, n, 3, 3)), np.empty((2, 3, 3)),
+    return (np.empty((7, n, 3)), np.empty((4, n, 3, 3)), np.empty((2, 3, 3)),
             np.empty((3, cap, NCOL)), np.empty((3, cap, 3), dtype=np.int64),
             np.empty((3, m, K)), np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
             np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
-            np.empty(k_max, dtype=np.bool_), np.empty((2, nd, K), dtype=np.int64),
-            np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64))
+            np.empty(k_max, dtype=np.bool_), np.empty((nd, K), dtype=np.int64),
+            np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64),
+            np.empty((nd, K), dtype=np.uint8), np.empty((K, 6)),
+            np.empty((2, n_chains), dtype=np.int64),
+            solve_scratch(cap, min(cap, SOLVE_GROUP_ROWS), nc_max, n_chains))
 
 
 @njit(cache=True, _nrt=True)
@@ -515,7 +627,7 @@ def grown(ws):
     return (ws[WS_VEC], ws[WS_MAT], ws[WS_R3], np.empty((3, k_max, NCOL)),
             np.empty((3, k_max, 3), dtype=np.int64), ws[WS_DET], ws[WS_OWN], ws[WS_Q],
             ws[WS_AXIS], ws[WS_LIM], ws[WS_ROWVEC], ws[WS_KEEP], ws[WS_PAIRS], ws[WS_SLOTS],
-            ws[WS_CHAIN_SLOT])
+            ws[WS_CHAIN_SLOT], ws[WS_STATE], ws[WS_BOX], ws[WS_TOUCHED], ws[WS_SOLVE])
 
 
 @njit(cache=True, inline='always')
@@ -524,7 +636,11 @@ def resolve_workspace(n, model, det, pose, has_colliders):
     m = det[D_SEG].shape[0] if has_colliders else 0
     K = pose[P_A0].shape[0] if has_colliders else 0
     nd = det[D_CHAINS].shape[0] if has_colliders else 0
-    return workspace(n, m, K, model[LIMITED].shape[0], nd, model[CHAIN_START].shape[0])
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
+    nc_max = 0
+    for c in range(chain_start.shape[0]):
+        nc_max = max(nc_max, chain_end[c] - chain_start[c])
+    return workspace(n, m, K, model[LIMITED].shape[0], nd, chain_start.shape[0], nc_max)
 
 
 # -- rows ----------------------------------------------------------------------------------------
@@ -563,15 +679,23 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     row could reach (its depth ≤ -(distance - reach)), so it would make no row and no depth
     of it could raise the skin. Kept pairs can raise the skin, which can keep more pairs:
     repeated until the skin stands. Pairs kept, per chain slot c (``det[D_CHAINS][c]``):
-    colliders ``ws[WS_PAIRS][PR_LIST][c, :ws[WS_SLOTS][S_COUNT][c]]``, in column order."""
+    colliders ``ws[WS_PAIRS][c, :ws[WS_SLOTS][S_COUNT][c]]``, in column order."""
     seg, det_chains, chain_reach = det[D_SEG], det[D_CHAINS], det[D_CHAIN_REACH]
     a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
     col_radius, n_round = det[D_COL_RADIUS], det[D_N_ROUND]
     chain_of = model[CHAIN_OF]
     depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
-    state, pair_list, count = ws[WS_PAIRS][PR_STATE], ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT]
+    state, pair_list, count = ws[WS_STATE], ws[WS_PAIRS], ws[WS_SLOTS][S_COUNT]
     first_seg, end_seg, slot = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END], ws[WS_CHAIN_SLOT]
+    box = ws[WS_BOX]
     nd, K = state.shape
+    # The round colliders' boxes (``outside_box``'s bounds before the reach: the same
+    # operations, once per call instead of once per pair and pass).
+    for j in range(min(K, n_round)):
+        for a in range(3):
+            e = a0[j, a] + d2[j, a]
+            box[j, a] = min(a0[j, a], e) - col_radius[j]
+            box[j, 3 + a] = max(a0[j, a], e) + col_radius[j]
     # Each chain's colliding segments are consecutive in det[D_SEG].
     for c in range(nd):
         slot[det_chains[c]] = c
@@ -595,9 +719,11 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
             for j in range(K):
                 if state[c, j] != 0:
                     continue
-                aj, dj = v3(a0, j), v3(d2, j)
-                if j < n_round and outside_box(p, aj, dj, col_radius[j], reach):
+                if j < n_round and (p[0] < box[j, 0] - reach or p[0] > box[j, 3] + reach
+                                    or p[1] < box[j, 1] - reach or p[1] > box[j, 4] + reach
+                                    or p[2] < box[j, 2] - reach or p[2] > box[j, 5] + reach):
                     continue
+                aj, dj = v3(a0, j), v3(d2, j)
                 if anchor_distance(p, aj, dj, v3(normal, j), j < n_round,
                                    col_radius[j]) < reach:
                     state[c, j] = 1
@@ -638,7 +764,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     half_vectors(model[LENGTH], q, h)
     depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
     skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
-    pair_list, count, slot = ws[WS_PAIRS][PR_LIST], ws[WS_SLOTS][S_COUNT], ws[WS_CHAIN_SLOT]
+    pair_list, count, slot = ws[WS_PAIRS], ws[WS_SLOTS][S_COUNT], ws[WS_CHAIN_SLOT]
     first_seg, end_seg = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END]
     # Room for every kept pair's segments, and for the limit rows after them.
     most = 2 * model[LIMITED].shape[0]
@@ -1070,34 +1196,98 @@ def friction_step(W, slip, bound):
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
+@njit(cache=True, inline='always')
+def joint_error(bv, bw, bv_prev, bw_prev, h, i, j, first_row):
+    """Joint i's velocity error (``row_response``): parent's distal point minus child's
+    proximal point, for centre and angular velocities ``bv``, ``bw`` of the child (segment
+    ``j`` of ``h``) and ``bv_prev``, ``bw_prev`` of the parent (read unless ``first_row``)."""
+    d = sub(cross(bw, v3(h, j)), bv)
+    if not first_row:
+        d = add(d, add(bv_prev, cross(bw_prev, v3(h, j - 1))))
+    return d
+
+
+@njit(cache=True, inline='always')
+def free_joint_errors(vg, wg, wp, has_parent, gl, s, h, c_dot):
+    """Ċ of a free response (``vg``, ``wg`` on local segment gl, ``wp`` on its parent if
+    ``has_parent``) into ``c_dot``: zero but at joints gl - 1 (with a parent), gl, gl + 1."""
+    zero = (0.0, 0.0, 0.0)
+    for i in range(c_dot.shape[0]):
+        for a in range(3):
+            c_dot[i, a] = 0.0
+    if has_parent:
+        d = joint_error(zero, wp, zero, zero, h, gl - 1, s + gl - 1, gl - 1 == 0)
+        for a in range(3):
+            c_dot[gl - 1, a] = d[a]
+    d = joint_error(vg, wg, zero, wp, h, gl, s + gl, gl == 0)
+    for a in range(3):
+        c_dot[gl, a] = d[a]
+    if gl + 1 < c_dot.shape[0]:
+        d = joint_error(zero, zero, vg, wg, h, gl + 1, s + gl + 1, False)
+        for a in range(3):
+            c_dot[gl + 1, a] = d[a]
+
+
+@njit(cache=True, _nrt=False)
+def solve_from(Pinv, Lo, is_first, b, i0):
+    """``chain_solve.solve`` for a right-hand side that is zero before row ``i0``: the forward
+    pass starts there (it would subtract zeros before), the backward pass is whole."""
+    n = b.shape[0]
+    for i in range(max(i0, 1), n):
+        if not is_first[i]:
+            z0, z1, z2 = b[i - 1, 0], b[i - 1, 1], b[i - 1, 2]
+            b[i, 0] -= Lo[i, 0, 0] * z0 + Lo[i, 0, 1] * z1 + Lo[i, 0, 2] * z2
+            b[i, 1] -= Lo[i, 1, 0] * z0 + Lo[i, 1, 1] * z1 + Lo[i, 1, 2] * z2
+            b[i, 2] -= Lo[i, 2, 0] * z0 + Lo[i, 2, 1] * z1 + Lo[i, 2, 2] * z2
+    for i in range(n - 1, -1, -1):
+        z0, z1, z2 = b[i, 0], b[i, 1], b[i, 2]
+        y0 = Pinv[i, 0, 0] * z0 + Pinv[i, 0, 1] * z1 + Pinv[i, 0, 2] * z2
+        y1 = Pinv[i, 1, 0] * z0 + Pinv[i, 1, 1] * z1 + Pinv[i, 1, 2] * z2
+        y2 = Pinv[i, 2, 0] * z0 + Pinv[i, 2, 1] * z1 + Pinv[i, 2, 2] * z2
+        if i + 1 < n and not is_first[i + 1]:
+            x0, x1, x2 = b[i + 1, 0], b[i + 1, 1], b[i + 1, 2]
+            y0 -= Lo[i + 1, 0, 0] * x0 + Lo[i + 1, 1, 0] * x1 + Lo[i + 1, 2, 0] * x2
+            y1 -= Lo[i + 1, 0, 1] * x0 + Lo[i + 1, 1, 1] * x1 + Lo[i + 1, 2, 1] * x2
+            y2 -= Lo[i + 1, 0, 2] * x0 + Lo[i + 1, 1, 2] * x1 + Lo[i + 1, 2, 2] * x2
+        b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
+
+
 @njit(cache=True, _nrt=False)
 def row_response(R, I, r, h, inv_I, C, Lo, first, inv_mass, has_child, s, e, dv, dw, c_dot):
     """Velocity change ``(dv, dw)`` ``(e - s, 3)`` of one chain (segments ``s:e``) under a unit
     impulse along row r's Jacobian, joints closed: M⁻¹ (J_rᵀ + Jᵀ λ_joint), A λ_joint = Ċ.
     ``C``, ``Lo``, ``first``: the chain's factors and ``is_first`` (from s); ``c_dot``
-    ``(e - s, 3)``: scratch. Plain arrays, not the model's tuple: called per row."""
-    nc = e - s
+    ``(e - s, 3)``: scratch. Plain arrays, not the model's tuple: called per row.
+
+    The impulse moves segment g (and a limit's parent p = g - 1) only: Ċ is zero but at the
+    joints of g and g + 1 (and p), the solve's forward pass starts at the first of them
+    (``solve_from``), and the free response (M⁻¹ J_rᵀ) is added to the joints' term where
+    it is not zero: the operations of zeroing ``dv``, ``dw`` and adding both terms, less
+    those on zeros."""
     g, p = I[r, SEG], I[r, PAR]
-    dv[:] = 0.0
-    dw[:] = 0.0
+    gl = g - s
+    pl = p - s if p >= 0 else -2
+    zero = (0.0, 0.0, 0.0)
     lin = col3(R, r, LIN)
-    dwg = mat_vec(inv_I, g, col3(R, r, ANG))
-    for a in range(3):
-        dv[g - s, a] = lin[a] * inv_mass[g]
-        dw[g - s, a] = dwg[a]
-    if p >= 0:
-        dwp = mat_vec(inv_I, p, col3(R, r, APAR))
+    vg = (lin[0] * inv_mass[g], lin[1] * inv_mass[g], lin[2] * inv_mass[g])
+    wg = mat_vec(inv_I, g, col3(R, r, ANG))
+    wp = mat_vec(inv_I, p, col3(R, r, APAR)) if p >= 0 else zero
+    free_joint_errors(vg, wg, wp, p >= 0, gl, s, h, c_dot)
+    solve_from(C, Lo, first, c_dot, pl if p >= 0 else gl)
+    # apply_joint_impulses onto the free response.
+    for i in range(s, e):
+        ln = v3(c_dot, i - s + 1) if has_child[i] else zero
+        li = v3(c_dot, i - s)
+        dwi = mat_vec(inv_I, i, cross(add(li, ln), v3(h, i)))
+        if i - s == gl:
+            bv, bw = vg, wg
+        elif i - s == pl:
+            bv, bw = zero, wp
+        else:
+            bv, bw = zero, zero
         for a in range(3):
-            dw[p - s, a] = dwp[a]
-    # Joint velocity error: parent's distal point minus child's proximal point.
-    for i in range(nc):
-        d = sub(cross(v3(dw, i), v3(h, s + i)), v3(dv, i))
-        if i > 0:
-            d = add(d, add(v3(dv, i - 1), cross(v3(dw, i - 1), v3(h, s + i - 1))))
-        for a in range(3):
-            c_dot[i, a] = d[a]
-    _chain_solve(C, Lo, first, c_dot)
-    apply_joint_impulses(c_dot, h, inv_I, inv_mass, has_child, s, e, dv, dw)
+            dv[i - s, a] = bv[a] + (li[a] - ln[a]) * inv_mass[i]
+            dw[i - s, a] = bw[a] + dwi[a]
 
 
 @njit(cache=True)
@@ -1107,9 +1297,19 @@ def group_rows(I, chain_of, chain_start, chain_end, members, start):
     however many chains have rows. Returns the number of groups and the largest group's
     rows and segments."""
     k = I.shape[0]
-    scratch = np.empty(2 * k, dtype=np.int64)
-    group, fill = scratch[:k], scratch[k:]
-    group_of = np.full(chain_start.shape[0], -1, dtype=np.int64)
+    return group_rows_into(I, chain_of, chain_start, chain_end, members, start,
+                           np.empty(2 * k, dtype=np.int64),
+                           np.empty(chain_start.shape[0], dtype=np.int64))
+
+
+@njit(cache=True, _nrt=False)
+def group_rows_into(I, chain_of, chain_start, chain_end, members, start, scratch, group_of):
+    """``group_rows`` with its scratch given: ``scratch`` ``(≥ 2k)``, ``group_of`` ``(C,)``
+    (only the entries of the rows' chains are written, then read)."""
+    k = I.shape[0]
+    group, fill = scratch[:k], scratch[k:2 * k]
+    for r in range(k):
+        group_of[chain_of[I[r, SEG]]] = -1
     n_groups, nc_max = 0, 0
     for r in range(k):
         c = chain_of[I[r, SEG]]
@@ -1183,20 +1383,57 @@ def chain_impulses(W, mobile, b, bound, members, lam, ds):
         lam[sel[a]] = lc[a]
 
 
-@njit(cache=True, _nrt=True)
-def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
-    """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is sized by the
-    rows of this call (a few allocations, whatever the number of chains and rows)."""
+@njit(cache=True, _nrt=False)
+def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, sc):
+    """``solve_rows`` with the impulses into ``lam`` ``(k,)``. Its scratch is ``sc``
+    (``solve_scratch``) when large enough for this call's rows (borrowed, no reference
+    counting), else sized by them (``_solve_rows_alloc``: a few allocations, whatever the
+    number of chains and rows)."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
     k = R.shape[0]
     if k == 0:
         return
+    n_chains = chain_start.shape[0]
+    ib = sc[SC_INT]
+    if ib.shape[0] < 4 * k + 1 + n_chains or sc[SC_MOBILE].shape[0] < k:
+        _solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
+        return
     # The rows grouped by chain (group g: members[start[g]:start[g + 1]]).
-    ib = np.empty(2 * k + 1, dtype=np.int64)
-    members, start = ib[:k], ib[k:]
-    n_groups, kg_max, nc_max = group_rows(I, chain_of, chain_start, chain_end, members, start)
-    mobile = np.zeros(k, dtype=np.bool_)
+    members, start = ib[:k], ib[k:2 * k + 1]
+    n_groups, kg_max, nc_max = group_rows_into(I, chain_of, chain_start, chain_end, members,
+                                               start, ib[2 * k + 1:4 * k + 1],
+                                               ib[4 * k + 1:4 * k + 1 + n_chains])
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
+    resp = sc[SC_RESP]
+    if resp.shape[1] >= kg_max and resp.shape[2] >= nc_max:
+        _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
+                      start, n_groups, sc[SC_MOBILE], resp[0], resp[1], sc[SC_CDOT], sc[SC_W],
+                      sc[SC_LC], sc[SC_DS])
+    else:
+        _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
+                            members, start, n_groups, kg_max, nc_max, sc[SC_MOBILE])
+
+
+@njit(cache=True, _nrt=True)
+def _solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
+    """``solve_rows_into`` with all its scratch allocated here (returns no array)."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    k = R.shape[0]
+    n_chains = chain_start.shape[0]
+    ib = np.empty(4 * k + 1 + n_chains, dtype=np.int64)
+    members, start = ib[:k], ib[k:2 * k + 1]
+    n_groups, kg_max, nc_max = group_rows_into(I, chain_of, chain_start, chain_end, members,
+                                               start, ib[2 * k + 1:4 * k + 1],
+                                               ib[4 * k + 1:4 * k + 1 + n_chains])
+    _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
+                        start, n_groups, kg_max, nc_max, np.empty(k, dtype=np.bool_))
+
+
+@njit(cache=True, _nrt=True)
+def _solve_groups_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
+                        start, n_groups, kg_max, nc_max, mobile):
+    """``_solve_groups`` with the per-group scratch allocated for groups of up to ``kg_max``
+    rows and chains of up to ``nc_max`` segments (returns no array)."""
     rv_all, rw_all = np.empty((kg_max, nc_max, 3)), np.empty((kg_max, nc_max, 3))
     c_dot_all, W_all, lc_all = np.empty((nc_max, 3)), np.empty((kg_max, kg_max)), np.empty(kg_max)
     ds = dense_scratch(kg_max)
@@ -1246,7 +1483,8 @@ def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     mobility (a contact at the anchor) takes no impulse.
     """
     lam = np.zeros(R.shape[0])
-    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
+    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
+                    solve_scratch(0, 0, 0, 0))
     return lam
 
 
@@ -1261,7 +1499,8 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     dv[:] = 0.0
     dw[:] = 0.0
     lam = ws[WS_ROWVEC][R_LAM][:k]
-    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam)
+    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam,
+                    ws[WS_SOLVE])
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -1299,7 +1538,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     dw[:] = 0.0
     # The normal impulses are spent: their buffer takes the friction impulses.
     solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
-                    lam[:kf])
+                    lam[:kf], ws[WS_SOLVE])
     for i in range(n):
         for a in range(3):
             v[i, a] += dv[i, a]
@@ -1341,10 +1580,45 @@ def rotate_segments(q, dth, length):
 
 @njit(cache=True, inline='always')
 def factor_ws(q, model, ws):
-    """``factor_chain`` into the workspace's factorisation (``WS_H`` … ``WS_LO``)."""
+    """``factor_chain`` into the workspace's factorisation (``V_H``, ``M_INV_I`` … ``M_LO``),
+    every chain (``factor_segments`` over all segments)."""
     mat = ws[WS_MAT]
-    return factor_chain_into(q, model, ws[WS_VEC][V_H], mat[M_INV_I], mat[M_PIVOTS], mat[M_LO],
-                             mat[M_G], mat[M_D], mat[M_L], ws[WS_R3])
+    return factor_segments(q, model, 0, q.shape[0], ws[WS_VEC][V_H], mat[M_INV_I],
+                           mat[M_PIVOTS], mat[M_LO], mat[M_G], ws[WS_R3])
+
+
+@njit(cache=True, _nrt=False)
+def factor_touched(q, model, I, h, inv_I, C, Lo, G, R3, touched):
+    """The factorisation of the chains that rows ``I`` act on only, and every segment's
+    half-vector: what a stage that solves only those rows reads (its rows couple only within
+    their chains; the half-vectors are read by the velocity rebuild). A chain's factors are
+    those ``factor_ws`` gives it. False if a factorised chain's A is not positive definite.
+    ``touched`` ``(2, C)`` integers: scratch."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    half_vectors(model[LENGTH], q, h)
+    mark, chains = touched[0], touched[1]
+    for r in range(I.shape[0]):
+        mark[chain_of[I[r, SEG]]] = 0
+    nt = 0
+    for r in range(I.shape[0]):
+        c = chain_of[I[r, SEG]]
+        if mark[c] == 0:
+            mark[c] = 1
+            chains[nt] = c
+            nt += 1
+    for t in range(nt):
+        c = chains[t]
+        if not factor_segments(q, model, chain_start[c], chain_end[c], h, inv_I, C, Lo, G, R3):
+            return False
+    return True
+
+
+@njit(cache=True, inline='always')
+def factor_rows_ws(q, model, I, ws):
+    """``factor_touched`` into the workspace's factorisation."""
+    mat = ws[WS_MAT]
+    return factor_touched(q, model, I, ws[WS_VEC][V_H], mat[M_INV_I], mat[M_PIVOTS], mat[M_LO],
+                          mat[M_G], ws[WS_R3], ws[WS_TOUCHED])
 
 
 @njit(cache=True, inline='always')
@@ -1373,7 +1647,8 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
             skin = POSITION_SKIN if I[r, CONTACT] else ANGLE_SKIN
             active[r] = R[r, DEPTH] > -skin - 4.0 * worst
         Rs, Is = take(R, I, active, ws[WS_TABLES][T_SEL], ws[WS_IDS][T_SEL])
-        if not factor_ws(q, model, ws):
+        # Only the selected rows' chains are solved for: their factors alone.
+        if not factor_rows_ws(q, model, Is, ws):
             return NOT_POSITIVE_DEFINITE, moved, R, I
         ks = Rs.shape[0]
         b = ws[WS_ROWVEC][R_B][:ks]
@@ -1384,7 +1659,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         dx[:] = 0.0
         dth[:] = 0.0
         solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
-                        ws[WS_ROWVEC][R_LAM][:ks])
+                        ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
@@ -1464,7 +1739,7 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
         closing = closing or b[r] < 0.0
     if not closing:
         return OK
-    if not have_factor and not factor_ws(q, model, ws):
+    if not have_factor and not factor_rows_ws(q, model, Iv, ws):
         return NOT_POSITIVE_DEFINITE
     velocity_impulses(Rv, Iv, b, h, inv_I, C, Lo, model, v, w, ws)
     if project:

@@ -1270,6 +1270,11 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
                                             has_colliders)
     x0, q0 = np.empty_like(x), np.empty_like(q)
+    # The moving colliders' pose, posed into these arrays at every step.
+    mpose = (np.empty_like(static_pose[0]), np.empty_like(static_pose[1]),
+             np.empty_like(static_pose[2]), np.empty_like(static_pose[3]),
+             np.empty_like(static_pose[4]), np.empty_like(static_pose[5]),
+             np.empty_like(static_pose[6]))
     status, done = OK, n_steps
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
@@ -1286,8 +1291,9 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         r = 2 * k + 2
         anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
         if moving:
-            pose = contact_kernels.collider_pose(B.position[r], B.orientation[r], B.velocity[r],
-                                                 B.angular_velocity[r], cols)
+            contact_kernels.collider_pose_into(B.position[r], B.orientation[r], B.velocity[r],
+                                               B.angular_velocity[r], cols, mpose)
+            pose = mpose
         else:
             pose = static_pose
         x0[:] = x
