@@ -36,8 +36,8 @@ import numpy as np
 
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
-from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block,
-                   pose_stamped_cdr, pose_stamped_fields)
+from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
+                   pose_array_layout, pose_block, pose_stamped_cdr, pose_stamped_fields)
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
            'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
@@ -263,7 +263,10 @@ class ReceivedPose:
 
     def canonical_cdr(self) -> bytes:
         """The pose's canonical CDR (``wire.pose_stamped_cdr``): what the recorder writes. The
-        bytes received may carry uninitialised padding or slack (``recording.cdr``)."""
+        bytes received may carry uninitialised padding or slack (``recording.cdr``); when they
+        are canonical already (``wire.is_canonical_pose_stamped``), they are it."""
+        if is_canonical_pose_stamped(self.cdr):
+            return self.cdr
         return pose_stamped_cdr(self.stamp.sec, self.stamp.nanosec, self.frame_id,
                                 self.position, self.orientation)
 

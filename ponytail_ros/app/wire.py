@@ -41,7 +41,7 @@ import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
            'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
-           'pose_stamped_fields', 'pose_stamped_cdr']
+           'pose_stamped_fields', 'pose_stamped_cdr', 'is_canonical_pose_stamped']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -328,3 +328,15 @@ def pose_stamped_cdr(sec: int, nanosec: int, frame_id: str, position, orientatio
     body += bytes(-(len(body) - len(ENCAPSULATION)) % 8)     # the pose, aligned to 8
     body += _POSE.pack(*position, *orientation)
     return bytes(body)
+
+
+def is_canonical_pose_stamped(data: bytes) -> bool:
+    """Whether ``data``, the CDR of a ``PoseStamped`` that ``pose_stamped_fields`` reads, is
+    what ``pose_stamped_cdr`` makes of its fields: the encapsulation's options zero, the pose's
+    alignment gap zeroed, nothing after the pose (the frame's bytes, the stamp and the numbers
+    come back as they are)."""
+    if len(data) < 16 or data[:4] != ENCAPSULATION:
+        return False
+    end = 16 + _U32.unpack_from(data, 12)[0]
+    at = end + (-(end - len(ENCAPSULATION)) % 8)
+    return len(data) == at + 8 * POSE_FLOATS and not any(data[end:at])
