@@ -107,38 +107,49 @@ class McapOut:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
                     sequence: int) -> None:
-        """One message into the chunk (times in ns, as ``mcap``'s ``Writer.add_message``)."""
-        if self._message_count:
-            if log_time < self._message_start:
-                self._message_start = log_time
-        else:
-            self._message_start = log_time
-        if log_time > self._message_end:
-            self._message_end = log_time
-        counts = self._channel_counts
-        counts[channel_id] = counts.get(channel_id, 0) + 1
-        self._message_count += 1
+        """One message into the chunk (times in ns, as ``mcap``'s ``Writer.add_message``). The
+        file's statistics take in the chunk's when it is written out (:meth:`stats`)."""
         chunk = self._chunk
         if self._chunk_messages:
             if log_time < self._chunk_start:
                 self._chunk_start = log_time
+            elif log_time > self._chunk_end:
+                self._chunk_end = log_time
         else:
             self._chunk_start = log_time
-        if log_time > self._chunk_end:
-            self._chunk_end = log_time
+            if log_time > self._chunk_end:
+                self._chunk_end = log_time
         self._chunk_messages += 1
         entries = self._chunk_index.get(channel_id)
         if entries is None:
             entries = self._chunk_index[channel_id] = []
-        entries.append(log_time)
-        entries.append(len(chunk))
+        entries += (log_time, len(chunk))
         chunk += _MESSAGE_HEAD.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
                                     sequence, log_time, publish_time)
         chunk += data
 
+    def stats(self):
+        """``(messages, first log time, last log time)`` so far (the chunk being built
+        included); the times are 0 without messages."""
+        count, start, end = self._message_count, self._message_start, self._message_end
+        if self._chunk_messages:
+            start = self._chunk_start if not count else min(start, self._chunk_start)
+            end = max(end, self._chunk_end)
+            count += self._chunk_messages
+        return count, start, end
+
+    def _merge_chunk_stats(self) -> None:
+        """The chunk's messages into the file's statistics (mcap counts the channels in the
+        order of their first message: chunk after chunk, in each in that order)."""
+        self._message_count, self._message_start, self._message_end = self.stats()
+        counts = self._channel_counts
+        for channel_id, entries in self._chunk_index.items():
+            counts[channel_id] = counts.get(channel_id, 0) + len(entries) // 2
+
     def _finalize_chunk(self) -> None:
         if not self._chunk_messages:
             return
+        self._merge_chunk_stats()
         self._chunk_count += 1
         data = bytes(self._chunk)
         self._flush_records()

@@ -88,11 +88,8 @@ class BagWriter:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: Optional[BagError] = None
         self._closed = False
-        # Writer-thread state: message statistics and the chunk being built.
+        # Writer-thread state: the chunk being built (the message statistics: McapOut's).
         self._schema_ids: Dict[str, int] = {}
-        self._first_log_time_ns = _MAX_TIME_NS
-        self._last_log_time_ns = 0
-        self._message_count = 0
         self._chunk_start_ns: Optional[int] = None
         self._chunk_bytes = 0
 
@@ -321,11 +318,6 @@ class BagWriter:
         # rosbag2 records the publisher's sequence number; ours counts per topic from 1.
         self._mcap.add_message(topic.channel_id, log_time_ns, data, publish_time_ns,
                                topic.message_count)
-        self._message_count += 1
-        if log_time_ns < self._first_log_time_ns:
-            self._first_log_time_ns = log_time_ns
-        if log_time_ns > self._last_log_time_ns:
-            self._last_log_time_ns = log_time_ns
         if self._chunk_start_ns is None:
             self._chunk_start_ns = log_time_ns
         self._chunk_bytes += len(data) + _MESSAGE_RECORD_OVERHEAD
@@ -375,9 +367,10 @@ class BagWriter:
 
     def _rosbag2_metadata(self) -> Dict[str, str]:
         """The ``rosbag2`` record: rosbag2_storage's YAML encoding of BagMetadata (version 9)."""
-        if self._message_count:
-            starting_time = self._first_log_time_ns
-            duration = self._last_log_time_ns - self._first_log_time_ns
+        message_count, first_ns, last_ns = self._mcap.stats()
+        if message_count:
+            starting_time = first_ns
+            duration = last_ns - first_ns
         else:
             starting_time, duration = _MAX_TIME_NS, 0
         file_name = self.path.name
@@ -386,7 +379,7 @@ class BagWriter:
             'storage_identifier': 'mcap',
             'duration': {'nanoseconds': duration},
             'starting_time': {'nanoseconds_since_epoch': starting_time},
-            'message_count': self._message_count,
+            'message_count': message_count,
             'topics_with_message_count': [
                 {'topic_metadata': {'name': topic.name,
                                     'type': topic.type_name,
@@ -402,7 +395,7 @@ class BagWriter:
             'files': [{'path': file_name,
                        'starting_time': {'nanoseconds_since_epoch': starting_time},
                        'duration': {'nanoseconds': duration},
-                       'message_count': self._message_count}],
+                       'message_count': message_count}],
             'custom_data': None,
             'ros_distro': self._ros_distro,
         }
