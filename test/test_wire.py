@@ -267,3 +267,24 @@ def test_what_the_decoder_leaves_to_rclpy():
     assert pose_stamped_fields(bytes(bad)) is None
     bad[16] = 0                                                         # a NUL inside
     assert pose_stamped_fields(bytes(bad)) is None
+
+
+def test_received_pose_canonical_cdr_normalises_what_is_not():
+    """Bytes that are canonical already are recorded as they are; encapsulation options, a
+    set alignment gap or slack after the data are normalised away."""
+    from geometry_msgs.msg import PoseStamped
+    from ponytail_ros.app.messages import ReceivedPose
+    from ponytail_ros.app.wire import is_canonical_pose_stamped
+    msg = PoseStamped()
+    msg.header.frame_id = 'world'                       # a 6-byte gap before the pose
+    msg.header.stamp = Time(sec=3, nanosec=4)
+    msg.pose.position.x, msg.pose.orientation.w = 1.5, 1.0
+    canonical = serialize_canonical(msg)
+    assert is_canonical_pose_stamped(canonical)
+    assert ReceivedPose.decode(canonical).canonical_cdr() is canonical
+    gap = bytearray(canonical)
+    gap[23] = 7
+    for raw in (canonical[:2] + b'\x00\x03' + canonical[4:], bytes(gap),
+                canonical + bytes(4)):
+        assert not is_canonical_pose_stamped(raw)
+        assert ReceivedPose.decode(raw).canonical_cdr() == canonical

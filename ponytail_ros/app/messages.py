@@ -34,11 +34,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 import numpy as np
 
-from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors, quat_multiply,
-                                         quat_rotate)
+from ponytail_ros.core.rotations import quat_from_two_vectors
 
-from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, pose_array_layout, pose_block,
-                   pose_stamped_cdr, pose_stamped_fields)
+from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
+                   pose_array_layout, pose_block, pose_stamped_cdr, pose_stamped_fields)
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
            'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
@@ -62,6 +61,70 @@ PLANE_SIZE = 2.0
 
 #: Rotation by +90° about Y: takes a cylinder's axis (local Z) to local X.
 Q_Z_TO_X = np.array([0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)])
+
+
+# The markers' numbers in few NumPy calls (a tick's marker arrays are small, so the cost is
+# per call), each element by the same floating-point operations in the same order as
+# ``core.rotations`` (tests compare the bytes): a subtraction ``x - y`` as ``x + (-y)`` and a
+# product's sign folded into a constant factor are exact.
+
+#: ``quat_axis_x``: columns ``(y, x, x)``, ``(y, y, z)``, ``(z, w, w)``, ``(z, z, y)``.
+_AXIS_X_TAKE = np.array([1, 0, 0, 1, 1, 2, 2, 3, 3, 2, 2, 1])
+_AXIS_X_SIGN = np.array([1.0, 1.0, -1.0])
+
+
+def _axis_x(q: np.ndarray) -> np.ndarray:
+    """``quat_axis_x(q)`` of ``(n, 4)`` quaternions, bit for bit: ``1 - 2 (y² + z²)``,
+    ``2 (x y + w z)``, ``2 (x z - w y)``."""
+    g = q.take(_AXIS_X_TAKE, axis=1).reshape(len(q), 4, 3)
+    e = 2.0 * (g[:, 0] * g[:, 1] + g[:, 2] * g[:, 3] * _AXIS_X_SIGN)
+    e[:, 0] = 1.0 - e[:, 0]
+    return e
+
+
+def _times_constant(b) -> Tuple[np.ndarray, ...]:
+    """``quat_multiply(a, b)`` for a constant ``b`` as ``((aw K0 + ax K1) + ay K2) + az K3``:
+    the four ``K`` (``(4,)``, the signed components of ``b`` in each term of the product)."""
+    bx, by, bz, bw = (float(v) for v in b)
+    return (np.array([bx, by, bz, bw]), np.array([bw, -bz, by, -bx]),
+            np.array([bz, bw, -bx, -by]), np.array([-by, bx, bw, -bz]))
+
+
+_Q_Z_TO_X_TERMS = _times_constant(Q_Z_TO_X)
+
+
+def _times_z_to_x(q: np.ndarray) -> np.ndarray:
+    """``quat_multiply(q, Q_Z_TO_X)`` of ``(n, 4)`` quaternions, bit for bit."""
+    k0, k1, k2, k3 = _Q_Z_TO_X_TERMS
+    return ((q[:, 3:4] * k0 + q[:, 0:1] * k1) + q[:, 1:2] * k2) + q[:, 2:3] * k3
+
+
+def _rotate(q, v):
+    """``quat_rotate`` of one quaternion and vector (floats), bit for bit."""
+    u0, u1, u2, w = q
+    v0, v1, v2 = v
+    t0, t1, t2 = 2.0 * (u1 * v2 - u2 * v1), 2.0 * (u2 * v0 - u0 * v2), 2.0 * (u0 * v1 - u1 * v0)
+    return (v0 + w * t0 + (u1 * t2 - u2 * t1), v1 + w * t1 + (u2 * t0 - u0 * t2),
+            v2 + w * t2 + (u0 * t1 - u1 * t0))
+
+
+def _from_two_vectors(a, b):
+    """``quat_from_two_vectors`` of two vectors (floats), bit for bit (norms summed in order,
+    as NumPy reduces three or four numbers); antiparallel ones, or a zero vector, by it."""
+    try:
+        na = math.sqrt((a[0] * a[0] + a[1] * a[1]) + a[2] * a[2])
+        a0, a1, a2 = a[0] / na, a[1] / na, a[2] / na
+        nb = math.sqrt((b[0] * b[0] + b[1] * b[1]) + b[2] * b[2])
+        b0, b1, b2 = b[0] / nb, b[1] / nb, b[2] / nb
+        w = 1.0 + ((a0 * b0 + a1 * b1) + a2 * b2)
+        if w < 1e-12:
+            raise ZeroDivisionError  # (antiparallel: its own branch)
+        x, y, z = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        n = math.sqrt(((x * x + y * y) + z * z) + w * w)
+        return (x / n, y / n, z / n, w / n)
+    except ZeroDivisionError:
+        return tuple(quat_from_two_vectors(np.array(a, dtype=float),
+                                           np.array(b, dtype=float)).tolist())
 
 
 def _set_pose(pose, p, q):
@@ -103,6 +166,11 @@ class SegmentPoses:
     def stamp(self):
         """``(sec, nanosec)`` of the stamp (as ``builtin_interfaces/Time`` splits it)."""
         return self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
+
+    @property
+    def pose_bytes(self) -> bytes:
+        """The poses' bytes in the CDR: ``n`` times 7 little-endian float64."""
+        return self.cdr[self._layout.data_offset:]
 
     @property
     def poses(self) -> np.ndarray:
@@ -147,9 +215,10 @@ def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
     (one tick's, so one frame and one stamp), chain after chain, root first."""
     first = segments[0]
     layout = _tf_layout(first.frame_id, prefix, tuple((s.chain, s.n) for s in segments))
-    block = first.poses if len(segments) == 1 else np.concatenate([s.poses for s in segments])
-    sec, nanosec = first.stamp
-    return layout.encode(sec, nanosec, block)
+    # (the PoseArray's CDR holds the stamp and the poses as the TFMessage's do)
+    poses = (first.pose_bytes if len(segments) == 1
+             else b''.join([s.pose_bytes for s in segments]))
+    return layout.encode_raw(first.cdr[4:12], poses)
 
 
 @lru_cache(maxsize=256)
@@ -194,7 +263,10 @@ class ReceivedPose:
 
     def canonical_cdr(self) -> bytes:
         """The pose's canonical CDR (``wire.pose_stamped_cdr``): what the recorder writes. The
-        bytes received may carry uninitialised padding or slack (``recording.cdr``)."""
+        bytes received may carry uninitialised padding or slack (``recording.cdr``); when they
+        are canonical already (``wire.is_canonical_pose_stamped``), they are it."""
+        if is_canonical_pose_stamped(self.cdr):
+            return self.cdr
         return pose_stamped_cdr(self.stamp.sec, self.stamp.nanosec, self.frame_id,
                                 self.position, self.orientation)
 
@@ -272,6 +344,7 @@ IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 #: ``Marker.DELETEALL`` (namespace '', id 0).
 DELETE_ALL = MarkerSpec('', 0, Marker.ARROW, Marker.DELETEALL)
 _NO_POINTS = np.zeros((0, 3))
+_IDENTITY_ROW = IDENTITY_POSE.tolist()
 
 
 def _rgba(color) -> tuple:
@@ -285,6 +358,7 @@ class ChainMessages:
     def __init__(self, name, lengths, radius):
         self.name = name
         self.lengths = np.asarray(lengths, dtype=float)
+        self._lengths_column = self.lengths[:, None]
         self.radius = float(radius)
         self.n = len(self.lengths)
         self._style = None
@@ -328,13 +402,13 @@ class ChainMessages:
         changed = style != self._style
         if changed or color != self._color:
             self._build_specs(style, color)
-        axes = quat_axis_x(quats) * self.lengths[:, None]
+        axes = _axis_x(quats) * self._lengths_column
         joints = np.concatenate([origins, origins[-1:] + axes[-1:]])
         if style == 'capsules':
             poses = np.empty((self.n + 1, 7))
             poses[0] = IDENTITY_POSE
             poses[1:, :3] = origins + 0.5 * axes
-            poses[1:, 3:] = quat_multiply(quats, np.broadcast_to(Q_Z_TO_X, quats.shape))
+            poses[1:, 3:] = _times_z_to_x(quats)
             return self._specs, poses, joints, changed
         return (self._specs, np.stack([IDENTITY_POSE, IDENTITY_POSE]),
                 np.concatenate([joints, joints]), changed)
@@ -355,12 +429,15 @@ class ColliderMarkers:
         self._key = None
         self._specs: tuple = ()
         self._local: list = []
+        self._local_floats: list = []
+        self._z = _Z.tolist()
 
     def _build(self, colliders):
         #: per collider its centre and unit axis in its body (the sphere's: +Z)
         self._local = [(np.asarray(c.center, float),
                         _unit(np.asarray(c.axis, float)) if c.kind != 'sphere' else _Z)
                        for c in colliders]
+        self._local_floats = [(centre.tolist(), axis.tolist()) for centre, axis in self._local]
         color = COLLIDER_COLOR
         specs = []
         for k, c in enumerate(colliders):
@@ -393,15 +470,19 @@ class ColliderMarkers:
         if key is None:
             return (), np.zeros((0, 7)), _NO_POINTS, changed
         poses, points = [], []
-        z = _Z
-        for c, (centre, axis) in zip(colliders, self._local):
+        z = self._z
+        position, orientation = bodies.position, bodies.orientation
+        for c, (centre, axis) in zip(colliders, self._local_floats):
             if c.body is not None:
-                qb = bodies.orientation[c.body]
-                centre = bodies.position[c.body] + quat_rotate(qb, centre)
-                axis = quat_rotate(qb, axis)
-            q = quat_from_two_vectors(z, axis)        # marker Z along the axis / normal
-            poses.append(np.concatenate([centre, q]))
+                qb = orientation[c.body].tolist()
+                p = _rotate(qb, centre)
+                centre = [a + b for a, b in zip(position[c.body].tolist(), p)]
+                axis = _rotate(qb, axis)
+            q = _from_two_vectors(z, axis)        # marker Z along the axis / normal
+            poses.append([*centre, *q])
             if c.kind == 'capsule':
-                poses.append(IDENTITY_POSE)
-                points += [centre - c.half_length * axis, centre + c.half_length * axis]
+                poses.append(_IDENTITY_ROW)
+                h = c.half_length
+                points += [[m - h * a for m, a in zip(centre, axis)],
+                           [m + h * a for m, a in zip(centre, axis)]]
         return (self._specs, np.array(poses), np.array(points).reshape(-1, 3), changed)

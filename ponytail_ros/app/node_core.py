@@ -97,6 +97,9 @@ class NodeCore:
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
+        self._color_names = [chain_param_name(c, 'color') for c in self.chains]
+        self._slices_model: Any = None
+        self._slices: List[slice] = []
         self._msgs_scene = None     # the scene the chain messages were last checked against
         self._collider_markers = ColliderMarkers()
         self._marker_key: Any = None
@@ -153,12 +156,13 @@ class NodeCore:
                 self._chain_msgs = self._make_chain_messages(scene)
             self._msgs_scene = scene
         # No frame set and no head pose seen (chains hanging from the world only): 'world'.
-        frame = self.values['frame_id'] or out.frame_id or 'world'
+        values = self.values
+        frame = values['frame_id'] or out.frame_id or 'world'
         stamp_ns = self.stamp_ns(t_ns, out)
-        model = self.runner.sim.model
-        poses = [cm.segment_poses(out.origins[model.chain_slice(c)],
-                                  out.orientations[model.chain_slice(c)], frame, stamp_ns)
-                 for c, cm in enumerate(self._chain_msgs)]
+        slices = self._chain_slices()
+        origins, orientations = out.origins, out.orientations
+        poses = [cm.segment_poses(origins[sl], orientations[sl], frame, stamp_ns)
+                 for sl, cm in zip(slices, self._chain_msgs)]
         self.published += 1
         win, rep = self.window, out.report
         win.ticks += 1
@@ -178,19 +182,27 @@ class NodeCore:
             return t_ns
         return t_ns - int(round((out.t - out.t_state) * 1e9))
 
+    def _chain_slices(self):
+        """Each chain's rows in the tick's arrays (the simulator's model's, kept while it is
+        the same model)."""
+        model = self.runner.sim.model
+        if model is not self._slices_model:
+            self._slices = [model.chain_slice(c) for c in range(len(self._chain_msgs))]
+            self._slices_model = model
+        return self._slices
+
     def _markers(self, out, frame, stamp_ns):
-        style = self.values['markers.style']
-        period = 1.0 / self.values['markers.rate']
+        values = self.values
+        style = values['markers.style']
+        period = 1.0 / values['markers.rate']
         if self._last_marker_t is not None and out.t - self._last_marker_t < 0.999 * period \
                 and out.t >= self._last_marker_t:
             return None
         self._last_marker_t = out.t
-        model = self.runner.sim.model
         delete = False
         parts = []
-        for c, cm in enumerate(self._chain_msgs):
-            sl = model.chain_slice(c)
-            color = self.values[chain_param_name(self.chains[c], 'color')]
+        for c, (sl, cm) in enumerate(zip(self._chain_slices(), self._chain_msgs)):
+            color = values[self._color_names[c]]
             *part, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color)
             delete = delete or changed
             parts.append(part)

@@ -41,7 +41,7 @@ import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
            'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
-           'pose_stamped_fields', 'pose_stamped_cdr']
+           'pose_stamped_fields', 'pose_stamped_cdr', 'is_canonical_pose_stamped']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -72,13 +72,19 @@ def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
     return block if block.dtype == _F8 else block.astype(_F8)
 
 
-def _stamped_rows(sec: int, nanosec: int, block: np.ndarray) -> np.ndarray:
-    """``(n, 64)`` bytes: per row the stamp's 8 bytes, then that row of ``block`` ``(n, 7)``
-    (contiguous little-endian float64), copied as integers (every bit kept)."""
-    rows = np.empty((len(block), 1 + POSE_FLOATS), dtype=_U8)
-    rows[:, 0] = np.frombuffer(_TIME.pack(sec, nanosec), dtype=_U8)
-    rows[:, 1:] = block.view(_U8)
-    return rows.view(np.uint8)
+def _gather(size: int, at: np.ndarray, points_at: Optional[np.ndarray] = None) -> np.ndarray:
+    """The byte indices that make a message of a template of ``size`` bytes in one ``take``:
+    from the template followed by the stamp (8 bytes), the poses (``(n, 7)`` float64, ``n =
+    len(at)``) and the points (``(p, 3)`` float64); ``at`` ``(n, 64)``: where each row's stamp
+    (8 bytes) and pose (56) go, ``points_at`` ``(p, 24)``: where each point goes."""
+    gather = np.arange(size, dtype=np.intp)
+    n = len(at)
+    gather[at[:, :8]] = size + np.arange(8)
+    gather[at[:, 8:]] = size + 8 + np.arange(8 * POSE_FLOATS * n).reshape(n, 8 * POSE_FLOATS)
+    if points_at is not None and points_at.size:
+        gather[points_at] = (size + 8 + 8 * POSE_FLOATS * n
+                             + np.arange(points_at.size).reshape(points_at.shape))
+    return gather
 
 
 class PoseArrayLayout:
@@ -165,6 +171,8 @@ class TFLayout:
             (h + np.array(poses, dtype=np.intp)).reshape(-1, 1) + np.arange(8 * POSE_FLOATS)],
             axis=1)
         self.size = len(self._template)
+        self._head = self._template.tobytes()
+        self._gather = _gather(self.size, self._at)
 
     def encode(self, sec: int, nanosec: int, block: np.ndarray) -> bytes:
         """The CDR of the message stamped ``(sec, nanosec)``; transform ``i`` is row ``i`` of
@@ -173,10 +181,14 @@ class TFLayout:
         if block.shape != (self.n, POSE_FLOATS):
             raise ValueError(f'expected poses of shape ({self.n}, {POSE_FLOATS}), '
                              f'got {block.shape}')
-        data = self._template.copy()
-        if self.n:
-            data[self._at] = _stamped_rows(sec, nanosec, block)   # one scatter
-        return data.tobytes()
+        return self.encode_raw(_TIME.pack(sec, nanosec), block.tobytes())
+
+    def encode_raw(self, stamp: bytes, poses: bytes) -> bytes:
+        """:meth:`encode` of the stamp's 8 CDR bytes (``int32`` sec, ``uint32`` nanosec) and
+        the poses' ``n * 56`` (little-endian float64, a pose per 7; a ``PoseArray``'s block):
+        one gather from the template and them."""
+        src = np.frombuffer(b''.join((self._head, stamp, poses)), dtype=np.uint8)
+        return src.take(self._gather).tobytes()
 
 
 @lru_cache(maxsize=256)
@@ -264,6 +276,8 @@ class MarkerArrayLayout:
         self._at = np.concatenate(at, axis=1)
         self._points_at = (h + np.array(points, dtype=np.intp)).reshape(-1, 1) + np.arange(24)
         self.size = len(self._template)
+        self._head = self._template.tobytes()
+        self._gather = _gather(self.size, self._at, self._points_at)
 
     def encode(self, sec: int, nanosec: int, poses: np.ndarray, points: np.ndarray) -> bytes:
         """The CDR of the array stamped ``(sec, nanosec)``: marker ``i``'s pose is row ``i`` of
@@ -274,12 +288,9 @@ class MarkerArrayLayout:
         if poses.shape != (self.n, POSE_FLOATS) or points.shape != (self.n_points, 3):
             raise ValueError(f'expected poses ({self.n}, {POSE_FLOATS}) and points '
                              f'({self.n_points}, 3), got {poses.shape} and {points.shape}')
-        data = self._template.copy()
-        if self.n:
-            data[self._at] = _stamped_rows(sec, nanosec, poses)
-        if self.n_points:
-            data[self._points_at] = points.view(np.uint8).reshape(self.n_points, 24)
-        return data.tobytes()
+        src = np.frombuffer(b''.join((self._head, _TIME.pack(sec, nanosec), poses.tobytes(),
+                                      points.tobytes())), dtype=np.uint8)
+        return src.take(self._gather).tobytes()
 
 
 def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[float, ...],
@@ -317,3 +328,15 @@ def pose_stamped_cdr(sec: int, nanosec: int, frame_id: str, position, orientatio
     body += bytes(-(len(body) - len(ENCAPSULATION)) % 8)     # the pose, aligned to 8
     body += _POSE.pack(*position, *orientation)
     return bytes(body)
+
+
+def is_canonical_pose_stamped(data: bytes) -> bool:
+    """Whether ``data``, the CDR of a ``PoseStamped`` that ``pose_stamped_fields`` reads, is
+    what ``pose_stamped_cdr`` makes of its fields: the encapsulation's options zero, the pose's
+    alignment gap zeroed, nothing after the pose (the frame's bytes, the stamp and the numbers
+    come back as they are)."""
+    if len(data) < 16 or data[:4] != ENCAPSULATION:
+        return False
+    end = 16 + _U32.unpack_from(data, 12)[0]
+    at = end + (-(end - len(ENCAPSULATION)) % 8)
+    return len(data) == at + 8 * POSE_FLOATS and not any(data[end:at])

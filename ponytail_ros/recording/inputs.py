@@ -14,8 +14,11 @@ import numpy as np
 import yaml
 
 from ponytail_ros.app.parameters import frame_names
+from ponytail_ros.app.wire import pose_stamped_fields
+from rclpy.serialization import deserialize_message
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
+from .bag.msgdefs import _message_class
 from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, resolve_topic, stamp_ns
 
 __all__ = ['ReplayError', 'ReplayInput', 'head_pose', 'head_stamps', 'foreign_clock',
@@ -142,8 +145,14 @@ def head_stamps(inp: ReplayInput):
     """(header stamp, log time) ns of the first head poses."""
     out = []
     try:
-        for _, _, msg, log_ns in inp.messages({inp.head_topic: inp.head_type}):
-            out.append((stamp_ns(msg.header.stamp), log_ns))
+        for _, _, data, log_ns in inp.messages({inp.head_topic: inp.head_type}, raw=True):
+            # (a PoseStamped's stamp read from its bytes, as the replay reads its poses)
+            fields = pose_stamped_fields(data) if inp.head_type == HEAD_TYPES[0] else None
+            if fields is not None:
+                out.append((fields[0] * 1_000_000_000 + fields[1], log_ns))
+            else:
+                msg = deserialize_message(data, _message_class(inp.head_type))
+                out.append((stamp_ns(msg.header.stamp), log_ns))
             if len(out) >= _STAMP_SAMPLE:
                 break
     except BagError as exc:

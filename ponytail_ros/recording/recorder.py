@@ -341,9 +341,11 @@ class RunRecorder:
             self.write(topic, msg, log_time_ns)
         elif self._writable():
             # Its fields re-encoded as canonical CDR: no message object, no serialisation.
+            stamp = msg.stamp
+            publish_ns = stamp.sec * 1_000_000_000 + stamp.nanosec   # (as _publish_time)
             try:
                 self._writer.write_serialized(topic, msg.canonical_cdr(), log_time_ns,
-                                              _publish_time(msg, log_time_ns))
+                                              publish_ns if publish_ns >= 0 else log_time_ns)
             except BagError as exc:
                 self._failed(exc)
 

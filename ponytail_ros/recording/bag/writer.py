@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any, Dict, Iterable, Mapping, Optional, Union
 
 from mcap import __version__ as _MCAP_VERSION
-from mcap.writer import CompressionType, Writer
 from rclpy.qos import QoSProfile
 
 from ..cdr import serialize_canonical
 from .errors import BagError
+from .mcap_out import McapOut
 from .metadata import (_DEFAULT_ROS_DISTRO, _MAX_TIME_NS, _ROSBAG2_METADATA_VERSION,
                        _ROSBAG2_RECORD, _dump_yaml, _qos_dict)
 from .msgdefs import _message_class, _type_string, message_definition, type_hash
@@ -88,18 +88,15 @@ class BagWriter:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: Optional[BagError] = None
         self._closed = False
-        # Writer-thread state: message statistics and the chunk being built.
+        # Writer-thread state: the chunk being built (the message statistics: McapOut's).
         self._schema_ids: Dict[str, int] = {}
-        self._first_log_time_ns = _MAX_TIME_NS
-        self._last_log_time_ns = 0
-        self._message_count = 0
         self._chunk_start_ns: Optional[int] = None
         self._chunk_bytes = 0
 
         self._stream = self._open(self.path, overwrite)
-        # Chunks are cut by _flush_chunk (size or log-time span, then flushed to the OS), so
-        # mcap's own size trigger is disabled. No compression, as rosbag2's default.
-        self._mcap = Writer(self._stream, chunk_size=2**62, compression=CompressionType.NONE)
+        # Chunks are cut by _flush_chunk (size or log-time span, then flushed to the OS). No
+        # compression, as rosbag2's default. The bytes are mcap's Writer's (mcap_out.py).
+        self._mcap = McapOut(self._stream)
         try:
             self._mcap.start(profile=_PROFILE, library=_LIBRARY)
             self._mcap.add_metadata(_ROSBAG2_RECORD, self._rosbag2_metadata())
@@ -197,7 +194,8 @@ class BagWriter:
     def write_serialized(self, topic: str, data: bytes, log_time_ns: int,
                          publish_time_ns: Optional[int] = None) -> None:
         """Queue an already CDR-serialised message; arguments as :meth:`write`."""
-        if topic not in self._topics:
+        entry = self._topics.get(topic)
+        if entry is None:
             raise BagError(f'topic {topic!r} was not added to bag {self.path}')
         log_time_ns = operator.index(log_time_ns)
         publish_time_ns = log_time_ns if publish_time_ns is None else operator.index(
@@ -207,7 +205,14 @@ class BagWriter:
         if self._closed:
             raise BagError(f'bag {self.path} is closed')
         if self._error is None:  # after an I/O error messages are dropped, not queued
-            self._submit(('message', topic, bytes(data), log_time_ns, publish_time_ns))
+            if self._thread is None:
+                # (no thread: written now, as _process would, without the hand-offs)
+                try:
+                    self._message(entry, bytes(data), log_time_ns, publish_time_ns)
+                except Exception as exc:  # noqa: BLE001 - as in _process
+                    self._failed_io(exc)
+            else:
+                self._queue.put(('message', entry, bytes(data), log_time_ns, publish_time_ns))
 
     def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Store a metadata record (e.g. :data:`PARAMETERS_METADATA`); all keys and values str.
@@ -300,27 +305,30 @@ class BagWriter:
             self._handle(item)
         # Any failure (ENOSPC, EIO, ...) stops recording; it must never reach the caller.
         except Exception as exc:  # noqa: BLE001
-            self._error = BagError(
-                f'writing bag {self.path} failed: {_reason(exc)}; recording stopped')
+            self._failed_io(exc)
+
+    def _failed_io(self, exc: Exception) -> None:
+        self._error = BagError(
+            f'writing bag {self.path} failed: {_reason(exc)}; recording stopped')
+
+    def _message(self, topic: _Topic, data: bytes, log_time_ns: int,
+                 publish_time_ns: int) -> None:
+        """One message into the chunk (the writer thread's, or the caller's without one)."""
+        topic.message_count += 1
+        # rosbag2 records the publisher's sequence number; ours counts per topic from 1.
+        self._mcap.add_message(topic.channel_id, log_time_ns, data, publish_time_ns,
+                               topic.message_count)
+        if self._chunk_start_ns is None:
+            self._chunk_start_ns = log_time_ns
+        self._chunk_bytes += len(data) + _MESSAGE_RECORD_OVERHEAD
+        if (self._chunk_bytes >= self._chunk_size
+                or log_time_ns - self._chunk_start_ns >= self._chunk_duration_ns):
+            self._flush_chunk()
 
     def _handle(self, item: tuple) -> None:
         kind = item[0]
         if kind == 'message':
-            _, name, data, log_time_ns, publish_time_ns = item
-            topic = self._topics[name]
-            topic.message_count += 1
-            # rosbag2 records the publisher's sequence number; ours counts per topic from 1.
-            self._mcap.add_message(topic.channel_id, log_time_ns, data, publish_time_ns,
-                                   sequence=topic.message_count)
-            self._message_count += 1
-            self._first_log_time_ns = min(self._first_log_time_ns, log_time_ns)
-            self._last_log_time_ns = max(self._last_log_time_ns, log_time_ns)
-            if self._chunk_start_ns is None:
-                self._chunk_start_ns = log_time_ns
-            self._chunk_bytes += len(data) + _MESSAGE_RECORD_OVERHEAD
-            if (self._chunk_bytes >= self._chunk_size
-                    or log_time_ns - self._chunk_start_ns >= self._chunk_duration_ns):
-                self._flush_chunk()
+            self._message(*item[1:])
         elif kind == 'idle':
             if self._chunk_start_ns is not None:
                 self._flush_chunk()
@@ -359,9 +367,10 @@ class BagWriter:
 
     def _rosbag2_metadata(self) -> Dict[str, str]:
         """The ``rosbag2`` record: rosbag2_storage's YAML encoding of BagMetadata (version 9)."""
-        if self._message_count:
-            starting_time = self._first_log_time_ns
-            duration = self._last_log_time_ns - self._first_log_time_ns
+        message_count, first_ns, last_ns = self._mcap.stats()
+        if message_count:
+            starting_time = first_ns
+            duration = last_ns - first_ns
         else:
             starting_time, duration = _MAX_TIME_NS, 0
         file_name = self.path.name
@@ -370,7 +379,7 @@ class BagWriter:
             'storage_identifier': 'mcap',
             'duration': {'nanoseconds': duration},
             'starting_time': {'nanoseconds_since_epoch': starting_time},
-            'message_count': self._message_count,
+            'message_count': message_count,
             'topics_with_message_count': [
                 {'topic_metadata': {'name': topic.name,
                                     'type': topic.type_name,
@@ -386,7 +395,7 @@ class BagWriter:
             'files': [{'path': file_name,
                        'starting_time': {'nanoseconds_since_epoch': starting_time},
                        'duration': {'nanoseconds': duration},
-                       'message_count': self._message_count}],
+                       'message_count': message_count}],
             'custom_data': None,
             'ros_distro': self._ros_distro,
         }

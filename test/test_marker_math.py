@@ -1,0 +1,55 @@
+"""The markers' numbers (``app/messages.py``'s few-call forms) are bit for bit those of
+``core.rotations``: random quaternions and vectors, with exact and signed zeros (planar
+motion), antiparallel and zero vectors."""
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy', reason='rclpy (ROS 2 wheels or a sourced workspace) is not installed')
+
+from ponytail_ros.app import messages as m  # noqa: E402
+from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors,  # noqa: E402
+                                         quat_multiply, quat_normalize, quat_rotate)
+
+
+def _quats(rng, n):
+    q = rng.normal(size=(n, 4))
+    # exact and signed zeros: planar rotations, axis-aligned ones, -0.0 components
+    q[rng.random(n) < 0.3, 0] = 0.0
+    q[rng.random(n) < 0.3, 2] = -0.0
+    q[rng.random(n) < 0.1, 1] = 0.0
+    q[rng.random(n) < 0.05] = [0.0, 0.0, 0.0, 1.0]
+    return quat_normalize(q) * rng.choice([1.0, -1.0], size=(n, 1))
+
+
+def _same(a, b):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_chain_marker_numbers(seed):
+    rng = np.random.default_rng(seed)
+    for n in (1, 2, 12, 40):
+        q = _quats(rng, n)
+        assert _same(m._axis_x(q), quat_axis_x(q))
+        assert _same(m._times_z_to_x(q), quat_multiply(q, np.broadcast_to(m.Q_Z_TO_X, q.shape)))
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_collider_marker_numbers(seed):
+    rng = np.random.default_rng(100 + seed)
+    qs = _quats(rng, 3000)
+    vs = rng.normal(size=(3000, 3)) * rng.choice([1e-3, 1.0, 1e3], size=(3000, 1))
+    vs[rng.random(3000) < 0.2, 1] = 0.0
+    vs[rng.random(3000) < 0.2, 0] = -0.0
+    vs[:20] = [0.0, 0.0, 1.0]
+    vs[20:40] = [0.0, 0.0, -1.0]          # antiparallel to +Z
+    vs[40:45] = [0.0, 0.0, 0.0]
+    z = np.array([0.0, 0.0, 1.0])
+    with np.errstate(invalid='ignore', divide='ignore'):
+        for q, v in zip(qs, vs):
+            assert _same(m._rotate(q.tolist(), v.tolist()), quat_rotate(q, v))
+            r = quat_rotate(q, v)
+            for a, b in ((z, r), (z, v), (v, r)):
+                assert _same(m._from_two_vectors(a.tolist(), b.tolist()),
+                             quat_from_two_vectors(a, b))
