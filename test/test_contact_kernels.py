@@ -15,7 +15,7 @@ import pytest
 import _oracle_collision
 import _oracle_limits
 from ponytail_ros.core import ChainSpec, KinematicState, Scene, Simulator, StillMotion
-from ponytail_ros.core import collision, limits, step
+from ponytail_ros.core import collision, contact_kernels, limits, step
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.state import half_vectors
@@ -123,6 +123,26 @@ def _caged():
 
 
 SCENES['caged: the row tables grow'] = (_caged, ShakeMotion, 0.6)
+
+
+def _swept():
+    """The rooted ponytail among twenty world spheres in a row behind the head, one of them
+    under the hanging chain: from ``SWEEP_COLLIDERS`` round colliders on, the broad phase
+    tests only those near each chain along the row (``contact_kernels.sweep_order``)."""
+    scene = _ponytail()
+    row = tuple(ColliderSpec.sphere(center=(-0.2, y, -0.32), radius=0.06, body=None,
+                                    friction=0.3)
+                for y in np.linspace(-1.9, 1.9, 20))
+    return Scene(chains=scene.chains, colliders=scene.colliders + row)
+
+
+SCENES['many spheres: the broad phase sweeps'] = (_swept, ShakeMotion, 0.6)
+
+
+def test_the_swept_scene_takes_the_sweep():
+    """The premise of the swept scene: more round colliders than ``SWEEP_COLLIDERS``."""
+    scene = _swept()
+    assert len(scene.colliders) >= contact_kernels.SWEEP_COLLIDERS
 
 
 def test_the_caged_chain_overflows_the_usual_row_tables():

@@ -55,6 +55,9 @@ REG = 1e-9                   # relative regularisation of the (unit-diagonal) De
 PIVOT_TOL = 1e-12            # sign tolerance of the principal pivoting (scaled units)
 ROW_COLLIDERS = 8            # the row tables hold m × min(K, this) + 2 n_l rows (m colliding
                              # segments, K colliders, n_l limited joints); more are allocated
+SWEEP_COLLIDERS = 16         # from this many round colliders on, the broad phase sweeps them
+                             # sorted along one axis (``sweep_order``) instead of testing all
+SWEEP_MARGIN = 1e-9          # relative: the sweep keeps colliders this much farther out
 PAIR_MARGIN = 1e-3           # m: the per-pair broad phase keeps pairs this much farther out
                              # (rounding, and joints not exactly closed)
 
@@ -556,7 +559,8 @@ def near(anchor_position, pose, v, w, det, dt):
 # candidate rows, cap the row tables' rows (``ROW_COLLIDERS``). Indices into the tuple, and
 # into the first axis of its stacked arrays:
 (WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
- WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT, WS_STATE, WS_BOX, WS_TOUCHED, WS_SOLVE) = range(19)
+ WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT, WS_STATE, WS_BOX, WS_TOUCHED, WS_SOLVE,
+ WS_ORDER) = range(20)
 # WS_VEC (7, n, 3): the half-vectors of the factorisation, four scratch vectors, then the
 # step's velocities on entry (kept to resolve it again if the row tables overflow).
 V_H, V_N0, V_N1, V_N2, V_N3, V_V0, V_W0 = range(7)
@@ -569,9 +573,9 @@ DT_DEPTH, DT_S, DT_T = range(3)
 L_GAP, L_SEP = range(2)
 # WS_ROWVEC (4, k_max): per-row right-hand side, impulses, slip speeds, friction bounds.
 R_B, R_LAM, R_SPEED, R_BOUND = range(4)
-# WS_PAIRS (nd, K) and WS_SLOTS (3, nd) integers, WS_STATE (nd, K) bytes and WS_BOX (K, 6)
-# floats: the per-pair broad phase (``near_pairs``: kept pairs, slots, pair states, the
-# round colliders' boxes).
+# WS_PAIRS (nd, K) and WS_SLOTS (3, nd) integers, WS_STATE (nd, K) bytes, WS_BOX (K, 7)
+# floats and WS_ORDER (K,) integers: the per-pair broad phase (``near_pairs``: kept pairs,
+# slots, pair states, the round colliders' boxes and their sweep order, ``sweep_order``).
 S_COUNT, S_FIRST, S_END = range(3)
 # WS_TOUCHED (2, C) integers: a mark per chain and the list of the chains with rows
 # (``factor_touched``).
@@ -613,9 +617,10 @@ def workspace(n, m, K, nl, nd, n_chains, nc_max):
             np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
             np.empty(k_max, dtype=np.bool_), np.empty((nd, K), dtype=np.int64),
             np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64),
-            np.empty((nd, K), dtype=np.uint8), np.empty((K, 6)),
+            np.empty((nd, K), dtype=np.uint8), np.empty((K, 7)),
             np.empty((2, n_chains), dtype=np.int64),
-            solve_scratch(cap, min(cap, SOLVE_GROUP_ROWS), nc_max, n_chains))
+            solve_scratch(cap, min(cap, SOLVE_GROUP_ROWS), nc_max, n_chains),
+            np.empty(K, dtype=np.int64))
 
 
 @njit(cache=True, _nrt=True)
@@ -627,7 +632,8 @@ def grown(ws):
     return (ws[WS_VEC], ws[WS_MAT], ws[WS_R3], np.empty((3, k_max, NCOL)),
             np.empty((3, k_max, 3), dtype=np.int64), ws[WS_DET], ws[WS_OWN], ws[WS_Q],
             ws[WS_AXIS], ws[WS_LIM], ws[WS_ROWVEC], ws[WS_KEEP], ws[WS_PAIRS], ws[WS_SLOTS],
-            ws[WS_CHAIN_SLOT], ws[WS_STATE], ws[WS_BOX], ws[WS_TOUCHED], ws[WS_SOLVE])
+            ws[WS_CHAIN_SLOT], ws[WS_STATE], ws[WS_BOX], ws[WS_TOUCHED], ws[WS_SOLVE],
+            ws[WS_ORDER])
 
 
 @njit(cache=True, inline='always')
@@ -665,6 +671,61 @@ def contact_frame(xg, hg, s, t, aj, dj, nj, radius, is_round):
             npn = norm(p)
             nrm = (p[0] / npn, p[1] / npn, p[2] / npn)
     return nrm, sub(ps, scale(radius, nrm))
+
+
+@njit(cache=True, inline='always')
+def test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius):
+    """``near_pairs``' test of the pair (chain slot c at anchor ``p``, collider j), unless
+    decided already: kept (state 1) when the collider's surface is within ``reach``, a round
+    collider's box tested first (``outside_box`` with the bounds of ``box``)."""
+    if state[c, j] != 0:
+        return
+    if j < n_round and (p[0] < box[j, 0] - reach or p[0] > box[j, 3] + reach
+                        or p[1] < box[j, 1] - reach or p[1] > box[j, 4] + reach
+                        or p[2] < box[j, 2] - reach or p[2] > box[j, 5] + reach):
+        return
+    if anchor_distance(p, v3(a0, j), v3(d2, j), v3(normal, j), j < n_round,
+                       col_radius[j]) < reach:
+        state[c, j] = 1
+
+
+@njit(cache=True, _nrt=False)
+def sweep_order(box, nr, order):
+    """The broad phase's sweep over many round colliders (``near_pairs``): ``(sweep, axis,
+    widest, bound)``; sweep False (test every pair) for fewer than ``SWEEP_COLLIDERS`` or a
+    box that is not finite. Else ``order`` ``(nr,)`` receives the colliders sorted by their
+    box's lower bound along the axis of the largest spread (column 6 of ``box``: that bound),
+    ``widest`` is the widest box along it, ``bound`` the largest magnitude of a bound."""
+    if nr < SWEEP_COLLIDERS:
+        return False, 0, 0.0, 0.0
+    bound = 0.0
+    ax, spread = 0, -1.0
+    for a in range(3):
+        lo, hi = np.inf, -np.inf
+        for j in range(nr):
+            if not (np.isfinite(box[j, a]) and np.isfinite(box[j, 3 + a])):
+                return False, 0, 0.0, 0.0
+            lo = min(lo, box[j, a])
+            hi = max(hi, box[j, a])
+            bound = max(bound, max(abs(box[j, a]), abs(box[j, 3 + a])))
+        if hi - lo > spread:
+            ax, spread = a, hi - lo
+    wmax = 0.0
+    for j in range(nr):
+        order[j] = j
+        box[j, 6] = box[j, ax]
+        wmax = max(wmax, box[j, 3 + ax] - box[j, ax])
+    # Shell sort of the order by the lower bounds (Ciura's gaps; few colliders).
+    for gap in (701, 301, 132, 57, 23, 10, 4, 1):
+        for i in range(gap, nr):
+            t = order[i]
+            key = box[t, 6]
+            k = i
+            while k >= gap and box[order[k - gap], 6] > key:
+                order[k] = order[k - gap]
+                k -= gap
+            order[k] = t
+    return True, ax, wmax, bound
 
 
 @njit(cache=True, inline='always')
@@ -710,23 +771,37 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     deepest = 0.0
     skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
     tested = -1.0
+    order = ws[WS_ORDER][:min(K, n_round)]
+    sweep, ax, wmax, bound = sweep_order(box, order.shape[0], order)
     while skin > tested:
         tested = skin
         for c in range(nd):
             reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
                      + PAIR_MARGIN)
             p = v3(anchor_position, det_chains[c])
-            for j in range(K):
-                if state[c, j] != 0:
-                    continue
-                if j < n_round and (p[0] < box[j, 0] - reach or p[0] > box[j, 3] + reach
-                                    or p[1] < box[j, 1] - reach or p[1] > box[j, 4] + reach
-                                    or p[2] < box[j, 2] - reach or p[2] > box[j, 5] + reach):
-                    continue
-                aj, dj = v3(a0, j), v3(d2, j)
-                if anchor_distance(p, aj, dj, v3(normal, j), j < n_round,
-                                   col_radius[j]) < reach:
-                    state[c, j] = 1
+            if not sweep:
+                for j in range(K):
+                    test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius)
+                continue
+            # Only the round colliders whose box can be within reach along the axis ``ax``
+            # (boxes sorted by their lower bound there, none wider than ``wmax``), with a
+            # margin far above rounding: every pair left out fails the box test.
+            margin = SWEEP_MARGIN * (1.0 + abs(p[ax]) + reach + wmax + bound)
+            left = p[ax] - reach - wmax - margin
+            right = p[ax] + reach + margin
+            lo, hi = 0, order.shape[0]
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if box[order[mid], 6] < left:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            while lo < order.shape[0] and box[order[lo], 6] <= right:
+                test_pair(state, c, order[lo], p, reach, box, a0, d2, normal, n_round,
+                          col_radius)
+                lo += 1
+            for j in range(order.shape[0], K):
+                test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius)
         for c in range(nd):
             for j in range(K):
                 if state[c, j] != 1:
