@@ -24,7 +24,7 @@ from .kernel_cache import ensure_fresh
 
 ensure_fresh()          # before any kernel's cache is loaded (see ``kernel_cache``)
 
-__all__ = ['factor', 'solve', 'solve_many', 'invert_pivot', 'pivot']
+__all__ = ['factor', 'solve', 'solve_from', 'solve_many', 'invert_pivot', 'pivot']
 
 _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _ZERO6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -115,9 +115,17 @@ def factor(D, L, is_first, Pinv, Lo):
 @nb.njit(cache=True, _nrt=False)
 def solve(Pinv, Lo, is_first, b):
     """Solve A x = b with the factors of ``factor``; ``b`` ``(n, 3)`` is overwritten by x."""
+    solve_from(Pinv, Lo, is_first, b, 1)
+
+
+@nb.njit(cache=True, _nrt=False)
+def solve_from(Pinv, Lo, is_first, b, i0):
+    """``solve`` for a right-hand side that is zero before row ``i0`` (a contact row's
+    response): the forward pass starts there (before, it would subtract zeros), the backward
+    pass is whole."""
     n = b.shape[0]
     # Forward: (1 + 𝓛) z = b.
-    for i in range(1, n):
+    for i in range(max(i0, 1), n):
         if not is_first[i]:
             z0, z1, z2 = b[i - 1, 0], b[i - 1, 1], b[i - 1, 2]
             b[i, 0] -= Lo[i, 0, 0] * z0 + Lo[i, 0, 1] * z1 + Lo[i, 0, 2] * z2

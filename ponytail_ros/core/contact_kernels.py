@@ -35,6 +35,7 @@ from .chain_solve import factor as _chain_factor
 from .chain_solve import invert_pivot as _invert_pivot
 from .chain_solve import pivot as _pivot
 from .chain_solve import solve as _chain_solve
+from .chain_solve import solve_from
 from .chain_solve import store_factors as _store_factors
 from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
                             qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
@@ -1301,30 +1302,6 @@ def free_joint_errors(vg, wg, wp, has_parent, gl, s, h, c_dot):
         d = joint_error(zero, zero, vg, wg, h, gl + 1, s + gl + 1, False)
         for a in range(3):
             c_dot[gl + 1, a] = d[a]
-
-
-@njit(cache=True, _nrt=False)
-def solve_from(Pinv, Lo, is_first, b, i0):
-    """``chain_solve.solve`` for a right-hand side that is zero before row ``i0``: the forward
-    pass starts there (it would subtract zeros before), the backward pass is whole."""
-    n = b.shape[0]
-    for i in range(max(i0, 1), n):
-        if not is_first[i]:
-            z0, z1, z2 = b[i - 1, 0], b[i - 1, 1], b[i - 1, 2]
-            b[i, 0] -= Lo[i, 0, 0] * z0 + Lo[i, 0, 1] * z1 + Lo[i, 0, 2] * z2
-            b[i, 1] -= Lo[i, 1, 0] * z0 + Lo[i, 1, 1] * z1 + Lo[i, 1, 2] * z2
-            b[i, 2] -= Lo[i, 2, 0] * z0 + Lo[i, 2, 1] * z1 + Lo[i, 2, 2] * z2
-    for i in range(n - 1, -1, -1):
-        z0, z1, z2 = b[i, 0], b[i, 1], b[i, 2]
-        y0 = Pinv[i, 0, 0] * z0 + Pinv[i, 0, 1] * z1 + Pinv[i, 0, 2] * z2
-        y1 = Pinv[i, 1, 0] * z0 + Pinv[i, 1, 1] * z1 + Pinv[i, 1, 2] * z2
-        y2 = Pinv[i, 2, 0] * z0 + Pinv[i, 2, 1] * z1 + Pinv[i, 2, 2] * z2
-        if i + 1 < n and not is_first[i + 1]:
-            x0, x1, x2 = b[i + 1, 0], b[i + 1, 1], b[i + 1, 2]
-            y0 -= Lo[i + 1, 0, 0] * x0 + Lo[i + 1, 1, 0] * x1 + Lo[i + 1, 2, 0] * x2
-            y1 -= Lo[i + 1, 0, 1] * x0 + Lo[i + 1, 1, 1] * x1 + Lo[i + 1, 2, 1] * x2
-            y2 -= Lo[i + 1, 0, 2] * x0 + Lo[i + 1, 1, 2] * x1 + Lo[i + 1, 2, 2] * x2
-        b[i, 0], b[i, 1], b[i, 2] = y0, y1, y2
 
 
 @njit(cache=True, _nrt=False)
