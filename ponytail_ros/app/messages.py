@@ -37,11 +37,12 @@ import numpy as np
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
 from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
-                   pose_array_layout, pose_block, pose_stamped_cdr, pose_stamped_fields)
+                   pose_array_fields, pose_array_layout, pose_block, pose_stamped_cdr,
+                   pose_stamped_fields)
 
-__all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'Stamp', 'tf_cdr', 'ChainMessages',
-           'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X', 'COLLIDER_COLOR',
-           'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
+__all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'ReceivedPoses', 'Stamp', 'tf_cdr',
+           'ChainMessages', 'ColliderMarkers', 'DELETE_ALL', 'IDENTITY_POSE', 'Q_Z_TO_X',
+           'COLLIDER_COLOR', 'TF_TOPIC', 'TF_QOS_DEPTH', 'segment_frame']
 
 #: The segments as TF frames: the topic (the node publishes it live, recordings hold it).
 TF_TOPIC = '/tf'
@@ -277,6 +278,65 @@ class ReceivedPose:
             msg.header.stamp = Time(sec=self.stamp.sec, nanosec=self.stamp.nanosec)
             msg.header.frame_id = self.frame_id
             _set_pose(msg.pose, self.position, self.orientation)
+            self._message = msg
+        return self._message
+
+
+class ReceivedPoses:
+    """A ``geometry_msgs/PoseArray`` of input poses (``frames_topic``: every extra frame's pose
+    in one message, in the order of ``frames``), as received in CDR bytes or as a message.
+
+    ``poses`` ``(n, 7)``: x, y, z, qx, qy, qz, qw per pose. Build with :meth:`decode` (None when
+    the bytes need rclpy's deserialisation) or :meth:`of_message`.
+    """
+
+    __slots__ = ('stamp', 'frame_id', 'poses', '_message')
+
+    def __init__(self, stamp: Stamp, frame_id: str, poses: np.ndarray):
+        self.stamp = stamp
+        self.frame_id = frame_id
+        self.poses = poses
+        self._message: Optional[PoseArray] = None
+
+    @classmethod
+    def decode(cls, cdr: bytes) -> Optional['ReceivedPoses']:
+        fields = pose_array_fields(cdr)
+        if fields is None:
+            return None
+        sec, nanosec, frame_id, poses = fields
+        return cls(Stamp(sec, nanosec), frame_id, poses)
+
+    @classmethod
+    def of_message(cls, msg: PoseArray) -> 'ReceivedPoses':
+        poses = np.array([(p.position.x, p.position.y, p.position.z, p.orientation.x,
+                           p.orientation.y, p.orientation.z, p.orientation.w)
+                          for p in msg.poses], dtype=float).reshape(-1, 7)
+        out = cls(Stamp(msg.header.stamp.sec, msg.header.stamp.nanosec), msg.header.frame_id,
+                  poses)
+        out._message = msg
+        return out
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def canonical_cdr(self) -> bytes:
+        """The canonical CDR of the message (``wire.PoseArrayLayout``): what the recorder
+        writes."""
+        layout = pose_array_layout(self.frame_id, len(self.poses))
+        return layout.encode(self.stamp.sec, self.stamp.nanosec, self.poses)
+
+    def message(self) -> PoseArray:
+        """The ``PoseArray`` (built on the first call; the same object after)."""
+        if self._message is None:
+            msg = PoseArray()
+            msg.header.stamp = Time(sec=self.stamp.sec, nanosec=self.stamp.nanosec)
+            msg.header.frame_id = self.frame_id
+            poses = []
+            for row in self.poses.tolist():
+                pose = Pose()
+                _set_pose(pose, row[:3], row[3:])
+                poses.append(pose)
+            msg.poses = poses
             self._message = msg
         return self._message
 

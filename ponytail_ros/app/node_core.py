@@ -94,6 +94,8 @@ class NodeCore:
         check_names(self.chains, self.colliders, self.frames)
         self.scene = check_values(self.values, self.chains)
         self.frame_topics = frame_topics(self.values)
+        #: The one ``PoseArray`` topic of all the frames' poses, or '' (a topic each).
+        self.frames_topic = str(self.values.get('frames_topic') or '')
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         self._chain_msgs = self._make_chain_messages(self.scene)
@@ -132,6 +134,18 @@ class NodeCore:
         """Queue a pose of frame ``i`` (``frames[i]``), as :meth:`push_head`."""
         self.runner.push_frame(i, self._stamp(stamp, receive_ns), position, orientation,
                                frame_id)
+
+    def push_frames(self, stamp, receive_ns: int, poses, frame_id: str) -> None:
+        """Queue one pose of every frame from one ``PoseArray`` (``frames_topic``): ``poses``
+        ``(F, 7)`` (x, y, z, qx, qy, qz, qw), row i the pose of ``frames[i]``, each checked as
+        :meth:`push_frame`'s. Another count than F drops the message (``frames_count``)."""
+        t = self._stamp(stamp, receive_ns)
+        if len(poses) != len(self.frames):
+            self.runner.drop_frames('frames_count', t)
+            return
+        push = self.runner.push_frame
+        for i, row in enumerate(poses.tolist() if hasattr(poses, 'tolist') else poses):
+            push(i, t, (row[0], row[1], row[2]), (row[3], row[4], row[5], row[6]), frame_id)
 
     # -- the tick ------------------------------------------------------------------------------
     def _make_chain_messages(self, scene):

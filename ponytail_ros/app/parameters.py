@@ -66,7 +66,7 @@ STAMP_SOURCES = ('header', 'receive')
 #: the head, or the head pose's frame (static).
 FRAMES = ('head', 'world')
 #: Most extra kinematic frames (each is a subscription and a pose estimator).
-MAX_FRAMES = 64
+MAX_FRAMES = 256
 #: Group prefixes a chain, collider or frame may not be named after.
 RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains', 'colliders',
                   'frames', 'world')
@@ -135,7 +135,14 @@ GLOBAL_PARAMS = (
              '<name>.topic; names distinct from the chains\' and colliders\'): bodies whose pose '
              'arrives on their own PoseStamped topic, in the head pose\'s frame, which chains '
              '(<chain>.anchor) and colliders (<collider>.frame) can be fixed in, e.g. a forearm. '
-             f'At most {MAX_FRAMES}.', live=False),
+             f'At most {MAX_FRAMES}; more than a few: give them one topic, frames_topic.',
+             live=False),
+    ParamDef('frames_topic', '', 'string', 'One geometry_msgs/PoseArray topic for all the '
+             'frames (sensor-data QoS): poses[i] is the pose of frames[i], header.frame_id that '
+             'of the head poses, header.stamp the time of all of them; a message with another '
+             'pose count is dropped (frames_count). "" = each frame on its own <frame>.topic. '
+             'One subscription instead of one per frame: a node with many characters.',
+             live=False),
     ParamDef('interpolation_delay', 0.0, 'double', 'Minimum delay, s: the chain is driven by '
              'the head as it was delay = max(interpolation_delay, interpolation_delay_periods x '
              'input period) before the tick; samples on both sides of that time give smooth '
@@ -366,8 +373,10 @@ def frame_names(values):
 
 
 def frame_topic(values, frame):
-    """The topic of ``frame`` as configured (``<frame>.topic``, default ``<frame>_pose``)."""
-    return values.get(chain_param_name(frame, 'topic')) or f'{frame}_pose'
+    """The topic of ``frame`` as configured: ``frames_topic`` if set (all frames' poses in one
+    ``PoseArray``), else ``<frame>.topic`` (default ``<frame>_pose``)."""
+    return (values.get('frames_topic') or values.get(chain_param_name(frame, 'topic'))
+            or f'{frame}_pose')
 
 
 def frame_topics(values):
@@ -403,7 +412,15 @@ def check_names(chains, colliders=(), frames=()):
 
 
 def _check_frame_topics(values, frames):
-    """Each frame's topic a valid ROS name, distinct from the head's and the others'."""
+    """Each frame's topic a valid ROS name, distinct from the head's and the others' (or the
+    one ``frames_topic``, distinct from the head's)."""
+    batch = values.get('frames_topic') or ''
+    if batch:
+        if not _TOPIC_NAME.match(batch) or batch == 'head_pose':
+            raise ParameterError('frames_topic', f'frames_topic = {batch!r} is not allowed: '
+                                                 f'must be "" (each frame on its <frame>.topic) '
+                                                 f'or a ROS topic name other than head_pose')
+        return
     seen = {'head_pose': 'the head'}
     for f in frames:
         name = chain_param_name(f, 'topic')

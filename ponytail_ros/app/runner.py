@@ -95,7 +95,7 @@ __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET
            'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change']
 
 #: Why a head pose sample may be dropped (counted per reason).
-DROP_REASONS = tuple(REJECT_REASONS) + ('frame_changed', 'queue_overflow')
+DROP_REASONS = tuple(REJECT_REASONS) + ('frame_changed', 'queue_overflow', 'frames_count')
 #: Why the chain may be put back at rest.
 RESET_REASONS = ('teleport', 'frame_changed', 'clock_backwards', 'rebuild', 'guard')
 
@@ -387,6 +387,11 @@ class ChainRunner:
         if len(queue) == queue.maxlen:
             self._drop('queue_overflow', queue[0][0], self.frames[i])
         queue.append((t, position, orientation, frame_id))
+
+    def drop_frames(self, reason, t):
+        """Count a batch of frame poses (``frames_topic``) dropped whole, e.g. for the wrong
+        pose count (``frames_count``)."""
+        self._drop(reason, t, 'frames')
 
     def _drop(self, reason, t, source='head'):
         self.dropped[reason] += 1

@@ -41,6 +41,7 @@ import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
            'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
+           'pose_array_fields',
            'pose_stamped_fields', 'pose_stamped_cdr', 'is_canonical_pose_stamped']
 
 #: CDR little endian, options 0.
@@ -316,6 +317,34 @@ def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[floa
         return None
     pose = _POSE.unpack_from(data, at)
     return sec, nanosec, frame_id, pose[:3], pose[3:]
+
+
+def pose_array_fields(data: bytes) -> Optional[Tuple[int, int, str, np.ndarray]]:
+    """``(sec, nanosec, frame_id, poses)`` of the CDR of a ``geometry_msgs/msg/PoseArray``,
+    ``poses`` ``(n, 7)`` (x, y, z, qx, qy, qz, qw; a read-only view of ``data``); None if
+    ``data`` is not plain little-endian CDR of that layout, or its frame is not plain UTF-8
+    without a NUL inside (then deserialise it the usual way). The inverse of
+    ``PoseArrayLayout.encode``."""
+    if len(data) < 20 or data[0] != 0 or data[1] != 1:
+        return None
+    sec, nanosec = _TIME.unpack_from(data, 4)
+    (length,) = _U32.unpack_from(data, 12)
+    end = 16 + length                               # after the frame's NUL
+    at = end + (-(end - len(ENCAPSULATION)) % 4)    # the count, aligned to 4
+    if length == 0 or at + 4 > len(data) or data[end - 1] != 0:
+        return None
+    frame = data[16:end - 1]
+    if b'\x00' in frame:
+        return None
+    try:
+        frame_id = frame.decode('utf-8')
+    except UnicodeDecodeError:
+        return None
+    (n,) = _U32.unpack_from(data, at)
+    layout = pose_array_layout(frame_id, n)
+    if layout.size > len(data):
+        return None
+    return sec, nanosec, frame_id, layout.poses(data)
 
 
 def pose_stamped_cdr(sec: int, nanosec: int, frame_id: str, position, orientation) -> bytes:

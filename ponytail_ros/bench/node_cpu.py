@@ -4,8 +4,13 @@ Starts ``ponytail_head_demo`` (the built-in animation publisher) and ``ponytail_
 params file as two processes in a private ROS domain, as a user would, lets the node start
 (compile or load the step, first poses), then reads the node process's CPU time (user +
 system, ``/proc/<pid>/stat``) over ``--seconds`` of wall time: the share of one core it takes.
-Also reads the node's ``/diagnostics`` over that time: the tick's wall time, p99 and largest, per
-1 s window. Prints one line per run; ``--json`` writes them.
+Also reads the node's ``/diagnostics`` over that time: the tick's wall time, p99 and largest, the
+ticks per second and the simulated time dropped, per 1 s window. Prints one line per run;
+``--json`` writes them.
+
+``--characters N``: each params file's character copied N times into one node
+(``app/crowd.py``), the head demo publishing the other characters' heads in one ``PoseArray``
+(``frame_poses``): whether a node with N characters keeps its rate on one core.
 """
 import argparse
 import json
@@ -30,7 +35,8 @@ def on_diagnostics(msg):
     for status in msg.status:
         kv = {v.key: v.value for v in status.values}
         if 'tick time p99 (ms)' in kv:
-            print(json.dumps([float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)'])]),
+            print(json.dumps([float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)']),
+                              float(kv['ticks per s']), float(kv['dropped time (s)'])]),
                   flush=True)
 node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
 try:
@@ -46,13 +52,17 @@ def _cpu_seconds(pid):
     return (int(fields[11]) + int(fields[12])) / _TICK       # utime + stime
 
 
-def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=False):
+def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=False,
+            characters=1):
     """The node's share of one core (``floor``: of ``rclpy_floor`` instead, ``params``
-    unused)."""
+    unused) and the /diagnostics windows seen; ``characters`` > 1: the head demo publishes
+    the other characters' heads on ``frame_poses`` (``params`` must be a crowd's,
+    ``app/crowd.py``)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     head = subprocess.Popen([sys.executable, '-c', 'from ponytail_ros.ros.head_demo import main; '
-                             'main()', '--ros-args', '-p', f'rate:={head_rate}'],
+                             'main()', '--ros-args', '-p', f'rate:={head_rate}',
+                             '-p', f'characters:={characters}'],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     cmd = (['-m', 'ponytail_ros.bench.rclpy_floor'] if floor else
            ['-c', 'from ponytail_ros.node import main; main()', '--ros-args', '--params-file',
@@ -96,23 +106,49 @@ def main(argv=None):
     p.add_argument('--json', help='write the results to this file')
     p.add_argument('--floor', action='store_true',
                    help='also measure rclpy_floor: the same ROS traffic with no simulation')
+    p.add_argument('--characters', type=int, default=1,
+                   help='a crowd of this many copies of each params file\'s character in one '
+                        'node (app/crowd.py), the head demo publishing all their heads')
     args = p.parse_args(argv)
     rows = []
+    if args.characters > 1:
+        import tempfile
+
+        from ponytail_ros.app.crowd import crowd_values, params_file_text
+        from ponytail_ros.app.param_values import values_from_params_file
+        tmp = tempfile.mkdtemp(prefix='node_cpu_')
+        crowds = []
+        for params in args.params:
+            path = os.path.join(tmp, f'crowd{args.characters}_{os.path.basename(params)}')
+            with open(path, 'w') as f:
+                f.write(params_file_text(crowd_values(values_from_params_file(params),
+                                                      args.characters), args.characters,
+                                         params))
+            crowds.append(path)
+        args.params = crowds
     if args.floor:
         share, _ = measure(None, args.seconds, args.warmup, floor=True)
         rows.append(dict(params='rclpy_floor', cpu_share=share, seconds=args.seconds))
         print(f'rclpy_floor (no simulation): {100 * share:.1f} % of one core (same measurement)')
     for params in args.params:
-        share, windows = measure(params, args.seconds, args.warmup)
+        share, windows = measure(params, args.seconds, args.warmup,
+                                 characters=args.characters)
         p99 = [w[0] for w in windows]
-        rows.append(dict(params=params, cpu_share=share, seconds=args.seconds,
-                         tick_p99_ms=p99, tick_max_ms=[w[1] for w in windows]))
+        rows.append(dict(params=params, characters=args.characters, cpu_share=share,
+                         seconds=args.seconds, tick_p99_ms=p99,
+                         tick_max_ms=[w[1] for w in windows],
+                         ticks_per_s=[w[2] for w in windows],
+                         dropped_time_s=[w[3] for w in windows]))
         print(f'{params}: {100 * share:.1f} % of one core (CPU time over {args.seconds:g} s '
-              f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz)')
+              f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz'
+              f'{f", {args.characters} characters" if args.characters > 1 else ""})')
         if p99:
             print(f'  tick time p99 per 1 s /diagnostics window: median {np.median(p99):.2f} ms, '
                   f'worst {max(p99):.2f} ms ({len(p99)} windows); largest tick '
                   f'{max(w[1] for w in windows):.2f} ms')
+            rates = [w[2] for w in windows]
+            print(f'  ticks per s per window: median {np.median(rates):.1f}, lowest '
+                  f'{min(rates):.1f}; simulated time dropped by the end: {windows[-1][3]:.3f} s')
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)

@@ -21,14 +21,15 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values,
                                            unknown_parameter_warnings, values_from_metadata,
                                            values_from_params_file)
-from ponytail_ros.app.messages import ReceivedPose
+from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.parameters import ParameterError, frame_names
 from ponytail_ros.app.parameters import frame_topics as topics_of
 
 from .bag import BagError
 from .inputs import (ReplayError, ReplayInput, event_values, foreign_clock, head_stamps,
                      recorded_value, used_frame_names)
-from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns
+from .recorder import (FRAMES_TYPE, HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder,
+                       stamp_ns)
 from .replay_node import ReplayNode
 
 __all__ = ['replay', 'ReplayResult', 'Progress', 'LOOK_AHEAD_SAMPLES', 'LOOK_AHEAD_SPAN_NS',
@@ -335,9 +336,9 @@ def _frame_inputs(inp: ReplayInput, values, warn) -> Tuple[tuple, tuple, List[st
                 raise ReplayError(f'{inp.path} has no topic {topic} (the poses of frame {f}, '
                                   f'which the scene uses)')
             warn(f'{inp.path} has no topic {topic}: frame {f} gets no poses')
-        elif inp.topics[topic] not in HEAD_TYPES:
+        elif inp.topics[topic] not in (*HEAD_TYPES, FRAMES_TYPE):
             raise ReplayError(f'{inp.path}: topic {topic} (frame {f}) holds {inp.topics[topic]}, '
-                              f'not a pose ({" or ".join(HEAD_TYPES)})')
+                              f'not a pose ({" or ".join((*HEAD_TYPES, FRAMES_TYPE))})')
     return frames, frame_topics, [inp.topics.get(topic, HEAD_TYPES[0]) for topic in frame_topics]
 
 
@@ -429,6 +430,10 @@ class _OfflineLoop:
             if type_name == HEAD_TYPES[0]:
                 out[topic] = lambda data, cls=cls: (ReceivedPose.decode(data)
                                                     or deserialize_message(data, cls))
+            elif type_name == FRAMES_TYPE and topic in self.frame_index:
+                out[topic] = lambda data, cls=cls: (
+                    ReceivedPoses.decode(data)
+                    or ReceivedPoses.of_message(deserialize_message(data, cls)))
             else:
                 out[topic] = lambda data, cls=cls: deserialize_message(data, cls)
         return out
@@ -468,8 +473,11 @@ class _OfflineLoop:
         self._input_seen(log_ns)
 
     def _frame(self, topic: str, msg, log_ns: int) -> None:
-        for i in self.frame_index[topic]:
-            self.node.frame(i, msg, log_ns)
+        if isinstance(msg, ReceivedPoses):       # (frames_topic: every frame in one message)
+            self.node.frame_poses(msg, log_ns)
+        else:
+            for i in self.frame_index[topic]:
+                self.node.frame(i, msg, log_ns)
         self.result.frame_samples += 1
         self._input_seen(log_ns)
 

@@ -50,11 +50,11 @@ from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of
 from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
                  tfmessage_type_hash)
 from .cdr import serialize_canonical
-from ponytail_ros.app.messages import ReceivedPose
+from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.param_values import metadata_from_values
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
-           'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'stamp_ns', 'expand_record_path',
+           'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'FRAMES_TYPE', 'stamp_ns', 'expand_record_path',
            'resolve_topic']
 
 #: Metadata record describing the recording (str -> str, lists as JSON).
@@ -64,6 +64,8 @@ FORMAT_VERSION = '1'
 PARAMETER_EVENTS_TOPIC = '/parameter_events'
 #: Message types accepted as head input (the node subscribes to the first).
 HEAD_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
+#: The type of ``frames_topic`` (every frame's pose in one message).
+FRAMES_TYPE = 'geometry_msgs/msg/PoseArray'
 #: The QoS recorded for the head topic: what a reliable publisher (the head demo) offers; both
 #: reliable and best-effort subscriptions connect to a ``ros2 bag play`` using it.
 HEAD_QOS = QoSProfile(depth=10)
@@ -333,11 +335,12 @@ class RunRecorder:
         self._input(self.layout.head_topic, msg, log_time_ns)
 
     def frame(self, frame_index: int, msg: Any, log_time_ns: int) -> None:
-        """A pose of frame ``frame_index`` as received, at its receive time (as ``head``)."""
+        """A pose of frame ``frame_index`` as received, at its receive time (as ``head``); or,
+        on ``frames_topic``, a ``ReceivedPoses`` of every frame (recorded once)."""
         self._input(self.layout.frame_topics[frame_index], msg, log_time_ns)
 
     def _input(self, topic: str, msg: Any, log_time_ns: int) -> None:
-        if not isinstance(msg, ReceivedPose):
+        if not isinstance(msg, (ReceivedPose, ReceivedPoses)):
             self.write(topic, msg, log_time_ns)
         elif self._writable():
             # Its fields re-encoded as canonical CDR: no message object, no serialisation.
@@ -436,8 +439,12 @@ class RunRecorder:
         parameters = {p.name: _plain(p.value) for p in node.get_parameters(names)}
         qos = {p.topic_name: p.qos_profile
                for p in (*pose_publishers, marker_publisher, diagnostics_publisher)}
+        frame_types = [FRAMES_TYPE if getattr(s, 'msg_type', None) is not None
+                       and s.msg_type.__name__ == 'PoseArray' else HEAD_TYPES[0]
+                       for s in frame_subscriptions]
         try:
             recorder = cls(path, layout, parameters, qos=qos, tf_prefix=tf_prefix,
+                           frame_types=frame_types,
                            info={'source': 'ponytail_node'},
                            on_error=lambda text: logger.error(
                                f'Recording stopped: {text}; the simulation goes on'))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
-from ponytail_ros.app.messages import ReceivedPose
+from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.node_core import NodeCore, time_msg
 from ponytail_ros.app.parameters import ParameterError
 from ponytail_ros.app.sink import HEAD, TickSink
@@ -61,6 +61,12 @@ class ReplayNode:
         self.sink.on_input(i, msg, log_time_ns)
         stamp, frame_id, p, q = _fields(msg, self._frame_types[i])
         self.core.push_frame(i, stamp, log_time_ns, p, q, frame_id)
+
+    def frame_poses(self, msg: ReceivedPoses, log_time_ns: int) -> None:
+        """A recorded ``PoseArray`` of every frame's pose (``frames_topic``) at its receive
+        time, recorded once and pushed as the node does (``NodeCore.push_frames``)."""
+        self.sink.on_input(0, msg, log_time_ns)
+        self.core.push_frames(msg.stamp, log_time_ns, msg.poses, msg.frame_id)
 
     def tick(self, t_ns: int):
         """Tick at ``t_ns``; its ``TickOutput`` (None: nothing to publish yet)."""

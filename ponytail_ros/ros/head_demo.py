@@ -13,19 +13,27 @@ Parameters:
     origin (3 doubles, m, default [0, 0, 1.6]): where the head starts (moves the whole motion).
     time_scale (0.01–100, default 1): play speed of the motion.
     best_effort (default False): publish best effort instead of reliable.
+    characters (1–1024, default 1): with more than 1, also publish ``frame_poses``
+        (``geometry_msgs/PoseArray``, same QoS and stamp): the heads of characters 2..N, one
+        pose each: the same motion started ``app.crowd.CHARACTER_PHASE`` s later per
+        character, ``CHARACTER_SPACING`` m apart along X: the input of a node with
+        ``frames_topic: frame_poses`` (``python -m ponytail_ros.app.crowd`` writes its params
+        file).
 The motion itself is ROS-free (``ponytail_ros/app/head_script.py``).
 """
 import sys
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
-from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from geometry_msgs.msg import PoseArray, PoseStamped
 
 import numpy as np
 
 from ponytail_ros.core.head import StillMotion, SwayYawMotion
+from ponytail_ros.app.crowd import crowd_offsets
 from ponytail_ros.app.head_script import HeadScript
+from ponytail_ros.app.wire import pose_array_layout
 from ponytail_ros.ros.spin import run_node
 
 __all__ = ['HeadDemoNode', 'make_motion', 'main']
@@ -49,6 +57,15 @@ def make_motion(kind, origin=(0.0, 0.0, 1.6), time_scale=1.0):
     raise ValueError(f'motion must be one of {MOTIONS}, not {kind!r}')
 
 
+def _pose(motion, t):
+    """``(position (3,), orientation (4,))`` of ``motion`` at ``t`` (its ``pose`` when it has
+    one: no derivatives needed)."""
+    if hasattr(motion, 'pose'):
+        return motion.pose(t)
+    state = motion.state_at(t)
+    return state.position[0], state.orientation[0]
+
+
 class HeadDemoNode(Node):
     """Publishes ``head_pose`` from a scripted motion at ``rate``."""
 
@@ -70,12 +87,21 @@ class HeadDemoNode(Node):
                                        rng(0.01, 100.0, 'Play speed.')).value
         best_effort = self.declare_parameter('best_effort', False, ParameterDescriptor(
             description='Publish best effort instead of reliable', read_only=True)).value
+        characters = self.declare_parameter('characters', 1, ParameterDescriptor(
+            description='Characters: more than 1 also publishes frame_poses (PoseArray), the '
+                        'heads of characters 2..N', integer_range=[
+                IntegerRange(from_value=1, to_value=1024, step=1)], read_only=True)).value
         if kind not in MOTIONS:
             raise ValueError(f'motion = {kind!r} is not one of: {", ".join(MOTIONS)}')
         self.motion = make_motion(kind, list(origin), scale)
         qos = QoSProfile(depth=10, reliability=(ReliabilityPolicy.BEST_EFFORT if best_effort
                                                 else ReliabilityPolicy.RELIABLE))
         self._pub = self.create_publisher(PoseStamped, 'head_pose', qos)
+        # The other characters' heads: offsets in space and time, one PoseArray (raw CDR).
+        self._offsets = crowd_offsets(int(characters))[1:]
+        self._frames_pub = (self.create_publisher(PoseArray, 'frame_poses', qos)
+                            if len(self._offsets) else None)
+        self._frames_layout = pose_array_layout(self._frame, len(self._offsets))
         self._t0 = None
         self._msg = PoseStamped()
         self._msg.header.frame_id = self._frame
@@ -98,6 +124,14 @@ class HeadDemoNode(Node):
         pos.x, pos.y, pos.z = p
         ori.x, ori.y, ori.z, ori.w = q
         self._pub.publish(msg)
+        if self._frames_pub is not None:
+            block = np.empty((len(self._offsets), 7))
+            for k, (shift, delay) in enumerate(self._offsets):
+                position, orientation = _pose(self.motion, t - self._t0 - delay)
+                block[k, :3] = position + shift
+                block[k, 3:] = orientation
+            self._frames_pub.publish(self._frames_layout.encode(msg.header.stamp.sec,
+                                                                msg.header.stamp.nanosec, block))
 
 
 HELP = f"""usage: ponytail_head_demo [-h] [--ros-args -p rate:=60.0 -p motion:=script

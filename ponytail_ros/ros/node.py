@@ -11,6 +11,8 @@ Topics (all relative, so a namespace per character scales out; no global state):
 * subscribes, per extra kinematic frame named in ``frames``, ``<frame>.topic`` (default
   ``<frame>_pose``; ``geometry_msgs/PoseStamped``, sensor-data QoS): the pose of a body that
   chains can hang from and colliders can be fixed in (a forearm), in the head poses' frame;
+  or, with ``frames_topic`` set, that one topic (``geometry_msgs/PoseArray``, sensor-data QoS):
+  every frame's pose in one message, ``poses[i]`` that of ``frames[i]`` (many characters);
 * publishes ``segment_poses`` (``geometry_msgs/PoseArray``, reliable, depth 10) when there is one
   chain, ``segment_poses/<chain>`` per chain when there are several: one pose per segment, origin
   at the proximal joint, local +X along the segment; ``header.frame_id`` = the head pose's frame
@@ -67,7 +69,8 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import report_compile
-from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, tf_cdr
+from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
+                                       tf_cdr)
 from ponytail_ros.app.node_core import NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
@@ -249,15 +252,24 @@ class PonytailNode(Node):
         # message into Python objects costs more than the rest of handling it.
         self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_cdr,
                                                   INPUT_QOS, raw=True)
-        self._frame_subs = [
-            self.create_subscription(PoseStamped, topic,
-                                     lambda data, i=i: self._on_frame_pose(i, _received(data)),
-                                     INPUT_QOS, raw=True)
-            for i, topic in enumerate(self.core.frame_topics)]
+        if self.core.frames_topic and self._frames:
+            # All the frames in one PoseArray: one subscription (one callback per input period
+            # however many frames), the same one for every frame.
+            batch = self.create_subscription(PoseArray, self.core.frames_topic,
+                                             self._on_frames_cdr, INPUT_QOS, raw=True)
+            self._frame_subs = [batch] * len(self._frames)
+        else:
+            self._frame_subs = [
+                self.create_subscription(
+                    PoseStamped, topic, lambda data, i=i: self._on_frame_pose(i, _received(data)),
+                    INPUT_QOS, raw=True)
+                for i, topic in enumerate(self.core.frame_topics)]
         #: Input name ('head' or a frame's) -> its resolved topic (log messages).
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
                                  for f, sub in zip(self._frames, self._frame_subs)}}
+        if self._frame_subs:
+            self._input_topics['frames'] = self._frame_subs[0].topic_name
         #: /tf live (tf2_msgs importable and tf.publish), else None.
         self._tf_pub = self._make_tf_publisher()
         self._timer = self.create_timer(1.0 / values['rate'], timer_callback(self._on_tick))
@@ -290,7 +302,7 @@ class PonytailNode(Node):
                     tf_prefix=self._tf_prefix)
         self._sinks = Sinks([s for s in (self._recorder, self._publisher_sink) if s is not None])
         scene = self.core.scene
-        inputs = ', '.join(['head_pose'] + list(self.core.frame_topics))
+        inputs = ', '.join(['head_pose'] + list(dict.fromkeys(self.core.frame_topics)))
         #: Set (and logged once) when another node with this node's name is in the graph.
         self.duplicate_name_warning = None
         self._name_checks = 0
@@ -363,8 +375,16 @@ class PonytailNode(Node):
 
     def _check_input_topics(self):
         """Every frame reads its own topic, not the head's nor another frame's (as resolved
-        in this node's namespace, remappings applied)."""
+        in this node's namespace, remappings applied); or all read ``frames_topic``, not the
+        head's."""
         seen = {self.resolve_topic_name('head_pose'): 'the head (head_pose)'}
+        if self.core.frames_topic:
+            resolved = self.resolve_topic_name(self.core.frames_topic)
+            if resolved in seen:
+                raise ParameterError('frames_topic', f'frames_topic = '
+                                     f'{self.core.frames_topic!r} is not allowed: it resolves '
+                                     f'to {resolved}, which the head (head_pose) already reads')
+            return
         for frame, topic in zip(self.core.frames, self.core.frame_topics):
             resolved = self.resolve_topic_name(topic)
             name = chain_param_name(frame, 'topic')
@@ -507,8 +527,19 @@ class PonytailNode(Node):
         self.core.push_frame(i, msg.header.stamp, now_ns, (p.x, p.y, p.z),
                              (q.x, q.y, q.z, q.w), msg.header.frame_id)
 
+    def _on_frames_cdr(self, data):
+        """A ``PoseArray`` of every frame's pose (``frames_topic``)."""
+        now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
+        msg = ReceivedPoses.decode(data)
+        if msg is None:
+            msg = ReceivedPoses.of_message(deserialize_message(data, PoseArray))
+        self._sinks.on_input(0, msg, now_ns)
+        self.core.push_frames(msg.stamp, now_ns, msg.poses, msg.frame_id)
+
     def _on_drop(self, reason, t, source='head'):
-        what = 'a head pose' if source == 'head' else f'a pose of frame {source}'
+        what = ('a head pose' if source == 'head' else
+                f'the frames\' poses (a PoseArray of another length than frames, '
+                f'{len(self._frames)})' if source == 'frames' else f'a pose of frame {source}')
         self._log_throttled(
             f'drop:{source}:{reason}', 2.0, 'warning',
             f'Dropped {what} ({reason}, stamp {t}, {self._input_topics[source]}); '

@@ -39,7 +39,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rosgraph_msgs.msg import Clock
 from visualization_msgs.msg import MarkerArray
 
@@ -52,7 +52,7 @@ from .offline import _frame_samples, n_ticks, stamp_msg, tick_period_ns
 from .trace import Trace, TraceBuilder
 
 __all__ = ['Harness', 'HarnessError', 'HarnessTimeout', 'default_domain_id', 'pose_msg',
-           'bag_samples', 'diagnostic_values', 'TIMEOUT_SCALE']
+           'pose_array_msg',           'bag_samples', 'diagnostic_values', 'TIMEOUT_SCALE']
 
 #: Wall-time waits are stretched by this factor (``PONYTAIL_TEST_TIMEOUT_SCALE``, default 4):
 #: they only matter when a loaded machine is slow; a passing test never waits for one to
@@ -103,6 +103,39 @@ def pose_msg(t: Union[float, Time], position: Sequence[float], orientation: Sequ
     (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
      m.pose.orientation.w) = (float(x) for x in orientation)
     return m
+
+
+def pose_array_msg(t: Union[float, Time], positions: Any, orientations: Any,
+                   frame_id: str = 'world') -> PoseArray:
+    """A ``PoseArray`` of poses ``positions`` ``(n, 3)`` and ``orientations`` ``(n, 4)`` (x, y,
+    z, w) stamped ``t`` (s or a ``Time``): the frames' poses on ``frames_topic``."""
+    m = PoseArray()
+    m.header.stamp = t if isinstance(t, Time) else stamp_msg(float(t))
+    m.header.frame_id = frame_id
+    poses = []
+    for p, q in zip(np.asarray(positions, float).tolist(), np.asarray(orientations,
+                                                                     float).tolist()):
+        pose = Pose()
+        pose.position.x, pose.position.y, pose.position.z = p
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
+        poses.append(pose)
+    m.poses = poses
+    return m
+
+
+def _batched(frames: Sequence[str], per_frame: List[List[PoseSample]]) -> List[PoseSample]:
+    """The frames' samples as one sample per stamp with ``(F, 3)`` / ``(F, 4)`` poses (what a
+    ``frames_topic`` publisher sends): every frame needs a sample at every stamp."""
+    if not per_frame:
+        return []
+    stamps = [s.t for s in per_frame[0]]
+    for name, rows in zip(frames, per_frame):
+        if [s.t for s in rows] != stamps:
+            raise HarnessError(f'with frames_topic every frame needs a pose at the same stamps '
+                               f'(frame {name} differs from frame {frames[0]})')
+    return [PoseSample(t, np.array([rows[k].position for rows in per_frame]),
+                       np.array([rows[k].orientation for rows in per_frame]))
+            for k, t in enumerate(stamps)]
 
 
 def _pose_arrays(msg: PoseArray) -> Tuple[np.ndarray, np.ndarray]:
@@ -193,9 +226,14 @@ class Harness:
         self.tester = rclpy.create_node(node_name + '_tester', context=self.context, **kw)
         self.head_pub = self.tester.create_publisher(PoseStamped, 'head_pose', head_qos)
         self.clock_pub = self.tester.create_publisher(Clock, '/clock', 10)
-        #: One publisher per extra kinematic frame (``frames``), on its ``<frame>.topic``.
-        self.frame_pubs = [self.tester.create_publisher(PoseStamped, tp, head_qos)
-                           for tp in self.config.frame_topics]
+        #: One publisher per extra kinematic frame (``frames``), on its ``<frame>.topic``; or,
+        #: with ``frames_topic``, none and :attr:`frames_pub` (a ``PoseArray`` of all frames).
+        batched = bool(self.config.values.get('frames_topic')) and bool(self.config.frames)
+        self.frame_pubs = [] if batched else [
+            self.tester.create_publisher(PoseStamped, tp, head_qos)
+            for tp in self.config.frame_topics]
+        self.frames_pub = (self.tester.create_publisher(
+            PoseArray, self.config.values['frames_topic'], head_qos) if batched else None)
         topics = list(topics) if topics is not None else self.config.pose_topics
         #: Every ``PoseArray`` received, per topic, in arrival order.
         self.poses: Dict[str, List[PoseArray]] = {tp: [] for tp in topics}
@@ -221,6 +259,7 @@ class Harness:
         self._last_tick_ns: Optional[int] = None
         self._builder = TraceBuilder(self.config)
         push_head, push_frame, tick = core.push_head, core.push_frame, core.tick
+        push_frames = core.push_frames
 
         def counting_push(*args: Any, **kwargs: Any) -> None:
             self._received += 1
@@ -244,7 +283,11 @@ class Harness:
                 self._ticks.append((t_ns, arrays, result.segment_markers is not None))
             return result
         core.push_head = counting_push  # type: ignore[method-assign]
+        def counting_push_frames(*args: Any, **kwargs: Any) -> None:
+            self._received += 1
+            push_frames(*args, **kwargs)
         core.push_frame = counting_push_frame  # type: ignore[method-assign]
+        core.push_frames = counting_push_frames  # type: ignore[method-assign]
         core.tick = measured_tick  # type: ignore[method-assign]
         # Wall-clock head stream (sim_time=False): published at 100 Hz while set.
         self.head: Optional[HeadStream] = None
@@ -354,16 +397,22 @@ class Harness:
             return [s for s in inputs if after < stamp_ns(s.t) <= end]
         feeds = [(self.head_pub, 'head pose', window(head_samples(head, end * 1e-9,
                                                                    input_rate)))]
-        for name, pub, rows in zip(self.config.frames, self.frame_pubs,
-                                   _frame_samples(self.config, frames, end * 1e-9, input_rate)):
-            feeds.append((pub, f'pose of frame {name}', window(rows)))
+        per_frame = _frame_samples(self.config, frames, end * 1e-9, input_rate)
+        if self.frames_pub is not None:
+            feeds.append((self.frames_pub, 'poses of the frames',
+                          window(_batched(self.config.frames, per_frame))))
+        else:
+            for name, pub, rows in zip(self.config.frames, self.frame_pubs, per_frame):
+                feeds.append((pub, f'pose of frame {name}', window(rows)))
         nexts = [0] * len(feeds)
         for k in range(k0 + 1, k0 + n_ticks(duration, self.config.rate) + 1):
             t_ns = k * period
             for j, (pub, what, rows) in enumerate(feeds):
                 while nexts[j] < len(rows) and stamp_ns(rows[nexts[j]].t) <= t_ns:
                     s = rows[nexts[j]]
-                    pub.publish(pose_msg(s.t, s.position, s.orientation, frame_id))
+                    pub.publish(pose_array_msg(s.t, s.position, s.orientation, frame_id)
+                                if pub is self.frames_pub else
+                                pose_msg(s.t, s.position, s.orientation, frame_id))
                     self._sent += 1
                     nexts[j] += 1
                     self._wait(lambda: self._received >= self._sent,
