@@ -573,7 +573,7 @@ class PonytailNode(Node):
         if tick is None:
             missing = self.runner.missing_inputs()
             if now_ns != 0 and missing:
-                topics = ', '.join(self._input_topics[m] for m in missing)
+                topics = ', '.join(dict.fromkeys(self._input_topics[m] for m in missing))
                 what = ('No head pose received' if missing == ['head']
                         else 'No pose received')
                 self._log_throttled('no_head', 5.0, 'warning',
