@@ -53,3 +53,22 @@ def test_collider_marker_numbers(seed):
             for a, b in ((z, r), (z, v), (v, r)):
                 assert _same(m._from_two_vectors(a.tolist(), b.tolist()),
                              quat_from_two_vectors(a, b))
+
+
+@pytest.mark.parametrize('style', ['capsules', 'line'])
+def test_many_chains_marker_numbers_are_each_chains_concatenated(style):
+    """``ChainsMarkerNumbers`` (one pass over a crowd's segments) gives bit for bit the numbers
+    of every chain's own ``ChainMessages.markers``, in chain order."""
+    rng = np.random.default_rng(7)
+    counts = [1, 5, 12, 3]
+    chains = [m.ChainMessages(f'c{k}', rng.uniform(0.01, 0.1, size=n), 0.02)
+              for k, n in enumerate(counts)]
+    numbers = m.ChainsMarkerNumbers(counts, np.concatenate([c.lengths for c in chains]))
+    origins = rng.normal(size=(sum(counts), 3))
+    quats = _quats(rng, sum(counts))
+    poses, points = numbers.numbers(origins, quats, style)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    each = [c.markers(origins[s:e], quats[s:e], style, (1.0, 0.0, 0.0, 1.0))
+            for c, s, e in zip(chains, starts[:-1], starts[1:])]
+    assert _same(poses, np.concatenate([e[1] for e in each]))
+    assert _same(points, np.concatenate([e[2] for e in each]))

@@ -15,8 +15,8 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 import numpy as np
 
-from .messages import (DELETE_ALL, IDENTITY_POSE, ChainMessages, ColliderMarkers, SegmentMarkers,
-                       SegmentPoses)
+from .messages import (DELETE_ALL, IDENTITY_POSE, ChainMessages, ChainsMarkerNumbers,
+                       ColliderMarkers, SegmentMarkers, SegmentPoses)
 from .wire import MarkerArrayLayout
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
@@ -106,6 +106,8 @@ class NodeCore:
         self._collider_markers = ColliderMarkers()
         self._marker_key: Any = None
         self._marker_layout: Optional[MarkerArrayLayout] = None
+        self._numbers: Any = None
+        self._numbers_for: Any = None
         self._last_marker_t = None
         self.published = 0
         self.window = _Window()
@@ -214,29 +216,45 @@ class NodeCore:
             return None
         self._last_marker_t = out.t
         delete = False
-        parts = []
-        for c, (sl, cm) in enumerate(zip(self._chain_slices(), self._chain_msgs)):
-            color = values[self._color_names[c]]
-            *part, changed = cm.markers(out.origins[sl], out.orientations[sl], style, color)
+        chain_specs = []
+        for cm, color_name in zip(self._chain_msgs, self._color_names):
+            specs, changed = cm.marker_specs(style, values[color_name])
             delete = delete or changed
-            parts.append(part)
-        *part, changed = self._collider_markers.markers(
+            chain_specs.append(specs)
+        parts = []           # (poses, points) in marker order
+        if style != 'off':
+            # Every chain's numbers in one pass (the chains' rows of the tick's arrays).
+            numbers = self._chains_numbers()
+            parts.append(numbers.numbers(out.origins[:numbers.n], out.orientations[:numbers.n],
+                                         style))
+        collider_specs, *part, changed = self._collider_markers.markers(
             self.runner.scene.colliders,
             self.runner.bodies_at(out.t_state if self.values['output_stamp'] == 'simulated'
                                   else out.t), style)
         delete = delete or changed
         parts.append(part)
+        # (the same tuples while nothing changes: the layout is kept)
+        specs = (((DELETE_ALL,),) if delete else ()) + (*chain_specs, collider_specs)
         if delete:
-            parts.insert(0, [(DELETE_ALL,), IDENTITY_POSE[None], np.zeros((0, 3))])
-        specs = tuple(p[0] for p in parts)     # (the same tuples while nothing changes)
+            parts.insert(0, (IDENTITY_POSE[None], np.zeros((0, 3))))
         if not any(specs):
             return None
         if (frame, specs) != self._marker_key:
             self._marker_key = (frame, specs)
             self._marker_layout = MarkerArrayLayout(frame, [s for ss in specs for s in ss])
         return SegmentMarkers(self._marker_layout, stamp_ns,
-                              np.concatenate([p[1] for p in parts]),
-                              np.concatenate([p[2] for p in parts]))
+                              np.concatenate([p[0] for p in parts]),
+                              np.concatenate([p[1] for p in parts]))
+
+    def _chains_numbers(self):
+        """The chains' ``ChainsMarkerNumbers`` (kept while the chains' messages are the same;
+        the model's chains are laid end to end in chain order)."""
+        if self._numbers_for is not self._chain_msgs:
+            self._numbers = ChainsMarkerNumbers([cm.n for cm in self._chain_msgs],
+                                                np.concatenate([cm.lengths
+                                                                for cm in self._chain_msgs]))
+            self._numbers_for = self._chain_msgs
+        return self._numbers
 
     # -- parameters ----------------------------------------------------------------------------
     def ours(self, changed: Mapping[str, Any]) -> dict:
