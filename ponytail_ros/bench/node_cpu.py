@@ -106,42 +106,41 @@ def main(argv=None):
     p.add_argument('--json', help='write the results to this file')
     p.add_argument('--floor', action='store_true',
                    help='also measure rclpy_floor: the same ROS traffic with no simulation')
-    p.add_argument('--characters', type=int, default=1,
-                   help='a crowd of this many copies of each params file\'s character in one '
+    p.add_argument('--characters', type=int, nargs='+', default=[1],
+                   help='crowds of this many copies of each params file\'s character in one '
                         'node (app/crowd.py), the head demo publishing all their heads')
     args = p.parse_args(argv)
     rows = []
-    if args.characters > 1:
+    runs = [(params, 1) for params in args.params]
+    if args.characters != [1]:
         import tempfile
 
         from ponytail_ros.app.crowd import crowd_values, params_file_text
         from ponytail_ros.app.param_values import values_from_params_file
         tmp = tempfile.mkdtemp(prefix='node_cpu_')
-        crowds = []
+        runs = []
         for params in args.params:
-            path = os.path.join(tmp, f'crowd{args.characters}_{os.path.basename(params)}')
-            with open(path, 'w') as f:
-                f.write(params_file_text(crowd_values(values_from_params_file(params),
-                                                      args.characters), args.characters,
-                                         params))
-            crowds.append(path)
-        args.params = crowds
+            for n in args.characters:
+                path = os.path.join(tmp, f'crowd{n}_{os.path.basename(params)}')
+                with open(path, 'w') as f:
+                    f.write(params_file_text(crowd_values(values_from_params_file(params), n),
+                                             n, params))
+                runs.append((path, n))
     if args.floor:
         share, _ = measure(None, args.seconds, args.warmup, floor=True)
         rows.append(dict(params='rclpy_floor', cpu_share=share, seconds=args.seconds))
         print(f'rclpy_floor (no simulation): {100 * share:.1f} % of one core (same measurement)')
-    for params in args.params:
-        share, windows = measure(params, args.seconds, args.warmup,
-                                 characters=args.characters)
+    for params, characters in runs:
+        share, windows = measure(params, args.seconds, args.warmup, characters=characters)
         p99 = [w[0] for w in windows]
-        rows.append(dict(params=params, characters=args.characters, cpu_share=share,
+        rows.append(dict(params=params, characters=characters, cpu_share=share,
                          seconds=args.seconds, tick_p99_ms=p99,
                          tick_max_ms=[w[1] for w in windows],
                          ticks_per_s=[w[2] for w in windows],
                          dropped_time_s=[w[3] for w in windows]))
         print(f'{params}: {100 * share:.1f} % of one core (CPU time over {args.seconds:g} s '
               f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz'
-              f'{f", {args.characters} characters" if args.characters > 1 else ""})')
+              f'{f", {characters} characters" if characters > 1 else ""})')
         if p99:
             print(f'  tick time p99 per 1 s /diagnostics window: median {np.median(p99):.2f} ms, '
                   f'worst {max(p99):.2f} ms ({len(p99)} windows); largest tick '
