@@ -20,7 +20,7 @@ _result = None
 def _warm_up():
     from . import head_kernels, lanes, state_kernels, step
     from .head import KinematicState
-    from .head_estimation import HeadEstimator
+    from .head_estimation import HeadEstimator, HeadEstimatorBank
     from .scene import ChainSpec, ColliderSpec, Scene, SolverSpec
     from .simulator import Simulator
     free = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
@@ -45,9 +45,11 @@ def _warm_up():
         head.add(t, (t, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     head.state_at(0.015)
     _ = head.sample_period          # compiles median_interval
+    bank = HeadEstimatorBank([HeadEstimator(), head])   # (a node with frames)
+    bank.states_at(0.015)
     return sum(sum(k.stats.cache_misses.values()) for k in (
         step.advance, step.advance_unilateral, lanes.advance_lanes, head_kernels.loess_fit,
-        head_kernels.track_table,
+        head_kernels.states_fit, head_kernels.fit_time, head_kernels.track_table,
         head_kernels.point_kinematics, head_kernels.median_interval, state_kernels.guard_measures,
         state_kernels.segment_poses))
 

@@ -70,7 +70,8 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .head_kernels import FIT_SIZE, loess_fit, loess_fit_many, median_interval
+from .head_kernels import FIT_SIZE, loess_fit, median_interval, states_fit
+from .head_kernels import fit_time as kernel_fit_time
 
 __all__ = ['HeadEstimator', 'HeadEstimatorBank', 'REJECT_REASONS', 'fit_state']
 
@@ -83,14 +84,6 @@ REJECT_REASONS = (
     'stamp_backwards',      # older than the newest accepted sample
     'stamp_repeated',       # within ``min_interval`` of the newest accepted sample
 )
-
-
-def _brake_warp(x):
-    """Time warp of the braking phase, ``x`` in [0, 1]: ``g(0)=0, g'(0)=1, g''(0)=0``,
-    ``g'(1)=g''(1)=0``, ``g(1)=1/2``. Returns ``(g, g', g'')``."""
-    x = min(max(x, 0.0), 1.0)
-    x2 = x * x
-    return x - x2 * x + 0.5 * x2 * x2, 1.0 - 3.0 * x2 + 2.0 * x2 * x, -6.0 * x + 6.0 * x2
 
 
 class HeadEstimator:
@@ -338,23 +331,8 @@ class HeadEstimator:
         """``(te, rate, rate_d)``: where ``state_at(t)``'s fit is evaluated (``t - delay``,
         within the history; past the newest sample, warped: full-speed extrapolation, then a
         C² brake) and the warp's ``dt_warped/dt`` and derivative (1, 0 inside). Needs two
-        samples or more."""
-        n = self._n
-        te = float(t) - self.delay
-        t_last = self._t[n - 1]
-        # Time warp past the newest sample: full-speed extrapolation, then a C² brake.
-        rate, rate_d = 1.0, 0.0
-        s = te - t_last
-        if s > 0.0:
-            half = 0.5 * self.max_extrapolation
-            if s > half:
-                if half > 0.0:
-                    g, gd, gdd = _brake_warp((s - half) / half)
-                    s, rate, rate_d = half + half * g, gd, gdd / half
-                else:
-                    s, rate = 0.0, 0.0
-            te = t_last + s
-        return max(te, self._t[0]), rate, rate_d
+        samples or more (``head_kernels.fit_time``)."""
+        return kernel_fit_time(self._t, self._n, float(t), self.delay, self.max_extrapolation)
 
     def use_storage(self, t, p, q):
         """Keep the history in the given arrays ``(max_samples,)``, ``(max_samples, 3)``,
@@ -382,7 +360,7 @@ def fit_state(out):
 class HeadEstimatorBank:
     """Several bodies' ``HeadEstimator``s (same settings) whose histories share one set of
     arrays, so that all their fits at one time run in one compiled call
-    (``head_kernels.loess_fit_many``) instead of one call and one ``KinematicState`` each: a
+    (``head_kernels.states_fit``) instead of one call and one ``KinematicState`` each: a
     node with many frames (a crowd) pays per body a few µs of compiled fit, not ~10 µs of
     Python. ``states_at(t)`` equals stacking every estimator's ``state_at(t)`` bit for bit (a
     body without samples: still at the origin, unrotated)."""
@@ -406,20 +384,12 @@ class HeadEstimatorBank:
         if not math.isfinite(t):
             raise ValueError(f'states_at({t!r}): time must be finite')
         ests = self.estimators
-        K = len(ests)
         e0 = ests[0]
-        ns = np.empty(K, dtype=np.int64)
-        warp = np.empty((K, 3))
-        out = np.zeros((K, FIT_SIZE))
-        for k, e in enumerate(ests):
-            n = ns[k] = e._n
-            if n >= 2:
-                warp[k] = e.fit_time(t)
-            else:               # (no fit: the one pose, or the origin, at rest)
-                warp[k] = 0.0
-                out[k, 6] = 1.0
-                if n == 1:
-                    out[k, 0:3], out[k, 3:7] = e._p[0], e._q[0]
-        loess_fit_many(self._t, self._p, self._q, ns, warp, e0.window, e0.degree,
-                       e0.min_samples, out)
+        ns = np.array([e._n for e in ests], dtype=np.int64)
+        delays = np.array([e.delay for e in ests], dtype=float)
+        extrapolations = np.array([e.max_extrapolation for e in ests], dtype=float)
+        out = np.zeros((len(ests), FIT_SIZE))
+        # (the fit times and the fits in one compiled call: bit for bit each state_at)
+        states_fit(self._t, self._p, self._q, ns, float(t), delays, extrapolations, e0.window,
+                   e0.degree, e0.min_samples, out)
         return fit_state(out)

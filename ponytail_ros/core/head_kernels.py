@@ -6,7 +6,8 @@ costs microseconds instead of hundreds of NumPy calls:
 * ``loess_fit``: ``HeadEstimator``'s local weighted least-squares polynomial fit of the pose
   samples around one instant (the equations and the bandwidth rule are in
   ``head_estimation``'s docstrings), solved as NumPy's ``lstsq`` does (an SVD solve:
-  ``svd_lstsq``); ``loess_fit_many`` fits several bodies' histories in one call;
+  ``svd_lstsq``); ``states_fit`` fits several bodies' histories in one call, their fit
+  times included (``fit_time``: ``t - delay``, warped past the newest sample);
 * ``track_table``: ``AnchorTrack``'s quintic Hermite of each attachment point between two
   frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
   stage times of a call (the compiled step's anchor table);
@@ -24,8 +25,8 @@ from numba import njit
 from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
                             qto_rotvec, scale)
 
-__all__ = ['loess_fit', 'loess_fit_many', 'svd_lstsq', 'track_table', 'point_kinematics',
-           'frame_ends', 'median_interval', 'FIT_SIZE']
+__all__ = ['loess_fit', 'states_fit', 'fit_time', 'svd_lstsq', 'track_table',
+           'point_kinematics', 'frame_ends', 'median_interval', 'FIT_SIZE']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -236,15 +237,56 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
 
 
 @njit(cache=True)
-def loess_fit_many(ts, ps, qs, ns, warp, window, degree, min_samples, out):
-    """``loess_fit`` of ``K`` bodies' histories (rows of ``ts`` ``(K, M)``, ``ps``
-    ``(K, M, 3)``, ``qs`` ``(K, M, 4)``; the first ``ns[k]`` samples) into the rows of
-    ``out`` ``(K, FIT_SIZE)``, each at ``warp[k] = (te, rate, rate_d)``; a body with fewer
-    than two samples is left as it is in ``out``."""
+def _brake_warp(x):
+    """Time warp of the braking phase, ``x`` clipped to [0, 1]: ``g(0)=0, g'(0)=1, g''(0)=0``,
+    ``g'(1)=g''(1)=0``, ``g(1)=1/2``. Returns ``(g, g', g'')``."""
+    x = min(max(x, 0.0), 1.0)
+    x2 = x * x
+    return x - x2 * x + 0.5 * x2 * x2, 1.0 - 3.0 * x2 + 2.0 * x2 * x, -6.0 * x + 6.0 * x2
+
+
+@njit(cache=True)
+def fit_time(ts, n, t, delay, max_extrapolation):
+    """``HeadEstimator.fit_time``: ``(te, rate, rate_d)`` of the fit of the first ``n`` ≥ 2
+    stamps ``ts`` asked at ``t`` (s): ``t - delay`` within the history; past the newest stamp
+    warped (full-speed extrapolation for half of ``max_extrapolation``, then a C² brake)."""
+    te = t - delay
+    t_last = ts[n - 1]
+    rate, rate_d = 1.0, 0.0
+    s = te - t_last
+    if s > 0.0:
+        half = 0.5 * max_extrapolation
+        if s > half:
+            if half > 0.0:
+                g, gd, gdd = _brake_warp((s - half) / half)
+                s, rate, rate_d = half + half * g, gd, gdd / half
+            else:
+                s, rate = 0.0, 0.0
+        te = t_last + s
+    return max(te, ts[0]), rate, rate_d
+
+
+@njit(cache=True)
+def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, min_samples,
+               out):
+    """Every body's ``HeadEstimator.state_at(t)`` numbers into the rows of ``out`` ``(K,
+    FIT_SIZE)`` (zeros on entry): ``K`` bodies' histories in the rows of ``ts`` ``(K, M)``,
+    ``ps`` ``(K, M, 3)``, ``qs`` ``(K, M, 4)`` (the first ``ns[k]`` samples), each body's fit time
+    from its ``delays[k]`` and ``max_extrapolations[k]`` (``fit_time``); a body with one
+    sample: that pose at rest, with none: the origin, unrotated."""
     for k in range(ns.shape[0]):
-        if ns[k] >= 2:
-            loess_fit(ts[k], ps[k], qs[k], ns[k], warp[k, 0], window, degree, min_samples,
-                      warp[k, 1], warp[k, 2], out[k])
+        n = ns[k]
+        if n >= 2:
+            te, rate, rate_d = fit_time(ts[k], n, t, delays[k], max_extrapolations[k])
+            loess_fit(ts[k], ps[k], qs[k], n, te, window, degree, min_samples, rate, rate_d,
+                      out[k])
+        else:
+            out[k, 6] = 1.0
+            if n == 1:
+                for a in range(3):
+                    out[k, a] = ps[k, 0, a]
+                for a in range(4):
+                    out[k, 3 + a] = qs[k, 0, a]
 
 
 @njit(cache=True)
