@@ -72,6 +72,83 @@ def test_crowd_offsets_space_the_heads_along_x_and_delay_their_motion():
     assert [d for _, d in offsets] == [k * CHARACTER_PHASE for k in range(4)]
 
 
+def _crowd_poses(tick, offsets, nan, wide):
+    """The head's and the 3 frames' poses at tick ``tick`` (120 Hz); one frame's position NaN
+    (``nan``), another's quaternion 1.1 long (``wide``)."""
+    t = tick / 120.0
+    rows = []
+    for k in range(4):
+        x, y = offsets[k][0][0] + 0.05 * math.sin(3.0 * t + k), 0.02 * math.cos(5.0 * t)
+        a = 0.3 * math.sin(2.0 * t + k)
+        rows.append((x, y, 1.6, 0.0, 0.0, math.sin(a / 2), math.cos(a / 2)))
+    rows = np.array(rows)
+    if nan:
+        rows[1 + tick % 3, 1] = np.nan
+    if wide:
+        rows[1 + (tick + 1) % 3, 3:] *= 1.1
+    return rows[0], rows[1:]
+
+
+def _push_both(batched, single, stamp, head, poses):
+    """The same head pose to both runners, the frames' in one batch to one, one by one to the
+    other."""
+    for r in (batched, single):
+        r.push(stamp, head[:3], head[3:], 'world')
+    batched.push_frames(stamp, poses, 'world')
+    for i, row in enumerate(poses):
+        single.push_frame(i, stamp, row[:3], row[3:], 'world')
+
+
+def test_one_pose_array_of_every_frame_is_taken_as_each_frames_own_pose():
+    """``ChainRunner.push_frames`` (every frame's pose at one stamp, added in one compiled call)
+    and ``push_frame`` per frame leave the same runner: the same chain state bit for bit, the
+    same histories, drops per reason and accept counts, through NaN and non-unit poses, a
+    repeated stamp, a stream restart after a pause and a batch of the wrong count."""
+    from ponytail_ros.app.runner import ChainRunner
+    values = complete_values(crowd_values(values_from_params_file(config_path('ponytail.yaml')),
+                                          4))
+    _, scene, settings = scene_and_settings(values)
+    frames = values['frames']
+    batched, single = (ChainRunner(scene, settings, frames=frames) for _ in range(2))
+    offsets = crowd_offsets(4)
+
+    def paused(tick):                  # no input at all for 50 ticks (0.42 s: every input stale)
+        return 150 <= tick < 200
+
+    nan_ticks = [k for k in range(300) if k % 37 == 5 and not paused(k)]
+    wide_ticks = [k for k in range(300) if k % 41 == 7 and not paused(k)]
+
+    outs = []
+    for tick in range(300):
+        t = tick / 120.0
+        if not paused(tick):
+            stamp = t - (0.5 if tick >= 200 else 0.0)    # after the pause an earlier time base
+            head, poses = _crowd_poses(tick, offsets, tick in nan_ticks, tick in wide_ticks)
+            for _ in range(2 if tick == 50 else 1):     # tick 50: the same stamp twice
+                _push_both(batched, single, stamp, head, poses)
+            if tick == 60:
+                batched.push_frames(stamp, poses[:2], 'world')
+                single.drop_frames('frames_count', stamp)
+        a, b = batched.tick(t + 0.5 / 120.0), single.tick(t + 0.5 / 120.0)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a.origins, b.origins) and \
+                np.array_equal(a.orientations, b.orientations)
+            outs.append(a)
+    assert len(outs) > 250
+    assert batched.dropped == single.dropped
+    assert batched.dropped['nonfinite'] == len(nan_ticks)
+    assert batched.dropped['non_unit_quaternion'] == len(wide_ticks)
+    assert batched.dropped['stamp_repeated'] == 1 + 3 and batched.dropped['frames_count'] == 1
+    assert batched.frame_accepted_total == single.frame_accepted_total
+    assert batched.history_restarts == single.history_restarts == 1 + 3   # the head, the frames
+    for e, f in zip(batched.frame_estimators, single.frame_estimators):
+        n = len(e)
+        assert len(f) == n and np.array_equal(e._t[:n], f._t[:n])
+        assert np.array_equal(e._p[:n], f._p[:n]) and np.array_equal(e._q[:n], f._q[:n])
+    assert batched.target_delay() == single.target_delay()
+
+
 def test_frames_topic_must_be_a_topic_other_than_the_heads():
     base = {'frames': ['a', 'b'], 'chains': ['ponytail'], 'ponytail.anchor': 'a'}
     for bad in ('head_pose', 'not a topic'):

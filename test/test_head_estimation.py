@@ -593,3 +593,51 @@ def test_a_bank_fits_every_body_as_its_own_estimator_does():
             assert np.array_equal(getattr(got, name), expected), (t, name)
     with pytest.raises(ValueError):
         bank.states_at(float('nan'))
+
+
+def test_a_bank_adds_many_bodies_poses_as_their_own_add_does():
+    """``HeadEstimatorBank.add_poses`` (one compiled call for all bodies at one stamp) leaves
+    the histories, the counts and the outcome of each sample exactly as ``add`` does: random
+    streams with every rejection (NaN, zero and non-unit quaternions, repeated and backward
+    stamps), sign flips, gaps past ``max_gap``, full histories and stream restarts."""
+    from ponytail_ros.core.head_estimation import ACCEPTED, RESTARTED, HeadEstimatorBank
+    rng = np.random.default_rng(5)
+    K = 9
+    mine = [HeadEstimator(max_samples=16, max_gap=0.05) for _ in range(K + 1)]
+    own = [HeadEstimator(max_samples=16, max_gap=0.05) for _ in range(K)]
+    bank = HeadEstimatorBank(mine)
+    t, seen = 0.0, set()
+    for _ in range(400):
+        t += rng.choice([0.004, 0.0, -0.01, 0.08, 5e-7], p=[0.8, 0.05, 0.05, 0.05, 0.05])
+        poses = np.concatenate([rng.normal(0.0, 1.0, (K, 3)), rng.normal(0.0, 1.0, (K, 4))], 1)
+        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        poses[:, 3:] *= 1.0 + rng.choice([0.0, 1e-4, 0.01], (K, 1), p=[0.9, 0.05, 0.05])
+        poses[rng.random(K) < 0.03, 0] = np.nan
+        poses[rng.random(K) < 0.03, 3:] = 0.0
+        restart = rng.random(K) < 0.3
+        outcome = bank.add_poses(1, t, poses, restart)
+        for k in range(K):
+            e = own[k]
+            stamp = t
+            if restart[k] and len(e) and stamp < e.last_stamp and \
+                    e.check(stamp, poses[k, :3], poses[k, 3:])[3] is None:
+                e.reset()
+                want = RESTARTED
+            else:
+                want = ACCEPTED
+            reason = e.add(stamp, poses[k, :3], poses[k, 3:])
+            want = want if reason is None else REJECT_REASONS.index(reason)
+            assert outcome[k] == want
+            seen.add(want)
+    for e, b in zip(own, mine[1:]):
+        n = len(e)
+        assert len(b) == n and b.rejected == e.rejected
+        assert np.array_equal(b._t[:n], e._t[:n])
+        assert np.array_equal(b._p[:n], e._p[:n]) and np.array_equal(b._q[:n], e._q[:n])
+        assert b.sample_period == e.sample_period
+    assert len(mine[0]) == 0                      # the head's row is not touched
+    # every outcome happened: accepted, restarted, nonfinite, zero, non-unit, backwards, repeated
+    assert seen == {ACCEPTED, RESTARTED, 1, 2, 3, 4, 5}
+    assert bank.longest_sample_period(range(1, K + 1)) == max(
+        e.sample_period for e in own if e.sample_period is not None)
+    assert bank.longest_sample_period([0]) is None

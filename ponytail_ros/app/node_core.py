@@ -141,13 +141,7 @@ class NodeCore:
         """Queue one pose of every frame from one ``PoseArray`` (``frames_topic``): ``poses``
         ``(F, 7)`` (x, y, z, qx, qy, qz, qw), row i the pose of ``frames[i]``, each checked as
         :meth:`push_frame`'s. Another count than F drops the message (``frames_count``)."""
-        t = self._stamp(stamp, receive_ns)
-        if len(poses) != len(self.frames):
-            self.runner.drop_frames('frames_count', t)
-            return
-        push = self.runner.push_frame
-        for i, row in enumerate(poses.tolist() if hasattr(poses, 'tolist') else poses):
-            push(i, t, (row[0], row[1], row[2]), (row[3], row[4], row[5], row[6]), frame_id)
+        self.runner.push_frames(self._stamp(stamp, receive_ns), poses, frame_id)
 
     # -- the tick ------------------------------------------------------------------------------
     def _make_chain_messages(self, scene):

@@ -88,7 +88,8 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ponytail_ros.core.head import KinematicState
-from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator, HeadEstimatorBank
+from ponytail_ros.core.head_estimation import (REJECT_REASONS, RESTARTED, HeadEstimator,
+                                              HeadEstimatorBank)
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
@@ -240,6 +241,7 @@ class ChainRunner:
         self.frame_id = None
         self._queue = deque(maxlen=max(1, int(self.settings.max_queue)))
         self._frame_queues = [deque(maxlen=self._queue.maxlen) for _ in self.frames]
+        self._frames_queue = deque(maxlen=self._queue.maxlen)   # (push_frames: all at once)
         self._frame_last_accept = [None] * len(self.frames)
         # Stamp of the first sample of the current history of the head / of each frame.
         self._head_start = None
@@ -304,8 +306,12 @@ class ChainRunner:
         s = self.settings
         d = s.interpolation_delay
         period = self.estimator.sample_period
-        for i in _used_frames(self.scene, len(self.frames)):
-            p = self.frame_estimators[i].sample_period
+        used = _used_frames(self.scene, len(self.frames))
+        if self._banked():              # (a crowd's frames in one compiled call)
+            periods = [self._bank.longest_sample_period([1 + i for i in used])] if used else []
+        else:
+            periods = [self.frame_estimators[i].sample_period for i in used]
+        for p in periods:
             if p is not None and (period is None or p > period):
                 period = p
         if period is not None and s.interpolation_delay_periods > 0.0:
@@ -346,8 +352,7 @@ class ChainRunner:
         """The scene's kinematic bodies at head time ``t``: the estimated head, then each
         frame's estimate (each still at the origin while it has no pose), then the static world
         if the scene has it."""
-        if self._bank is not None and self._bank.holds([self.estimator,
-                                                        *self.frame_estimators]):
+        if self._banked():
             head = self._bank.states_at(t)
             return head.with_static_bodies(self.scene.n_kinematic_bodies - 1 - len(self.frames))
         head = (self.estimator.state_at(t) if self.has_head
@@ -388,6 +393,23 @@ class ChainRunner:
             self._drop('queue_overflow', queue[0][0], self.frames[i])
         queue.append((t, position, orientation, frame_id))
 
+    def push_frames(self, t, poses, frame_id=''):
+        """Queue one pose sample of every frame at stamp ``t`` (s): ``poses`` ``(F, 7)`` (x, y,
+        z, qx, qy, qz, qw), row ``i`` that of ``frames[i]`` (one ``frames_topic`` message),
+        each then treated as its :meth:`push_frame` would be. Another shape is dropped whole
+        (``frames_count``). Checked at the next tick, all the frames in one compiled call when
+        nothing but the samples' own checks is at stake (``HeadEstimatorBank.add_poses``)."""
+        poses = np.array(poses, dtype=float)
+        if poses.shape != (len(self.frames), 7):
+            self.drop_frames('frames_count', t)
+            return
+        queue = self._frames_queue
+        if len(queue) == queue.maxlen:
+            t_old = queue[0][0]
+            for name in self.frames:
+                self._drop('queue_overflow', t_old, name)
+        queue.append((t, poses, frame_id))
+
     def drop_frames(self, reason, t):
         """Count a batch of frame poses (``frames_topic``) dropped whole, e.g. for the wrong
         pose count (``frames_count``)."""
@@ -422,11 +444,44 @@ class ChainRunner:
         return all(last is None or t_tick - last > timeout
                    for last in (self._last_accept_tick, *self._frame_last_accept))
 
+    def _banked(self):
+        """Whether the frames' estimators are the bank's (a replay may swap some out)."""
+        return self._bank is not None and self._bank.holds([self.estimator,
+                                                            *self.frame_estimators])
+
     def _drain(self, t_tick):
         accepted = self._drain_head(t_tick)
+        self._drain_frames(t_tick)
         for i in range(len(self.frames)):
             self._drain_frame(i, t_tick)
         return accepted
+
+    def _drain_frames(self, t_tick):
+        """The queued ``push_frames`` batches, in order: a batch in the frame the runner is
+        in goes through ``HeadEstimatorBank.add_poses`` (one call, the per-sample checks and
+        stream restarts as :meth:`_take_frame_sample`'s); any other (the first, a frame
+        change) row by row through :meth:`_take_frame_sample`."""
+        queue = self._frames_queue
+        while queue:
+            t, poses, frame = queue.popleft()
+            if self.frame_id is None or frame != self.frame_id or not self._banked():
+                for i, row in enumerate(poses.tolist()):
+                    self._take_frame_sample(i, t, row[:3], row[3:], frame, t_tick)
+                continue
+            timeout = self.settings.stale_timeout
+            restart = [last is None or t_tick - last > timeout
+                       for last in self._frame_last_accept]
+            outcome = self._bank.add_poses(1, t, poses, restart)
+            for i, o in enumerate(outcome):
+                if o >= 0:
+                    self._drop(REJECT_REASONS[o], t, self.frames[i])
+                    continue
+                if o == RESTARTED:
+                    self.history_restarts += 1
+                if len(self.frame_estimators[i]) == 1:
+                    self._frame_start[i] = t
+                self._frame_last_accept[i] = t_tick
+                self.frame_accepted_total[i] += 1
 
     def _drain_head(self, t_tick):
         est, s = self.estimator, self.settings
@@ -475,40 +530,43 @@ class ChainRunner:
 
     def _drain_frame(self, i, t_tick):
         """Frame ``i``'s queued samples, as :meth:`_drain_head` (no teleport detection)."""
-        est, name = self.frame_estimators[i], self.frames[i]
         queue = self._frame_queues[i]
         while queue:
-            t, p, q, frame = queue.popleft()
-            checked = est.check(t, p, q)
-            valid = checked[3] is None
-            if valid:
-                t = checked[0]
-            adopt = False
-            if self.frame_id is not None and frame != self.frame_id:
-                if not (valid and self._all_quiet(t_tick)):
-                    self._drop('frame_changed', t, name)
-                    continue
-                # Every input stale: the world frame changes. Every history restarts (all in
-                # the old frame) and the chain is reset at rest in the new one.
-                adopt = True
-                self.estimator.reset()
-                self._reset_frames()
-                self._newest_stamp = None
-                self._pending_reset = 'frame_changed'
-            elif (valid and self.frame_stale(i, t_tick) and est.last_stamp is not None
-                  and t < est.last_stamp):
-                est.reset()                   # the stream restarted with an earlier time base
-                self.history_restarts += 1
-            reason = est.add_checked(checked)
-            if reason is not None:
-                self._drop(reason, t, name)
-                continue
-            if len(est) == 1:
-                self._frame_start[i] = est.last_stamp
-            self._frame_last_accept[i] = t_tick
-            self.frame_accepted_total[i] += 1
-            if self.frame_id is None or adopt:
-                self.frame_id = frame
+            self._take_frame_sample(i, *queue.popleft(), t_tick)
+
+    def _take_frame_sample(self, i, t, p, q, frame, t_tick):
+        """One sample of frame ``i`` checked and added (or dropped, counted)."""
+        est, name = self.frame_estimators[i], self.frames[i]
+        checked = est.check(t, p, q)
+        valid = checked[3] is None
+        if valid:
+            t = checked[0]
+        adopt = False
+        if self.frame_id is not None and frame != self.frame_id:
+            if not (valid and self._all_quiet(t_tick)):
+                self._drop('frame_changed', t, name)
+                return
+            # Every input stale: the world frame changes. Every history restarts (all in the
+            # old frame) and the chain is reset at rest in the new one.
+            adopt = True
+            self.estimator.reset()
+            self._reset_frames()
+            self._newest_stamp = None
+            self._pending_reset = 'frame_changed'
+        elif (valid and self.frame_stale(i, t_tick) and est.last_stamp is not None
+              and t < est.last_stamp):
+            est.reset()                   # the stream restarted with an earlier time base
+            self.history_restarts += 1
+        reason = est.add_checked(checked)
+        if reason is not None:
+            self._drop(reason, t, name)
+            return
+        if len(est) == 1:
+            self._frame_start[i] = est.last_stamp
+        self._frame_last_accept[i] = t_tick
+        self.frame_accepted_total[i] += 1
+        if self.frame_id is None or adopt:
+            self.frame_id = frame
 
     # -- the tick ------------------------------------------------------------------------------
     def tick(self, t):

@@ -119,7 +119,8 @@ def crowd(params, n, ticks):
 
 def crowd_runner(params, n, ticks):
     """``crowd`` through ``ChainRunner`` as a node runs it: the first character on the head,
-    the others on ``n - 1`` extra frames, one pose sample of each per tick (so the head
+    the others on ``n - 1`` extra frames, one pose sample of each per tick (one
+    ``push_frames``, as a node with ``frames_topic`` takes them; so the head
     estimation, the sample checks and the runner's bookkeeping are included; ROS is not).
     ``(median s, max s, reset reasons, stage medians, median s of the runner's Python)``."""
     from ponytail_ros.app.runner import ChainRunner, RunnerSettings
@@ -132,8 +133,9 @@ def crowd_runner(params, n, ticks):
         t = k / rate
         st = heads(t)
         runner.push(t, st.position[0], st.orientation[0], 'world')
-        for i in range(1, n):
-            runner.push_frame(i - 1, t, st.position[i], st.orientation[i], 'world')
+        if n > 1:                       # (one PoseArray of every frame: frames_topic)
+            runner.push_frames(t, np.concatenate([st.position[1:], st.orientation[1:]], 1),
+                               'world')
         t0 = time.perf_counter()
         out = runner.tick(t)
         if out is not None and k > 2 + START_TICKS:

@@ -47,9 +47,12 @@ def _warm_up():
     _ = head.sample_period          # compiles median_interval
     bank = HeadEstimatorBank([HeadEstimator(), head])   # (a node with frames)
     bank.states_at(0.015)
+    bank.add_poses(1, 0.02, [(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)], [False])
+    bank.longest_sample_period([1])
     return sum(sum(k.stats.cache_misses.values()) for k in (
         step.advance, step.advance_unilateral, lanes.advance_lanes, head_kernels.loess_fit,
-        head_kernels.states_fit, head_kernels.fit_time, head_kernels.track_table,
+        head_kernels.states_fit, head_kernels.fit_time, head_kernels.add_samples,
+        head_kernels.longest_median_interval, head_kernels.track_table,
         head_kernels.point_kinematics, head_kernels.median_interval, state_kernels.guard_measures,
         state_kernels.segment_poses))
 

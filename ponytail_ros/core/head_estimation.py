@@ -70,10 +70,16 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .head_kernels import FIT_SIZE, loess_fit, median_interval, states_fit
+from .head_kernels import (ACCEPTED, FIT_SIZE, add_samples, loess_fit, longest_median_interval,
+                           median_interval, states_fit)
 from .head_kernels import fit_time as kernel_fit_time
 
-__all__ = ['HeadEstimator', 'HeadEstimatorBank', 'REJECT_REASONS', 'fit_state']
+__all__ = ['HeadEstimator', 'HeadEstimatorBank', 'REJECT_REASONS', 'ACCEPTED', 'RESTARTED',
+           'fit_state']
+
+#: ``HeadEstimatorBank.add_poses``' outcome of a sample accepted as the first of a restarted
+#: history (``ACCEPTED``: accepted).
+RESTARTED = -2
 
 #: Every reason code ``HeadEstimator.add`` may return.
 REJECT_REASONS = (
@@ -213,7 +219,10 @@ class HeadEstimator:
                 return None, None, 'malformed'
             if not (np.isfinite(p).all() and np.isfinite(q).all()):
                 return None, None, 'nonfinite'
-        norm = math.sqrt(float(q @ q))
+        # (|q| and the hemisphere test below term by term, as ``head_kernels.add_samples``
+        # computes them: a crowd's poses added in one call give the same bits)
+        qx, qy, qz, qw = q.tolist()
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
         if norm < 1e-9:
             return None, None, 'zero_quaternion'
         if abs(norm - 1.0) > self.quat_tolerance:
@@ -260,7 +269,9 @@ class HeadEstimator:
                 return self._reject('stamp_repeated')
             if dt < 0.0:
                 return self._reject('stamp_backwards')
-            if float(q @ self._q[n - 1]) < 0.0:
+            ax, ay, az, aw = q.tolist()
+            bx, by, bz, bw = self._q[n - 1].tolist()
+            if ax * bx + ay * by + az * bz + aw * bw < 0.0:
                 q = -q
             if dt > self.max_gap:
                 n = 0
@@ -378,6 +389,40 @@ class HeadEstimatorBank:
         """Whether ``estimators`` are this bank's, in order (a replay may swap some out)."""
         return len(estimators) == len(self.estimators) and all(
             a is b for a, b in zip(estimators, self.estimators))
+
+    def add_poses(self, first, t, poses, restart):
+        """``add`` of ``poses[k]`` at the one stamp ``t`` (s) to estimator ``first + k``, for
+        every row of ``poses`` ``(K, 7)`` (x, y, z, qx, qy, qz, qw) in one compiled call
+        (``head_kernels.add_samples``): the histories, bits and rejection counts of ``K`` calls
+        of ``add``, the estimators' settings being the first's (a runner sets them together).
+        ``restart`` ``(K,)`` bool: for these a stamp before the newest restarts the history
+        (the stream restarted) instead of being rejected. Returns the outcome per row:
+        ``ACCEPTED``, ``RESTARTED`` (accepted, the history restarted) or the reason's index
+        in ``REJECT_REASONS``."""
+        K = len(poses)
+        ests = self.estimators[first:first + K]
+        e0 = ests[0]
+        ns = np.array([e._n for e in ests], dtype=np.int64)
+        outcome = np.empty(K, dtype=np.int64)
+        add_samples(self._t[first:first + K], self._p[first:first + K],
+                    self._q[first:first + K], ns, float(t),
+                    np.ascontiguousarray(poses, dtype=float), np.asarray(restart, dtype=bool),
+                    e0.min_interval, e0.max_gap, e0.quat_tolerance, outcome)
+        out = outcome.tolist()
+        for e, n, o in zip(ests, ns.tolist(), out):
+            if o < 0:
+                e._n = n
+                e._version += 1
+            else:
+                e.rejected[REJECT_REASONS[o]] += 1
+        return out
+
+    def longest_sample_period(self, rows):
+        """The largest ``sample_period`` of the estimators ``rows`` (indices), ``None`` if
+        none has two samples: one compiled call, however many."""
+        ns = np.array([e._n for e in self.estimators], dtype=np.int64)
+        p = longest_median_interval(self._t, ns, np.asarray(rows, dtype=np.int64))
+        return None if p < 0.0 else float(p)
 
     def states_at(self, t):
         """Every body's state at ``t - delay``: one ``KinematicState`` of ``K`` bodies."""

@@ -13,6 +13,9 @@ costs microseconds instead of hundreds of NumPy calls:
   stage times of a call (the compiled step's anchor table);
 * ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``);
   ``frame_ends`` evaluates it at both ends of a frame in one call (the track's two ends).
+* ``add_samples``: ``HeadEstimator.add`` of one pose of each of many bodies at one stamp (a
+  crowd's poses, one message for all its frames), its checks and arithmetic; and
+  ``longest_median_interval``, the input period of a crowd (``median_interval`` of each).
 
 Units and frames: s, m, rad; world frame; quaternions scalar-last ``(x, y, z, w)`` body to
 world (as ``rotations``).
@@ -26,7 +29,8 @@ from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormali
                             qto_rotvec, scale)
 
 __all__ = ['loess_fit', 'states_fit', 'fit_time', 'svd_lstsq', 'track_table',
-           'point_kinematics', 'frame_ends', 'median_interval', 'FIT_SIZE']
+           'point_kinematics', 'frame_ends', 'median_interval', 'add_samples',
+           'longest_median_interval', 'FIT_SIZE', 'ACCEPTED']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
@@ -287,6 +291,87 @@ def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, mi
                     out[k, a] = ps[k, 0, a]
                 for a in range(4):
                     out[k, 3 + a] = qs[k, 0, a]
+
+
+#: ``add_samples``' outcome of an accepted sample; a rejected one's is its reason's index in
+#: ``head_estimation.REJECT_REASONS`` (these constants).
+ACCEPTED, NONFINITE, ZERO_QUATERNION, NON_UNIT_QUATERNION, STAMP_BACKWARDS, STAMP_REPEATED = (
+    -1, 1, 2, 3, 4, 5)
+
+
+@njit(cache=True)
+def add_samples(ts, ps, qs, ns, t, poses, restart, min_interval, max_gap, quat_tolerance,
+                outcome):
+    """``HeadEstimator.add`` of one pose per body at one stamp ``t`` (s), all ``K`` bodies in
+    one call (a crowd's ``frames_topic`` message): ``poses`` ``(K, 7)`` rows (x, y, z, qx, qy,
+    qz, qw), body ``k``'s history the first ``ns[k]`` rows of ``ts[k]``, ``ps[k]``, ``qs[k]``
+    (updated in place, ``ns`` too). The same checks and arithmetic as ``HeadEstimator.check``
+    then ``add_checked`` (pose finite, ``|q|`` not below 1e-9 and within ``quat_tolerance`` of
+    1, then renormalised; a finite stamp; a stamp more than ``min_interval`` after the newest,
+    the quaternion flipped to its hemisphere; more than ``max_gap`` after it: a new history;
+    a full history drops its oldest sample). ``restart[k]``: a stamp before the newest starts
+    a new history instead of being rejected (the stream restarted). ``outcome[k]``:
+    ``ACCEPTED``, ``-2`` accepted as a restart, or the reason code."""
+    m = ts.shape[1]
+    for k in range(ns.shape[0]):
+        px, py, pz = poses[k, 0], poses[k, 1], poses[k, 2]
+        qx, qy, qz, qw = poses[k, 3], poses[k, 4], poses[k, 5], poses[k, 6]
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz) and np.isfinite(qx)
+                and np.isfinite(qy) and np.isfinite(qz) and np.isfinite(qw)):
+            outcome[k] = NONFINITE
+            continue
+        norm = np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if norm < 1e-9:
+            outcome[k] = ZERO_QUATERNION
+            continue
+        if abs(norm - 1.0) > quat_tolerance:
+            outcome[k] = NON_UNIT_QUATERNION
+            continue
+        if not np.isfinite(t):
+            outcome[k] = NONFINITE
+            continue
+        qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+        n = ns[k]
+        outcome[k] = ACCEPTED
+        if n and restart[k] and t < ts[k, n - 1]:
+            n = 0
+            outcome[k] = -2
+        if n:
+            dt = t - ts[k, n - 1]
+            if abs(dt) <= min_interval:
+                outcome[k] = STAMP_REPEATED
+                continue
+            if dt < 0.0:
+                outcome[k] = STAMP_BACKWARDS
+                continue
+            if (qx * qs[k, n - 1, 0] + qy * qs[k, n - 1, 1] + qz * qs[k, n - 1, 2]
+                    + qw * qs[k, n - 1, 3]) < 0.0:
+                qx, qy, qz, qw = -qx, -qy, -qz, -qw
+            if dt > max_gap:
+                n = 0
+        if n == m:
+            for j in range(m - 1):
+                ts[k, j] = ts[k, j + 1]
+                for a in range(3):
+                    ps[k, j, a] = ps[k, j + 1, a]
+                for a in range(4):
+                    qs[k, j, a] = qs[k, j + 1, a]
+            n -= 1
+        ts[k, n] = t
+        ps[k, n, 0], ps[k, n, 1], ps[k, n, 2] = px, py, pz
+        qs[k, n, 0], qs[k, n, 1], qs[k, n, 2], qs[k, n, 3] = qx, qy, qz, qw
+        ns[k] = n + 1
+
+
+@njit(cache=True)
+def longest_median_interval(ts, ns, rows):
+    """The largest ``median_interval`` of the bodies ``rows`` with two stamps or more (s),
+    -1.0 if none has."""
+    longest = -1.0
+    for k in rows:
+        if ns[k] >= 2:
+            longest = max(longest, median_interval(ts[k], ns[k]))
+    return longest
 
 
 @njit(cache=True)
