@@ -55,6 +55,63 @@ def test_collider_marker_numbers(seed):
                              quat_from_two_vectors(a, b))
 
 
+@pytest.mark.parametrize('seed', range(3))
+def test_collider_marker_rows_are_each_colliders_numbers(seed):
+    """``_rotate_rows`` and ``_z_onto_rows`` (all colliders at once) give bit for bit each
+    row's ``_rotate`` and ``_from_two_vectors`` (antiparallel and zero vectors included)."""
+    rng = np.random.default_rng(200 + seed)
+    qs = _quats(rng, 2000)
+    vs = rng.normal(size=(2000, 3)) * rng.choice([1e-3, 1.0, 1e3], size=(2000, 1))
+    vs[rng.random(2000) < 0.2, 1] = 0.0
+    vs[rng.random(2000) < 0.2, 0] = -0.0
+    vs[:20] = [0.0, 0.0, -1.0]
+    vs[20:25] = [0.0, 0.0, 0.0]
+    rows = m._rotate_rows(qs, vs)
+    z = m._z_onto_rows(vs)
+    for k in range(2000):
+        assert _same(rows[k], m._rotate(qs[k].tolist(), vs[k].tolist()))
+        assert _same(z[k], m._from_two_vectors([0.0, 0.0, 1.0], vs[k].tolist()))
+
+
+def test_collider_markers_pose_every_collider_as_one_by_one():
+    """``ColliderMarkers.markers`` (every collider in a few array operations) equals, bit for
+    bit, each collider posed by its body one by one: spheres, capsules and planes, static and
+    fixed in moving bodies."""
+    from ponytail_ros.core.head import KinematicState
+    from ponytail_ros.core.scene import ColliderSpec
+    rng = np.random.default_rng(7)
+    cols = []
+    for k in range(40):
+        kind = ('sphere', 'capsule', 'plane')[k % 3]
+        cols.append(ColliderSpec(kind=kind, center=tuple(rng.normal(size=3)),
+                                 axis=tuple(rng.normal(size=3)), radius=0.1, half_length=0.2,
+                                 body=None if k % 4 == 0 else int(rng.integers(0, 5))))
+    bodies = KinematicState(position=rng.normal(size=(5, 3)),
+                            orientation=_quats(rng, 5),
+                            linear_velocity=np.zeros((5, 3)),
+                            angular_velocity=np.zeros((5, 3)),
+                            linear_acceleration=np.zeros((5, 3)),
+                            angular_acceleration=np.zeros((5, 3)))
+    specs, poses, points, _ = m.ColliderMarkers().markers(cols, bodies, 'capsules')
+    want_poses, want_points = [], []
+    for c in cols:
+        centre = list(map(float, c.center))
+        axis = (np.asarray(c.axis) / np.linalg.norm(c.axis)).tolist() if c.kind != 'sphere' \
+            else [0.0, 0.0, 1.0]
+        if c.body is not None:
+            qb = bodies.orientation[c.body].tolist()
+            centre = [a + b for a, b in zip(bodies.position[c.body].tolist(),
+                                            m._rotate(qb, centre))]
+            axis = m._rotate(qb, axis)
+        want_poses.append([*centre, *m._from_two_vectors([0.0, 0.0, 1.0], axis)])
+        if c.kind == 'capsule':
+            want_poses.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+            want_points += [[a - c.half_length * b for a, b in zip(centre, axis)],
+                            [a + c.half_length * b for a, b in zip(centre, axis)]]
+    assert len(specs) == len(want_poses)
+    assert _same(poses, want_poses) and _same(points, want_points)
+
+
 @pytest.mark.parametrize('style', ['capsules', 'line'])
 def test_many_chains_marker_numbers_are_each_chains_concatenated(style):
     """``ChainsMarkerNumbers`` (one pass over a crowd's segments) gives bit for bit the numbers

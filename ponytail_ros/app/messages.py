@@ -129,6 +129,35 @@ def _from_two_vectors(a, b):
                                            np.array(b, dtype=float)).tolist())
 
 
+def _rotate_rows(q, v):
+    """``_rotate`` of each row of ``q`` ``(K, 4)`` and ``v`` ``(K, 3)``: the same operations
+    in the same order, so the same bits."""
+    u0, u1, u2, w = q.T
+    v0, v1, v2 = v.T
+    t0, t1, t2 = 2.0 * (u1 * v2 - u2 * v1), 2.0 * (u2 * v0 - u0 * v2), 2.0 * (u0 * v1 - u1 * v0)
+    return np.stack((v0 + w * t0 + (u1 * t2 - u2 * t1), v1 + w * t1 + (u2 * t0 - u0 * t2),
+                     v2 + w * t2 + (u0 * t1 - u1 * t0)), axis=1)
+
+
+def _z_onto_rows(b):
+    """``_from_two_vectors(+Z, b)`` of each row of ``b`` ``(K, 3)``, bit for bit (a zero or
+    antiparallel row by ``_from_two_vectors`` itself)."""
+    a0, a1, a2 = 0.0, 0.0, 1.0          # +Z, normalised as _from_two_vectors does: unchanged
+    with np.errstate(divide='ignore', invalid='ignore'):
+        nb = np.sqrt((b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2])
+        b0, b1, b2 = b[:, 0] / nb, b[:, 1] / nb, b[:, 2] / nb
+        w = 1.0 + ((a0 * b0 + a1 * b1) + a2 * b2)
+        x, y, z = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        n = np.sqrt(((x * x + y * y) + z * z) + w * w)
+        out = np.stack((x / n, y / n, z / n, w / n), axis=1)
+    for k in np.flatnonzero(~(w >= 1e-12) | (nb == 0.0)):
+        out[k] = _from_two_vectors(_Z_FLOATS, b[k].tolist())
+    return out
+
+
+_Z_FLOATS = (0.0, 0.0, 1.0)
+
+
 def _set_pose(pose, p, q):
     pos, ori = pose.position, pose.orientation
     pos.x, pos.y, pos.z = p
@@ -554,6 +583,21 @@ class ColliderMarkers:
                         _unit(np.asarray(c.axis, float)) if c.kind != 'sphere' else _Z)
                        for c in colliders]
         self._local_floats = [(centre.tolist(), axis.tolist()) for centre, axis in self._local]
+        # The same as arrays: rows of centres and axes, the body-fixed ones (``_moving``) and
+        # their bodies, each collider's pose row (a capsule's is followed by an identity row
+        # for its end spheres), the capsules and their half lengths.
+        self._centres = np.array([c for c, _ in self._local_floats], dtype=float).reshape(-1, 3)
+        self._axes = np.array([a for _, a in self._local_floats], dtype=float).reshape(-1, 3)
+        self._moving = np.array([k for k, c in enumerate(colliders) if c.body is not None],
+                                dtype=np.intp)
+        self._bodies = np.array([colliders[k].body for k in self._moving], dtype=np.intp)
+        rows = np.cumsum([0] + [2 if c.kind == 'capsule' else 1 for c in colliders])
+        self._pose_rows, self._n_rows = rows[:-1], int(rows[-1])
+        self._capsules = np.array([k for k, c in enumerate(colliders) if c.kind == 'capsule'],
+                                  dtype=np.intp)
+        self._identity_rows = self._pose_rows[self._capsules] + 1
+        self._half_lengths = np.array([colliders[k].half_length for k in self._capsules],
+                                      dtype=float)
         color = COLLIDER_COLOR
         specs = []
         for k, c in enumerate(colliders):
@@ -585,20 +629,21 @@ class ColliderMarkers:
                 self._build(colliders)
         if key is None:
             return (), np.zeros((0, 7)), _NO_POINTS, changed
-        poses, points = [], []
-        z = self._z
-        position, orientation = bodies.position, bodies.orientation
-        for c, (centre, axis) in zip(colliders, self._local_floats):
-            if c.body is not None:
-                qb = orientation[c.body].tolist()
-                p = _rotate(qb, centre)
-                centre = [a + b for a, b in zip(position[c.body].tolist(), p)]
-                axis = _rotate(qb, axis)
-            q = _from_two_vectors(z, axis)        # marker Z along the axis / normal
-            poses.append([*centre, *q])
-            if c.kind == 'capsule':
-                poses.append(_IDENTITY_ROW)
-                h = c.half_length
-                points += [[m - h * a for m, a in zip(centre, axis)],
-                           [m + h * a for m, a in zip(centre, axis)]]
-        return (self._specs, np.array(poses), np.array(points).reshape(-1, 3), changed)
+        # Every collider at once (a crowd has one skull per character), each row with the
+        # arithmetic of ``_rotate`` and ``_from_two_vectors``, so the same bits.
+        centres, axes = self._centres.copy(), self._axes.copy()
+        moving = self._moving
+        if moving.size:
+            qb = np.asarray(bodies.orientation)[self._bodies]
+            centres[moving] = np.asarray(bodies.position)[self._bodies] + _rotate_rows(
+                qb, centres[moving])
+            axes[moving] = _rotate_rows(qb, axes[moving])
+        poses = np.empty((self._n_rows, 7))
+        poses[self._identity_rows] = _IDENTITY_ROW
+        at = self._pose_rows
+        poses[at, :3] = centres
+        poses[at, 3:] = _z_onto_rows(axes)        # marker Z along the axis / normal
+        caps, h = self._capsules, self._half_lengths[:, None]
+        points = np.stack((centres[caps] - h * axes[caps], centres[caps] + h * axes[caps]),
+                          axis=1).reshape(-1, 3)
+        return (self._specs, poses, points, changed)

@@ -340,6 +340,14 @@ class ChainRunner:
         last = self._frame_last_accept[i]
         return last is None or t - last > self.settings.stale_timeout
 
+    def stale_frames(self, t):
+        """Indices of the frames the scene uses whose pose is stale at ``t`` (``frame_stale``),
+        in order."""
+        timeout = self.settings.stale_timeout
+        last = self._frame_last_accept
+        return [i for i in _used_frames(self.scene, len(self.frames))
+                if last[i] is None or t - last[i] > timeout]
+
     def missing_inputs(self, scene=None):
         """The inputs ``scene`` (default: the current one) uses that have no pose yet:
         ``'head'`` and/or frame names. The runner publishes nothing while there is one."""

@@ -595,12 +595,12 @@ class PonytailNode(Node):
                                 'Head pose stale (no pose accepted for over '
                                 f'{self.runner.settings.stale_timeout:g} s): holding the last '
                                 'pose')
-        for i, f in enumerate(self._frames):
-            if self.runner.needs_frame(i) and self.runner.frame_stale(i, out.t):
-                self._log_throttled(f'stale:{f}', 5.0, 'warning',
-                                    f'Frame {f} pose stale on {self._input_topics[f]} (no pose '
-                                    f'accepted for over {self.runner.settings.stale_timeout:g} '
-                                    's): holding its last pose')
+        for i in self.runner.stale_frames(out.t):
+            f = self._frames[i]
+            self._log_throttled(f'stale:{f}', 5.0, 'warning',
+                                f'Frame {f} pose stale on {self._input_topics[f]} (no pose '
+                                f'accepted for over {self.runner.settings.stale_timeout:g} '
+                                's): holding its last pose')
         if rep.dropped_time > 0.0:
             self._log_throttled('dropped_time', 5.0, 'warning',
                                 f'Dropped {rep.dropped_time:.3f} s of simulation time '
