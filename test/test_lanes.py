@@ -2,7 +2,10 @@
 results bit for bit (``np.array_equal``) on x, q, v, ω and f_c, for crowds of several sizes
 (a multiple of ``LANES``, one block exactly, a partial last block) with chains that differ
 (each on its own head with its own phase, its own length, mass, radius, damping, drag), each
-supported term on; and scenes the lanes do not cover fall back to the general step."""
+supported term on; a crowd with skulls and joint limits through the contact step loop; and
+scenes the lanes do not cover fall back to the general step."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -10,7 +13,7 @@ from ponytail_ros.app.motions import crowd_motion
 from ponytail_ros.core import lanes
 from ponytail_ros.core import step as compiled
 from ponytail_ros.core.head import point_table
-from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
+from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
 L = lanes.LANES
@@ -96,9 +99,18 @@ def test_without_projection_and_gravity_bit_identical():
     _assert_identical(_crowd(L + 2, gravity=(0.0, 0.0, 0.0), damping=1e-5), n_steps=20)
 
 
+@pytest.mark.parametrize('damping', [0.0, 2e-5])
+def test_bending_stiffness_bit_identical(damping):
+    """Bending stiffness alone and summed with joint damping into one joint torque (the
+    general step's order)."""
+    scene = _crowd(L + 2, stiffness=2e-3, damping=damping)
+    assert Simulator(scene)._step_model().stiffness_on
+    _assert_identical(scene)
+
+
 def test_all_terms_sixteen_segments_bit_identical():
     _assert_identical(_crowd(3 * L + 1, n_segments=16, damping=1e-5, drag=(0.02, 0.1),
-                             wind=(0.5, 0.0, 0.0)), external=True)
+                             stiffness=1e-3, wind=(0.5, 0.0, 0.0)), external=True)
 
 
 def test_failed_joint_solve_reports_the_same_status():
@@ -141,15 +153,43 @@ def test_simulator_dispatches_crowds_to_the_lanes():
     assert all(r.reset_reason is None for r in reports_a + roll_a.reports)
 
 
-@pytest.mark.parametrize('kind', ['stiffness', 'implicit_damping', 'symplectic_euler',
-                                  'non_axisymmetric', 'few_chains', 'mixed_lengths',
-                                  'limits'])
+def _skulls_and_limits(scene, swing_limit=0.6):
+    """``scene`` with a skull on every head that its chain hangs against, and swing limits."""
+    chains = tuple(dataclasses.replace(c, attach=(-0.1, 0.0, 0.03), swing_limit=swing_limit,
+                                       collide=True)
+                   for c in scene.chains)
+    skulls = tuple(ColliderSpec.sphere(radius=0.09, body=k, friction=0.3)
+                   for k in range(len(chains)))
+    return dataclasses.replace(scene, chains=chains, colliders=skulls)
+
+
+@pytest.mark.parametrize('n_chains', [L + 3, 2 * L])
+def test_crowd_with_colliders_and_limits_steps_in_lanes_bit_identical(n_chains):
+    """The contact step loop takes the chains' steps in the lanes between its contact stages:
+    the same state, joint forces, contacts and limits, bit for bit, as chain by chain."""
+    scene = _skulls_and_limits(_crowd(n_chains, damping=1e-5, stiffness=1e-3,
+                                      drag=(0.02, 0.1)))
+    sim = Simulator(scene, crowd_motion(n_chains), 0.0)
+    assert sim._kernel(sim._step_model()) is lanes.advance_lanes
+    a, reports_a, roll_a = _simulate(scene, False)
+    b, reports_b, roll_b = _simulate(scene, True)
+    for name in ('x', 'q', 'v', 'w'):
+        assert np.array_equal(getattr(a.state, name), getattr(b.state, name)), name
+        assert np.array_equal(getattr(roll_a, name), getattr(roll_b, name)), name
+    assert np.array_equal(a.constraint_forces, b.constraint_forces)
+    assert [r.steps for r in reports_a] == [r.steps for r in reports_b]
+    assert a.unilateral.last == b.unilateral.last
+    # The skulls and limits really act: chains rest on them at the end.
+    assert a.unilateral.last['contacts'] > 0
+    assert all(r.reset_reason is None for r in reports_a + roll_a.reports)
+
+
+@pytest.mark.parametrize('kind', ['implicit_damping', 'symplectic_euler',
+                                  'non_axisymmetric', 'few_chains', 'mixed_lengths'])
 def test_unsupported_scenes_fall_back(kind):
     kw = {}
     n_chains = L + 1
-    if kind == 'stiffness':
-        kw = dict(stiffness=1e-3)
-    elif kind == 'implicit_damping':
+    if kind == 'implicit_damping':
         kw = dict(damping=1e-4, damping_method='implicit')
     elif kind == 'symplectic_euler':
         kw = dict(integrator='symplectic_euler')
@@ -163,15 +203,8 @@ def test_unsupported_scenes_fall_back(kind):
         chains[-1] = ChainSpec(n_segments=5, anchor_body=len(chains) - 1)
         scene = Scene(chains=tuple(chains), n_kinematic_bodies=len(chains),
                       solver=scene.solver)
-    if kind == 'limits':
-        chains = tuple(ChainSpec(n_segments=6, anchor_body=k, swing_limit=2.5)
-                       for k in range(n_chains))
-        scene = Scene(chains=chains, n_kinematic_bodies=n_chains, solver=scene.solver)
     sim = Simulator(scene, crowd_motion(n_chains), 0.0)
-    if kind != 'limits':
-        assert sim._kernel(sim._step_model()) is compiled.advance
-    else:
-        assert sim._crowd is None
+    assert sim._kernel(sim._step_model()) is compiled.advance
     a, _, roll_a = _simulate(scene, False, t_end=0.03)
     b, _, roll_b = _simulate(scene, True, t_end=0.03)
     for name in ('x', 'q', 'v', 'w'):

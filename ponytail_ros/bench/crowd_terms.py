@@ -47,7 +47,7 @@ def measure(scene, heads, colliders, terms, ticks, rate):
         if k > 5:               # (the start-up ticks left out)
             wall.append(time.perf_counter() - t0)
             integrate.append(report.timings.get('integrate', 0.0))
-    uses_lanes = (not colliders and sim._kernel(sim._step_model()) is lanes.advance_lanes)
+    uses_lanes = sim._kernel(sim._step_model()) is lanes.advance_lanes
     return float(np.median(wall)), float(np.median(integrate)), uses_lanes
 
 

@@ -26,14 +26,18 @@ At 4 lanes the loops of the joint solve (all joints but the first, both sweeps),
 updates, the step's start and the applied forces' gravity are vectorised (<4 x double>); the
 first joint's loop, the projection, the joint damping and the drag loops are not (LLVM asks
 for runtime checks it will not make there) and run lane by lane: the same bits, more time.
+The bending stiffness loop calls ``qto_rotvec`` (atan2, branches) and runs lane by lane too.
 
 Covered (the rest goes to ``step.advance``, see ``supports``): RK4, axisymmetric segments
-(the gyroscopic term ω × Iω), gravity, explicit joint damping, linear and quadratic drag with
-wind, external forces and torques, the O(n) joint solve (``chain_solve``'s block LDLᵀ, as
-``step._accelerations`` does it), the projection (positions and velocities rebuilt from the
-anchor), every chain of the same segment count. The state is transposed into the lane layout
-once per call and back at its end; a last, partial block is filled with copies of its last
-chain (their results discarded).
+(the gyroscopic term ω × Iω), gravity, explicit joint damping, bending stiffness, linear and
+quadratic drag with wind, external forces and torques, the O(n) joint solve
+(``chain_solve``'s block LDLᵀ, as ``step._accelerations`` does it), the projection
+(positions and velocities rebuilt from the anchor), every chain of the same segment count.
+``advance_lanes`` transposes the state into the lane layout once per call and back at its
+end; ``crowd_records`` and ``step_blocks`` take one step at a time, the state gathered and
+scattered at each, for the contact step loop (``step_unilateral``), which changes it between
+steps. A last, partial block is filled with copies of its last chain (their results
+discarded).
 
 Frames and units: world frame, SI, as ``step``: ``x`` ``(n, 3)`` centres (m), ``q`` ``(n, 4)``
 (x, y, z, w) body to world, ``v`` ``(n, 3)`` (m/s), ``w`` ``(n, 3)`` ω in the world frame
@@ -48,13 +52,14 @@ from numba.extending import intrinsic
 from . import step
 from .chain_solve import invert_pivot, pivot
 from .kernel_cache import ensure_fresh
+from .limit_kernels import qto_rotvec
 from .step import (JOINT_SOLVE_FAILED, OK, RK4, _G_axisymmetric, _cross,
                    _inv_inertia_axisymmetric, _qmul, _qrot)
 
 ensure_fresh()
 
 __all__ = ['LANES', 'MIN_CHAINS', 'advance', 'advance_lanes', 'crowd_layout', 'supports',
-           'kernel_for']
+           'kernel_for', 'crowd_records', 'step_blocks']
 
 # Chains per block. A compile-time constant: the lane loops' trip count, which LLVM splits
 # into whole vectors (<4 x double>: AVX2, and AVX-512 parts prefer 256-bit vectors). Chosen by
@@ -95,13 +100,14 @@ def _offsets(*widths):
 #   the model:       _HALF l/2, _IM 1/m, _I0, _I1 axial and perpendicular moments, _II0, _II1
 #                    their inverses, _FG m g (gravity on), _DAMP c, _DL, _DQ drag
 #                    coefficients, _LEN l, _KT c_lin l³/12 (the same expressions as
-#                    ``step``'s, so the same bits).
+#                    ``step``'s, so the same bits), _STIFF k (bending), _QR the joint's rest
+#                    rotation q_rest.
 (_X, _Q, _V, _W, _WB, _XS, _QS, _VS, _WBS, _WS, _ACC, _ALPHA, _SX, _SV, _SQ, _SWB, _F, _T,
  _HV, _IINV, _G, _C, _LO, _PA, _FC, _BAD, _PE, _UE, _EXTF, _EXTT, _HALF, _IM, _I0, _I1, _II0,
- _II1, _FG, _DAMP, _DL, _DQ, _LEN, _KT, _NF) = _offsets(
+ _II1, _FG, _DAMP, _DL, _DQ, _LEN, _KT, _STIFF, _QR, _NF) = _offsets(
     3, 4, 3, 3, 3, 3, 4, 3, 3, 3, 3, 3, 3, 3, 4, 3, 3, 3,
     3, 9, 6, 6, 9, 3, 3, 1, 3, 3, 3, 3, 1, 1, 1, 1, 1,
-    1, 3, 1, 1, 1, 1, 1)
+    1, 3, 1, 1, 1, 1, 1, 1, 4)
 
 
 @intrinsic
@@ -143,6 +149,9 @@ def _load_model(M, b, n_chains, m, R):
             R[i, _DQ, l] = M.drag_quadratic[j]
             R[i, _LEN, l] = M.length[j]
             R[i, _KT, l] = M.drag_linear[j] * (M.length[j] ** 3 / 12.0)
+            R[i, _STIFF, l] = M.stiffness[j]
+            for a in range(4):
+                R[i, _QR + a, l] = M.q_rest[j, a]
 
 
 @_inline
@@ -167,20 +176,23 @@ def _scatter(R, f, b, n_chains, m, dst):
 
 
 @_inline
-def _gather_anchors(A, b, n_chains, E):
-    """Block ``b``'s anchors ``E`` ``(S, 12, LANES)``: position, velocity, acceleration and
-    angular velocity (components 0, 3, 6, 9) at every stage time of the table ``A``."""
-    for r in range(A.position.shape[0]):
+def _gather_anchors(A, r0, b, n_chains, E):
+    """Block ``b``'s anchors ``E`` ``(S, _NE, LANES)``: position, velocity, acceleration,
+    angular velocity and orientation (components ``_AX``, ``_AV``, ``_AA``, ``_AW``, ``_AQ``)
+    at the stage times of the table ``A``'s rows ``r0 ..`` (as many as ``E`` has)."""
+    for r in range(E.shape[0]):
         for l in range(LANES):
             c = _chain_of_lane(b, l, n_chains)
             for a in range(3):
-                E[r, _AX + a, l] = A.position[r, c, a]
-                E[r, _AV + a, l] = A.velocity[r, c, a]
-                E[r, _AA + a, l] = A.acceleration[r, c, a]
-                E[r, _AW + a, l] = A.angular_velocity[r, c, a]
+                E[r, _AX + a, l] = A.position[r0 + r, c, a]
+                E[r, _AV + a, l] = A.velocity[r0 + r, c, a]
+                E[r, _AA + a, l] = A.acceleration[r0 + r, c, a]
+                E[r, _AW + a, l] = A.angular_velocity[r0 + r, c, a]
+            for a in range(4):
+                E[r, _AQ + a, l] = A.orientation[r0 + r, c, a]
 
 
-_AX, _AV, _AA, _AW = 0, 3, 6, 9
+_AX, _AV, _AA, _AW, _AQ, _NE = 0, 3, 6, 9, 12, 16
 
 
 # -- the stages, each over all segments of a block ---------------------------------------------
@@ -202,17 +214,17 @@ def _start(m, R):
 
 
 @_inline
-def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, drag_on, external_on):
+def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, stiffness_on, drag_on,
+             external_on):
     """Applied forces and torques (N, N·m, world) at the stage state, ``step._applied``'s
-    terms in its order: gravity, joint damping (τ on the child, -τ on the parent), drag,
-    external."""
+    terms in its order: gravity, the joint torques (damping, then bending stiffness: τ on the
+    child, -τ on the parent), drag, external."""
     for i in range(m):
         for l in range(LANES):
             for a in range(3):
                 R[i, _F + a, l] = R[i, _FG + a, l]
                 R[i, _T + a, l] = 0.0
-    if explicit_damping:
-        _joint_damping(m, row, R, E)
+    _joint_terms(m, row, R, E, explicit_damping, stiffness_on)
     if drag_on:
         _drag(m, R, wind0, wind1, wind2)
     if external_on:
@@ -221,6 +233,15 @@ def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, drag_on, exter
                 for a in range(3):
                     R[i, _F + a, l] += R[i, _EXTF + a, l]
                     R[i, _T + a, l] += R[i, _EXTT + a, l]
+
+
+@_inline
+def _joint_terms(m, row, R, E, explicit_damping, stiffness_on):
+    """The joint torques switched on: damping alone, or with bending stiffness."""
+    if stiffness_on:
+        _joint_torques(m, row, R, E, explicit_damping)
+    elif explicit_damping:
+        _joint_damping(m, row, R, E)
 
 
 @_inline
@@ -237,6 +258,56 @@ def _joint_damping(m, row, R, E):
                 tau = 0.0 - k * (R[i, _WS + a, l] - R[i - 1, _WS + a, l])
                 R[i, _T + a, l] += tau
                 R[i - 1, _T + a, l] -= tau
+
+
+@_inline
+def _bending(R, i, l, px, py, pz, pw):
+    """k times joint i's deviation from rest as a world rotation vector, its parent's
+    orientation p given: q = p ⊗ q_rest ⊗ q_err, q_err as a rotation vector in the child frame,
+    rotated to the world (``step._applied``'s expressions, so the same bits; ``qto_rotvec``
+    is a call with branches: this loop runs lane by lane)."""
+    rx, ry, rz, rw = _qmul(px, py, pz, pw, R[i, _QR, l], R[i, _QR + 1, l], R[i, _QR + 2, l],
+                           R[i, _QR + 3, l])
+    qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
+    ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, qx, qy, qz, qw)
+    p0, p1, p2 = qto_rotvec((ex, ey, ez, ew))
+    s0, s1, s2 = _qrot(qx, qy, qz, qw, p0, p1, p2)
+    k = R[i, _STIFF, l]
+    return k * s0, k * s1, k * s2
+
+
+@_inline
+def _joint_torques(m, row, R, E, explicit_damping):
+    """Joint damping (if ``explicit_damping``) and bending stiffness at every joint: τ =
+    -c (ω_child - ω_parent) - k θ_err (summed in ``step._applied``'s order), on the child, and
+    -τ on the parent."""
+    for i in range(m):
+        for l in range(LANES):
+            tau0, tau1, tau2 = 0.0, 0.0, 0.0
+            if i == 0:                  # the first joint: the anchor body is the parent
+                pw0, pw1, pw2 = E[row, _AW, l], E[row, _AW + 1, l], E[row, _AW + 2, l]
+                px, py, pz, pw = (E[row, _AQ, l], E[row, _AQ + 1, l], E[row, _AQ + 2, l],
+                                  E[row, _AQ + 3, l])
+            else:
+                pw0, pw1, pw2 = R[i - 1, _WS, l], R[i - 1, _WS + 1, l], R[i - 1, _WS + 2, l]
+                px, py, pz, pw = (R[i - 1, _QS, l], R[i - 1, _QS + 1, l],
+                                  R[i - 1, _QS + 2, l], R[i - 1, _QS + 3, l])
+            if explicit_damping:
+                k = R[i, _DAMP, l]
+                tau0 -= k * (R[i, _WS, l] - pw0)
+                tau1 -= k * (R[i, _WS + 1, l] - pw1)
+                tau2 -= k * (R[i, _WS + 2, l] - pw2)
+            s0, s1, s2 = _bending(R, i, l, px, py, pz, pw)
+            tau0 -= s0
+            tau1 -= s1
+            tau2 -= s2
+            R[i, _T, l] += tau0
+            R[i, _T + 1, l] += tau1
+            R[i, _T + 2, l] += tau2
+            if i > 0:
+                R[i - 1, _T, l] -= tau0
+                R[i - 1, _T + 1, l] -= tau1
+                R[i - 1, _T + 2, l] -= tau2
 
 
 @_inline
@@ -512,30 +583,62 @@ def _project(m, row, R, E):
 
 # -- the call ----------------------------------------------------------------------------------
 @_inline
-def _block_steps(M, n_steps, h, R, E):
-    """All ``n_steps`` RK4 steps of one block (``step._rk4``, then ``step._project``), its
+def _block_step(M, k, h, R, E):
+    """Step ``k`` of the table for one block (``step._rk4``, then ``step._project``), its
     record ``R`` and anchors ``E`` given. Returns ``OK`` or ``JOINT_SOLVE_FAILED`` (some
     lane's A was not positive definite)."""
     m = R.shape[0]
-    wind0, wind1, wind2 = M.wind[0], M.wind[1], M.wind[2]
-    hh = 0.5 * h
-    for k in range(n_steps):
-        _start(m, R)
-        for s in range(4):
-            row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
-            _applied(m, row, R, E, wind0, wind1, wind2, M.explicit_damping, M.drag_on,
-                     M.external_on)
-            _forward(m, row, R, E)
-            if _failed(m, R):
-                return JOINT_SOLVE_FAILED
-            _backward(m, R)
-            if s < 3:
-                _next_stage(m, s, 1.0 if s == 0 else 2.0, hh if s < 2 else h, R)
-            else:
-                _finish(m, h, R)
-        if M.projection:
-            _project(m, 2 * k + 2, R, E)
+    _start(m, R)
+    for s in range(4):
+        row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
+        _applied(m, row, R, E, M.wind[0], M.wind[1], M.wind[2], M.explicit_damping,
+                 M.stiffness_on, M.drag_on, M.external_on)
+        _forward(m, row, R, E)
+        if _failed(m, R):
+            return JOINT_SOLVE_FAILED
+        _backward(m, R)
+        if s < 3:
+            _next_stage(m, s, 1.0 if s == 0 else 2.0, 0.5 * h if s < 2 else h, R)
+        else:
+            _finish(m, h, R)
+    if M.projection:
+        _project(m, 2 * k + 2, R, E)
     return OK
+
+
+@_inline
+def _load_block(M, A, b, n_chains, m, ext_F, ext_T, R, E):
+    """Block ``b``'s model, external forces and anchors into its record and anchor table."""
+    _load_model(M, b, n_chains, m, R)
+    if M.external_on:
+        _gather(ext_F, b, n_chains, m, R, _EXTF)
+        _gather(ext_T, b, n_chains, m, R, _EXTT)
+    _gather_anchors(A, 0, b, n_chains, E)
+
+
+@_inline
+def _gather_state(b, n_chains, m, x, q, v, w, R):
+    _gather(x, b, n_chains, m, R, _X)
+    _gather(q, b, n_chains, m, R, _Q)
+    _gather(v, b, n_chains, m, R, _V)
+    _gather(w, b, n_chains, m, R, _W)
+
+
+@_inline
+def _scatter_state(R, b, n_chains, m, x, q, v, w, f_c):
+    _scatter(R, _X, b, n_chains, m, x)
+    _scatter(R, _Q, b, n_chains, m, q)
+    _scatter(R, _V, b, n_chains, m, v)
+    _scatter(R, _W, b, n_chains, m, w)
+    _scatter(R, _FC, b, n_chains, m, f_c)
+
+
+@_inline
+def _n_chains(M):
+    n_chains = 0
+    for i in range(M.is_first.shape[0]):
+        n_chains += 1 if M.is_first[i] else 0
+    return n_chains
 
 
 @_jit
@@ -543,56 +646,77 @@ def advance_lanes(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     """``step.advance`` for a crowd that ``supports`` and ``crowd_layout`` allow (the same
     arguments, results bit for bit and status): the chains in blocks of ``LANES``, each block
     through all the steps of the call before the next (its record stays in the cache). The
-    record and anchors are allocated here, where the loops are (``_block_steps`` is inlined):
+    record and anchors are allocated here, where the loops are (``_block_step`` is inlined):
     that is what lets LLVM see they are distinct from the arguments."""
     if n_steps <= 0:
         return OK
-    n_chains = 0
-    for i in range(M.is_first.shape[0]):
-        n_chains += 1 if M.is_first[i] else 0
+    n_chains = _n_chains(M)
     m = x.shape[0] // n_chains
     R = np.zeros((m, _NF, LANES))
-    E = np.empty((A.position.shape[0], 12, LANES))
+    E = np.empty((A.position.shape[0], _NE, LANES))
     for b in range((n_chains + LANES - 1) // LANES):
-        _load_model(M, b, n_chains, m, R)
-        _gather(x, b, n_chains, m, R, _X)
-        _gather(q, b, n_chains, m, R, _Q)
-        _gather(v, b, n_chains, m, R, _V)
-        _gather(w, b, n_chains, m, R, _W)
+        _load_block(M, A, b, n_chains, m, ext_F, ext_T, R, E)
+        _gather_state(b, n_chains, m, x, q, v, w, R)
+        for k in range(n_steps):
+            status = _block_step(M, k, h, R, E)
+            if status != OK:
+                return status
+        _scatter_state(R, b, n_chains, m, x, q, v, w, f_c)
+    return OK
+
+
+@_inline
+def crowd_records(M, n, in_lanes):
+    """One block's record and anchor rows, ``(m, _NF, LANES)`` (m segments per chain of the
+    ``n``) and ``(3, _NE, LANES)``, for ``step_blocks`` (empty unless ``in_lanes``). Inline:
+    the caller that allocates them is the one whose loops use them (see ``advance_lanes``)."""
+    m = n // _n_chains(M) if in_lanes else 0
+    return np.zeros((m, _NF, LANES)), np.empty((3, _NE, LANES))
+
+
+@_inline
+def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E):
+    """Step ``k`` of the table ``A`` for every chain, block by block, in one block's record
+    ``R`` and anchor rows ``E`` (``crowd_records``): each
+    block's model, anchors of the step and state are loaded, the step taken and the state
+    scattered back, since the caller changes it between steps (contacts). A record kept per
+    block across the steps was measured slower: the records of a crowd outgrow the cache the
+    contact stage needs between two steps. The same bits as ``step.advance``'s step ``k``."""
+    n_chains = _n_chains(M)
+    m = R.shape[0]
+    Rb = R
+    for b in range((n_chains + LANES - 1) // LANES):
+        _load_model(M, b, n_chains, m, Rb)
         if M.external_on:
-            _gather(ext_F, b, n_chains, m, R, _EXTF)
-            _gather(ext_T, b, n_chains, m, R, _EXTT)
-        _gather_anchors(A, b, n_chains, E)
-        status = _block_steps(M, n_steps, h, R, E)
+            _gather(ext_F, b, n_chains, m, Rb, _EXTF)
+            _gather(ext_T, b, n_chains, m, Rb, _EXTT)
+        _gather_anchors(A, 2 * k, b, n_chains, E)
+        _gather_state(b, n_chains, m, x, q, v, w, Rb)
+        status = _block_step(M, 0, h, Rb, E)
         if status != OK:
             return status
-        _scatter(R, _X, b, n_chains, m, x)
-        _scatter(R, _Q, b, n_chains, m, q)
-        _scatter(R, _V, b, n_chains, m, v)
-        _scatter(R, _W, b, n_chains, m, w)
-        _scatter(R, _FC, b, n_chains, m, f_c)
+        _scatter_state(Rb, b, n_chains, m, x, q, v, w, f_c)
     return OK
 
 
 # -- dispatch ----------------------------------------------------------------------------------
 def crowd_layout(model):
     """``(chains, segments per chain)`` if ``model``'s structure suits the lanes (at least
-    ``MIN_CHAINS`` chains, all of one segment count, no colliders or joint limits), else None.
-    The structure of a ``Model`` never changes: the simulator asks once."""
+    ``MIN_CHAINS`` chains, all of one segment count), else None. Colliders and joint limits
+    do not matter: ``step_unilateral`` resolves them between the lanes' steps. The structure
+    of a ``Model`` never changes: the simulator asks once."""
     counts = np.asarray(model.chain_end) - np.asarray(model.chain_start)
-    if (model.n_chains < MIN_CHAINS or np.any(counts != counts[0]) or model.has_colliders
-            or model.has_limits):
+    if model.n_chains < MIN_CHAINS or np.any(counts != counts[0]):
         return None
     return int(model.n_chains), int(counts[0])
 
 
 def supports(M):
     """Whether the lanes kernel runs the ``StepModel`` ``M``'s switches: RK4, axisymmetric
-    segments, no implicit damping, no bending stiffness, no Baumgarte terms (the rest:
-    gravity, explicit damping, drag, external forces, projection on or off, are covered)."""
+    segments, no implicit damping, no Baumgarte terms (the rest: gravity, explicit damping,
+    bending stiffness, drag, external forces, projection on or off, are covered)."""
     return bool(M.integrator == RK4 and M.axisymmetric and not M.implicit_damping
-                and not M.stiffness_on and M.baumgarte_stiffness == 0.0
-                and M.baumgarte_damping == 0.0)
+                and M.baumgarte_stiffness == 0.0 and M.baumgarte_damping == 0.0)
 
 
 def kernel_for(M, layout):

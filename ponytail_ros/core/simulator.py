@@ -28,7 +28,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from . import collision, lanes
+from . import collision, lanes, step_unilateral
 from . import step as compiled
 from .head import (STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion, KinematicState,
                    frame_ends, point_table, stack_anchors)
@@ -589,7 +589,7 @@ class Simulator:
                           anchor_table=None, body_table=None):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
         above, then its contacts and limits are resolved (``collision``), all in one compiled
-        call (``step.advance_unilateral``). A step in which some joint turns faster than
+        call (``step_unilateral.advance_unilateral``). A step in which some joint turns faster than
         ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is split into up to
         ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise: the compiled call stops
         before it, and it is taken here (the anchors at the sub-step times are evaluated for
@@ -629,13 +629,15 @@ class Simulator:
         f_c = np.zeros((self.model.n, 3))
         stats = uni._stats
         cols = uni.colliders
-        args = (self._step_model(), A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
+        M = self._step_model()
+        args = (M, A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
                 moving, cols.args if cols is not None else _NO_COLLIDER_ARGS,
                 uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
                 uni.detector_args, np.ascontiguousarray(self.model.q_rest),
-                uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile)
+                uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
+                self._kernel(M) is lanes.advance_lanes)
         t0 = time.perf_counter()
-        status, k = compiled.advance_unilateral(*args)
+        status, k = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0
         self.dynamics.last_f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),

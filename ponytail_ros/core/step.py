@@ -33,21 +33,21 @@ from llvmlite import ir
 from numba.core import cgutils
 from numba.core.extending import intrinsic
 
-from . import contact_kernels
 from .chain_solve import invert_pivot, pivot, solve, store_factors
 from .limit_kernels import qmatrix, qto_rotvec
 
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
            'SYMPLECTIC_EULER', 'RATTLE',
-           'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'advance_unilateral',
-           'substeps', 'PROFILE_STAGES', 'HAS_CYCLE_COUNTER']
+           'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'substeps',
+           'PROFILE_STAGES', 'HAS_CYCLE_COUNTER']
 
 RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
 OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
 
-#: The stages ``advance_unilateral`` times (its ``profile`` array: CPU cycles spent in each,
-#: then in the whole call), like Box2D's ``b2Profile``: the chains' own steps (forces, joint
-#: solves, integration, projection) and the contact and limit stage (``resolve``).
+#: The stages ``step_unilateral.advance_unilateral`` times (its ``profile`` array: CPU cycles
+#: spent in each, then in the whole call), like Box2D's ``b2Profile``: the chains' own steps
+#: (forces, joint solves, integration, projection) and the contact and limit stage
+#: (``resolve``).
 PROFILE_STAGES = ('integrate', 'contacts')
 #: Whether ``_cycles`` reads a counter here (x86-64's time-stamp counter); elsewhere it is 0
 #: and the profile stays empty. (A counter that user code may read exists on other CPUs, e.g.
@@ -1250,61 +1250,3 @@ def substeps(M, A, row, w, h, substep_angle, max_substeps):
             d2 += (w[i, a] - p) ** 2
         rate2 = max(rate2, d2)
     return min(max_substeps, max(1, int(np.ceil(np.sqrt(rate2) * h / substep_angle))))
-
-
-@nb.njit(cache=True, nogil=True)
-def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
-                       static_pose, umodel, det, q_rest, has_colliders, stats,
-                       substep_angle, max_substeps, profile):
-    """``advance`` for scenes with colliders or joint limits: each step is integrated chain by
-    chain, then its contacts and limits are resolved (``contact_kernels.resolve``) at the
-    step's end, the colliders posed from the kinematic bodies' table ``B`` (rows as ``A``) if
-    ``moving``, else ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when
-    the next step needs sub-steps (``substeps`` > 1; it is not taken: the simulator takes
-    it), else as ``advance``. Adds the cycles spent in each of ``PROFILE_STAGES``, then in
-    the whole call, to ``profile`` ``(3,)`` int64."""
-    t_call = _cycles()
-    starts, ends = _chain_starts(M, x.shape[0])
-    W, R = _workspaces(starts, ends)
-    # The contact stage's workspace and the step's positions before it, for all the steps.
-    cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
-                                            has_colliders)
-    x0, q0 = np.empty_like(x), np.empty_like(q)
-    # The moving colliders' pose, posed into these arrays at every step.
-    mpose = (np.empty_like(static_pose[0]), np.empty_like(static_pose[1]),
-             np.empty_like(static_pose[2]), np.empty_like(static_pose[3]),
-             np.empty_like(static_pose[4]), np.empty_like(static_pose[5]),
-             np.empty_like(static_pose[6]))
-    status, done = OK, n_steps
-    for k in range(n_steps):
-        if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
-            status, done = SUBSTEPS, k
-            break
-        t0 = _cycles()
-        status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
-                               ends)
-        t1 = _cycles()
-        profile[0] += t1 - t0
-        if status != OK:
-            done = k
-            break
-        r = 2 * k + 2
-        anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
-        if moving:
-            contact_kernels.collider_pose_into(B.position[r], B.orientation[r], B.velocity[r],
-                                               B.angular_velocity[r], cols, mpose)
-            pose = mpose
-        else:
-            pose = static_pose
-        x0[:] = x
-        q0[:] = q
-        # (a workspace grown for one step's rows is kept for the rest of the call)
-        resolved, cws = contact_kernels.resolve_into(
-            x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
-            M.projection, h, stats, cws)
-        profile[1] += _cycles() - t1
-        if resolved != contact_kernels.OK:
-            status, done = JOINT_SOLVE_FAILED, k
-            break
-    profile[2] += _cycles() - t_call
-    return status, done

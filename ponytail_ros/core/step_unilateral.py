@@ -1,0 +1,91 @@
+"""The compiled step loop of scenes with colliders or joint limits: per step, the chains' own
+step (``step``, or for a crowd the SIMD lanes of ``lanes``), then the contacts and limits at
+its end (``contact_kernels.resolve_into``), all the steps of a call in one compiled call.
+
+Stages of a step, in order: the sub-step test (``step.substeps``: a joint turning faster than
+the simulator's ``SUBSTEP_ANGLE`` per step stops the call there, and the simulator takes that
+step in sub-steps), ``integrate`` (applied forces, the joint solves, RK4 or the other
+integrators, projection), the colliders posed at the step's end (moving bodies), and
+``contacts`` (detection, rows, the exact complementarity solve per touching chain,
+friction, position passes). The cycles of ``integrate`` and ``contacts`` are counted
+(``step.PROFILE_STAGES``), like Box2D's ``b2Profile``.
+
+Frames and units: world frame (REP 103), SI; the arrays are ``step.advance``'s.
+"""
+import numba as nb
+import numpy as np
+
+from . import contact_kernels, lanes
+from .kernel_cache import ensure_fresh
+from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, _chain_starts, _chains_steps, _cycles,
+                   _workspaces, substeps)
+
+ensure_fresh()
+
+__all__ = ['advance_unilateral']
+
+
+# error_model='numpy': the lanes' loops inlined here divide as plain ``fdiv`` (see ``lanes``).
+@nb.njit(cache=True, nogil=True, error_model='numpy')
+def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
+                       static_pose, umodel, det, q_rest, has_colliders, stats,
+                       substep_angle, max_substeps, profile, in_lanes):
+    """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
+    chain by chain, or if ``in_lanes`` (``lanes.crowd_layout`` and ``lanes.supports`` allow
+    it) in the SIMD lanes of ``lanes.step_blocks``, the same bits; then its contacts and
+    limits are resolved (``contact_kernels.resolve_into``) at the step's end, the colliders
+    posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
+    ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when the next step needs
+    sub-steps (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
+    ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
+    whole call, to ``profile`` ``(3,)`` int64."""
+    t_call = _cycles()
+    starts, ends = _chain_starts(M, x.shape[0])
+    W, R = _workspaces(starts, ends)
+    # The lanes' record, allocated here, where their loops are inlined (``lanes``).
+    RL, EL = lanes.crowd_records(M, x.shape[0], in_lanes)
+    # The contact stage's workspace and the step's positions before it, for all the steps.
+    cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
+                                            has_colliders)
+    x0, q0 = np.empty_like(x), np.empty_like(q)
+    # The moving colliders' pose, posed into these arrays at every step.
+    mpose = (np.empty_like(static_pose[0]), np.empty_like(static_pose[1]),
+             np.empty_like(static_pose[2]), np.empty_like(static_pose[3]),
+             np.empty_like(static_pose[4]), np.empty_like(static_pose[5]),
+             np.empty_like(static_pose[6]))
+    status, done = OK, n_steps
+    for k in range(n_steps):
+        if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
+            status, done = SUBSTEPS, k
+            break
+        t0 = _cycles()
+        if in_lanes:
+            status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL)
+        else:
+            status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
+                                   starts, ends)
+        t1 = _cycles()
+        profile[0] += t1 - t0
+        if status != OK:
+            done = k
+            break
+        r = 2 * k + 2
+        anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
+        if moving:
+            contact_kernels.collider_pose_into(B.position[r], B.orientation[r], B.velocity[r],
+                                               B.angular_velocity[r], cols, mpose)
+            pose = mpose
+        else:
+            pose = static_pose
+        x0[:] = x
+        q0[:] = q
+        # (a workspace grown for one step's rows is kept for the rest of the call)
+        resolved, cws = contact_kernels.resolve_into(
+            x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
+            M.projection, h, stats, cws)
+        profile[1] += _cycles() - t1
+        if resolved != contact_kernels.OK:
+            status, done = JOINT_SOLVE_FAILED, k
+            break
+    profile[2] += _cycles() - t_call
+    return status, done
