@@ -286,6 +286,9 @@ class Unilateral:
                      _Detector.empty_args())
         self._stats = np.zeros(3, dtype=np.int64)
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
+        # The compiled step loop's contact workspace, built at its first call and kept (see
+        # ``step_unilateral.advance_unilateral``): it belongs to this structure.
+        self.workspace = None
 
     def pose(self, bodies):
         """``ColliderPose`` of the colliders for the kinematic bodies' origins (or ``None``)."""

@@ -18,7 +18,7 @@ _result = None
 
 
 def _warm_up():
-    from . import head_kernels, lanes, state_kernels, step, step_unilateral
+    from . import contact_kernels, head_kernels, lanes, state_kernels, step, step_unilateral
     from .head import KinematicState
     from .head_estimation import HeadEstimator, HeadEstimatorBank
     from .scene import ChainSpec, ColliderSpec, Scene, SolverSpec
@@ -50,7 +50,8 @@ def _warm_up():
     bank.add_poses(1, 0.02, [(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)], [False])
     bank.longest_sample_period([1])
     return sum(sum(k.stats.cache_misses.values()) for k in (
-        step.advance, step_unilateral.advance_unilateral, lanes.advance_lanes,
+        step.advance, step_unilateral.advance_unilateral, contact_kernels.resolve_workspace,
+        lanes.advance_lanes,
         head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,
         head_kernels.add_samples, head_kernels.longest_median_interval, head_kernels.track_table,
         head_kernels.point_kinematics, head_kernels.median_interval, state_kernels.guard_measures,

@@ -684,18 +684,17 @@ def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E):
     contact stage needs between two steps. The same bits as ``step.advance``'s step ``k``."""
     n_chains = _n_chains(M)
     m = R.shape[0]
-    Rb = R
     for b in range((n_chains + LANES - 1) // LANES):
-        _load_model(M, b, n_chains, m, Rb)
+        _load_model(M, b, n_chains, m, R)
         if M.external_on:
-            _gather(ext_F, b, n_chains, m, Rb, _EXTF)
-            _gather(ext_T, b, n_chains, m, Rb, _EXTT)
+            _gather(ext_F, b, n_chains, m, R, _EXTF)
+            _gather(ext_T, b, n_chains, m, R, _EXTT)
         _gather_anchors(A, 2 * k, b, n_chains, E)
-        _gather_state(b, n_chains, m, x, q, v, w, Rb)
-        status = _block_step(M, 0, h, Rb, E)
+        _gather_state(b, n_chains, m, x, q, v, w, R)
+        status = _block_step(M, 0, h, R, E)
         if status != OK:
             return status
-        _scatter_state(Rb, b, n_chains, m, x, q, v, w, f_c)
+        _scatter_state(R, b, n_chains, m, x, q, v, w, f_c)
     return OK
 
 

@@ -28,7 +28,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from . import collision, lanes, step_unilateral
+from . import collision, contact_kernels, lanes, step_unilateral
 from . import step as compiled
 from .head import (STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion, KinematicState,
                    frame_ends, point_table, stack_anchors)
@@ -635,9 +635,9 @@ class Simulator:
                 uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
                 uni.detector_args, np.ascontiguousarray(self.model.q_rest),
                 uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
-                self._kernel(M) is lanes.advance_lanes)
+                self._kernel(M) is lanes.advance_lanes, self._contact_workspace())
         t0 = time.perf_counter()
-        status, k = step_unilateral.advance_unilateral(*args)
+        status, k, uni.workspace = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0
         self.dynamics.last_f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
@@ -647,6 +647,17 @@ class Simulator:
         if status == compiled.DAMPING_SOLVE_FAILED:
             raise np.linalg.LinAlgError('implicit damping KKT system is singular')
         return status, k
+
+    def _contact_workspace(self):
+        """The contact stage's workspace of this structure, built once (``Unilateral``)."""
+        uni = self.unilateral
+        if uni.workspace is None:
+            cols = uni.colliders
+            uni.workspace = contact_kernels.resolve_workspace(
+                self.model.n, uni.model_args, uni.detector_args,
+                uni._pose_arrays(None if cols is None else cols._static),
+                uni.detector is not None)
+        return uni.workspace
 
     def _substepped(self, system, anchor_at, bodies_at, x, q, v, w):
         """One step split into sub-steps (``_substeps``), each integrated and resolved."""

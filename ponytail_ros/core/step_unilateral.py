@@ -29,24 +29,27 @@ __all__ = ['advance_unilateral']
 @nb.njit(cache=True, nogil=True, error_model='numpy')
 def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
                        static_pose, umodel, det, q_rest, has_colliders, stats,
-                       substep_angle, max_substeps, profile, in_lanes):
+                       substep_angle, max_substeps, profile, in_lanes, cws):
     """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
     chain by chain, or if ``in_lanes`` (``lanes.crowd_layout`` and ``lanes.supports`` allow
     it) in the SIMD lanes of ``lanes.step_blocks``, the same bits; then its contacts and
     limits are resolved (``contact_kernels.resolve_into``) at the step's end, the colliders
     posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
-    ``static_pose``. Returns ``(status, steps taken)``: ``SUBSTEPS`` when the next step needs
-    sub-steps (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
-    ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
-    whole call, to ``profile`` ``(3,)`` int64."""
+    ``static_pose``. ``cws``: the contact stage's workspace
+    (``contact_kernels.resolve_workspace`` of this model, detector and colliders), kept by the
+    caller across calls like MuJoCo's ``mjData`` arena: a crowd's is megabytes (detection
+    tables of every colliding segment by every collider), which allocated per call were
+    mapped and page-faulted in at every tick. Returns ``(status, steps taken, workspace)``
+    (the workspace to keep: ``cws``, or a grown one if a step's rows overflowed its tables):
+    status ``SUBSTEPS`` when the next step needs sub-steps (``step.substeps`` > 1; it is not
+    taken: the simulator takes it), else as ``step.advance``. Adds the cycles spent in each
+    of ``step.PROFILE_STAGES``, then in the whole call, to ``profile`` ``(3,)`` int64."""
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
     # The lanes' record, allocated here, where their loops are inlined (``lanes``).
     RL, EL = lanes.crowd_records(M, x.shape[0], in_lanes)
-    # The contact stage's workspace and the step's positions before it, for all the steps.
-    cws = contact_kernels.resolve_workspace(x.shape[0], umodel, det, static_pose,
-                                            has_colliders)
+    # The step's positions before the contact stage, for all the steps.
     x0, q0 = np.empty_like(x), np.empty_like(q)
     # The moving colliders' pose, posed into these arrays at every step.
     mpose = (np.empty_like(static_pose[0]), np.empty_like(static_pose[1]),
@@ -88,4 +91,4 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             status, done = JOINT_SOLVE_FAILED, k
             break
     profile[2] += _cycles() - t_call
-    return status, done
+    return status, done, cws
