@@ -169,9 +169,11 @@ def _per_step(sim):
                                   'swing and twist limits', 'several chains',
                                   'caged: the row tables grow'])
 def test_the_compiled_loop_equals_the_per_step_path(name):
-    """The compiled step loop with contacts and limits inside (``step.advance_unilateral``)
+    """The compiled step loop with contacts and limits inside
+    (``step_unilateral.advance_unilateral``, its contact workspace kept across the calls)
     gives bit for bit the state of the per-step path (compiled step, then ``resolve`` from
-    Python), so the oracle comparison below, made on the per-step path, covers it."""
+    Python, a fresh workspace per call), so the oracle comparison below, made on the per-step
+    path, covers it."""
     make_scene, make_motion, seconds = SCENES[name]
     motion = make_motion()
     sims = [Simulator(make_scene(), motion), Simulator(make_scene(), motion)]
