@@ -379,11 +379,16 @@ def test_use_sim_time_driven_by_clock(harness):
     assert h.spin_until(lambda: r.dropped_time_total > 1.0, 2.0)
     assert r.dropped_time_total == pytest.approx(2.0 - 0.25, abs=0.03)
     # /clock restarts earlier (a looped bag): everything restarts, no stale history.
+    # The bag plays on (up to 1 s of it) until the node ticks at its times: under load the
+    # executor may take the first looped poses before the looped /clock (they are then
+    # dropped as stamped backwards) and spin_for returns before every callback ran.
     t = 10.0
-    for _ in range(20):
+    for _ in range(100):
         step(0.01)
+        if got and t_of(got[-1].header) < 100.0:
+            break
     assert r.resets['clock_backwards'] == 1
-    assert h.spin_until(lambda: t_of(got[-1].header) < 100.0, 2.0)
+    assert t_of(got[-1].header) < 100.0
     check_geometry(got[-1], 6, 0.3)
 
 
