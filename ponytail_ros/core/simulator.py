@@ -589,8 +589,8 @@ class Simulator:
                           anchor_table=None, body_table=None):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
         above, then its contacts and limits are resolved (``collision``), all in one compiled
-        call (``step_unilateral.advance_unilateral``). A step in which some joint turns faster than
-        ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is split into up to
+        call (``step_unilateral.advance_unilateral``). A step in which some joint turns faster
+        than ``SUBSTEP_ANGLE`` per step (a whip crack after an impact) is split into up to
         ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise: the compiled call stops
         before it, and it is taken here (the anchors at the sub-step times are evaluated for
         it), then the call goes on."""
@@ -630,12 +630,13 @@ class Simulator:
         stats = uni._stats
         cols = uni.colliders
         M = self._step_model()
+        static_pose = uni._pose_arrays(None if cols is None else cols._static)
         args = (M, A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
                 moving, cols.args if cols is not None else _NO_COLLIDER_ARGS,
-                uni._pose_arrays(None if cols is None else cols._static), uni.model_args,
-                uni.detector_args, np.ascontiguousarray(self.model.q_rest),
-                uni.detector is not None, stats, SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
-                self._kernel(M) is lanes.advance_lanes, self._contact_workspace())
+                static_pose, uni.model_args, uni.detector_args,
+                np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
+                SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
+                self._kernel(M) is lanes.advance_lanes, self._contact_workspace(static_pose))
         t0 = time.perf_counter()
         status, k, uni.workspace = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0
@@ -648,14 +649,13 @@ class Simulator:
             raise np.linalg.LinAlgError('implicit damping KKT system is singular')
         return status, k
 
-    def _contact_workspace(self):
-        """The contact stage's workspace of this structure, built once (``Unilateral``)."""
+    def _contact_workspace(self, static_pose):
+        """The contact stage's workspace of this structure, built once (``Unilateral``);
+        ``static_pose``: the colliders' pose arrays (their count sizes it)."""
         uni = self.unilateral
         if uni.workspace is None:
-            cols = uni.colliders
             uni.workspace = contact_kernels.resolve_workspace(
-                self.model.n, uni.model_args, uni.detector_args,
-                uni._pose_arrays(None if cols is None else cols._static),
+                self.model.n, uni.model_args, uni.detector_args, static_pose,
                 uni.detector is not None)
         return uni.workspace
 
