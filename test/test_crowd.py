@@ -2,6 +2,7 @@
 ``PoseArray`` (``frames_topic``: its CDR read with ``struct``, checked, pushed, recorded and
 replayed), and the head demo's crowd output."""
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -147,6 +148,100 @@ def test_one_pose_array_of_every_frame_is_taken_as_each_frames_own_pose():
         assert len(f) == n and np.array_equal(e._t[:n], f._t[:n])
         assert np.array_equal(e._p[:n], f._p[:n]) and np.array_equal(e._q[:n], f._q[:n])
     assert batched.target_delay() == single.target_delay()
+
+
+def _teleport_run(jump, batched=True, ticks=320, at=200):
+    """A 4-character crowd (``config/ponytail.yaml``) at 120 Hz, frame 2 (``character_3``)
+    moved ``jump`` m along +X from tick ``at`` on (a respawn); the frames' poses pushed in one
+    batch each tick (``push_frames``) or one by one (``push_frame``)."""
+    from ponytail_ros.app.runner import ChainRunner
+    values = complete_values(crowd_values(values_from_params_file(config_path('ponytail.yaml')),
+                                          4))
+    _, scene, settings = scene_and_settings(values)
+    runner = ChainRunner(scene, settings, frames=values['frames'])
+    offsets = crowd_offsets(4)
+    outs, sent = [], []
+    for tick in range(ticks):
+        t = tick / 120.0
+        head, poses = _crowd_poses(tick, offsets, False, False)
+        if tick >= at:
+            poses = poses.copy()
+            poses[2, 0] += jump
+        sent.append(poses[2].copy())
+        runner.push(t, head[:3], head[3:], 'world')
+        if batched:
+            runner.push_frames(t, poses, 'world')
+        else:
+            for i, row in enumerate(poses):
+                runner.push_frame(i, t, row[:3], row[3:], 'world')
+        outs.append(runner.tick(t + 0.5 / 120.0))
+    return runner, outs, sent
+
+
+def test_a_frames_teleport_resets_only_the_chains_hanging_from_it():
+    """One character of a crowd respawning 20 m away: its history restarts and its chain alone
+    is put at rest on the new pose (once, named); nothing blows up. Before, the chain was
+    dragged along the anchor track across the jump (322 m/s) and the guard reset every
+    character six times. The others carry on: within ten times the contact stage's position
+    tolerance of the run without the jump (its position passes are counted over the whole
+    scene, so a chain put at rest changes how far the others' shallow contacts are pushed
+    out, below that tolerance). The batched and the per-frame paths agree bit for bit."""
+    from ponytail_ros.core.contact_kernels import POSITION_TOLERANCE
+    from ponytail_ros.core.rotations import quat_rotate
+    still, base, _ = _teleport_run(0.0)
+    runner, outs, sent = _teleport_run(20.0)
+    _, single, _ = _teleport_run(20.0, batched=False)
+    assert runner.resets['teleport'] == 1 and runner.resets['guard'] == 0
+    assert runner.last_reset == 'teleport: character_3'
+    assert [k for k, o in enumerate(outs) if o is not None and o.frames_reset] == [200]
+    assert outs[200].frames_reset == ('character_3',)
+    assert all(o.reset_reason is None for o in outs[100:])
+    assert still.resets == Counter({r: 0 for r in still.resets})
+    m = runner.sim.model
+    mine = m.chain_of == 3
+    others = ~mine
+    for o, b in zip(outs[200:], base[200:]):
+        assert np.max(np.abs(o.origins[others] - b.origins[others])) < 10 * POSITION_TOLERANCE
+    # At rest on the new pose: the root on the attachment point of the (one-sample) frame.
+    attach = np.asarray(runner.scene.chains[3].attach, dtype=float)
+    p, q = sent[200][:3], sent[200][3:]
+    root = outs[200].origins[np.flatnonzero(mine)[0]]
+    assert np.allclose(root, p + quat_rotate(q, attach), atol=1e-9)
+    # ... and it follows the frame from there: no segment moves more than 2 cm a tick.
+    steps = [np.max(np.linalg.norm(b.origins[mine] - a.origins[mine], axis=1))
+             for a, b in zip(outs[200:-1], outs[201:])]
+    assert max(steps) < 0.02
+    for a, b in zip(outs, single):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a.origins, b.origins) and a.frames_reset == b.frames_reset
+
+
+def test_reset_chains_puts_only_those_chains_at_rest():
+    """``Simulator.reset_chains``: the chains named are what ``reset`` makes them, bit for bit;
+    the others, the time and the step count are untouched; a bad index is refused, named."""
+    from ponytail_ros.core import ChainSpec, Scene
+    from ponytail_ros.core.head import KinematicState, SwayYawMotion
+    from ponytail_ros.core.simulator import Simulator
+    scene = Scene(chains=[ChainSpec(n_segments=4), ChainSpec(n_segments=3)])
+    motion = SwayYawMotion()
+    sim = Simulator(scene, motion.state_at(0.0))
+    for k in range(1, 30):
+        sim.advance_frame(k / 120.0, motion.state_at(k / 120.0))
+    before, t, n = sim.state.copy(), sim.t, sim._n_steps
+    q_rest = sim.model.q_rest.copy()
+    head = KinematicState.still((1.0, 2.0, 3.0))
+    sim.reset_chains([1], head)
+    rest = Simulator(scene, head)
+    rows = sim.model.chain_of == 1
+    for f in ('x', 'q', 'v', 'w'):
+        assert np.array_equal(getattr(sim.state, f)[rows], getattr(rest.state, f)[rows])
+        assert np.array_equal(getattr(sim.state, f)[~rows], getattr(before, f)[~rows])
+    assert np.array_equal(sim.model.q_rest[rows], rest.model.q_rest[rows])
+    assert np.array_equal(sim.model.q_rest[~rows], q_rest[~rows])
+    assert (sim.t, sim._n_steps) == (t, n)
+    with pytest.raises(ValueError, match=r'chains \[2\]: indices must be in \[0, 2\)'):
+        sim.reset_chains([2], head)
 
 
 def test_frames_topic_must_be_a_topic_other_than_the_heads():

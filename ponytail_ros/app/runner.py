@@ -77,10 +77,16 @@ Extra frames (``frames``, kinematic bodies 1..F of the scene): each has its own 
 samples counted in the same ``dropped`` by reason; a stream whose stamps went back for good is
 re-adopted once it is stale, as the head's). A scene that uses a frame (a chain anchored to it,
 a collider fixed in it) publishes nothing until that frame has a pose, as for the head; a stale
-frame is extrapolated, then held, by its estimator like the head. There is no teleport
-detection for frames (a frame's jump never resets the chain): a collider that jumps onto the
-segments is resolved by the contact position stage, which pushes them out of it at most
-0.25 rad per segment per pass, so a deep jump takes several steps to clear.
+frame is extrapolated, then held, by its estimator like the head. A frame's teleport (a jump
+beyond ``teleport_distance`` or ``teleport_angle``, as for the head) restarts that frame's
+history and puts only the chains hanging from it at rest on its new pose
+(``Simulator.reset_chains``, counted as ``'teleport'``, named in ``TickOutput.frames_reset``):
+one character of a crowd respawning elsewhere does not drag its ponytail across the scene, nor
+blow up and reset every other character with it. Nothing waits for new samples: the frame is
+still at its new pose until its history gives it a velocity. A collider fixed in the frame
+jumps with it; one that lands on other chains' segments is resolved by the contact position
+stage, which pushes them out of it at most 0.25 rad per segment per pass, so a deep jump takes
+several steps to clear.
 """
 from collections import Counter, deque
 from dataclasses import dataclass, fields, replace
@@ -186,6 +192,8 @@ class TickOutput:
         head_stale: no sample accepted during the ``stale_timeout`` s before ``t``.
         newest_stamp: stamp of the newest accepted sample, s.
         accepted: samples accepted this tick.
+        frames_reset: the frames that teleported this tick, whose chains alone were put at
+            rest on their new poses (the others carried on), in the order of ``frames``.
     """
 
     t: float
@@ -199,6 +207,7 @@ class TickOutput:
     newest_stamp: float
     accepted: int
     t_state: float = None
+    frames_reset: tuple = ()
 
 
 def structural_change(old, new):
@@ -250,6 +259,8 @@ class ChainRunner:
         self.frame_accepted_total = [0] * len(self.frames)
         self._pending_scene = None
         self._pending_reset = None
+        #: Frames (indices) that teleported since the last tick: their chains go to rest.
+        self._pending_frame_resets = set()
         self._delay = None
         self._last_tick = None
         self._t_frame = None
@@ -445,6 +456,7 @@ class ChainRunner:
         for e in self.frame_estimators:
             e.reset()
         self._frame_last_accept = [None] * len(self.frames)
+        self._pending_frame_resets.clear()      # (a reset of every chain follows)
 
     def _all_quiet(self, t_tick):
         """No input (head or frame) accepted a sample in the last ``stale_timeout`` s."""
@@ -479,6 +491,7 @@ class ChainRunner:
             timeout = self.settings.stale_timeout
             restart = [last is None or t_tick - last > timeout
                        for last in self._frame_last_accept]
+            self._frame_teleports(t, poses)
             outcome = self._bank.add_poses(1, t, poses, restart)
             for i, o in enumerate(outcome):
                 if o >= 0:
@@ -490,6 +503,34 @@ class ChainRunner:
                     self._frame_start[i] = t
                 self._frame_last_accept[i] = t_tick
                 self.frame_accepted_total[i] += 1
+
+    def _frame_teleports(self, t, poses):
+        """The frames whose row of ``poses`` ``(F, 7)`` at stamp ``t`` is a teleport from their
+        newest sample (as :meth:`_take_frame_sample` tests one): their histories restart,
+        their chains are reset at the next tick. A vectorised test with a 1 % margin picks
+        the candidates; each is then tested exactly as one sample is."""
+        s = self.settings
+        ests = self.frame_estimators
+        ns = np.array([e._n for e in ests], dtype=np.int64)
+        if not ns.any():
+            return
+        rows = np.arange(len(ests))
+        last = np.maximum(ns - 1, 0)
+        bank = self._bank
+        p_last, q_last = bank._p[1 + rows, last], bank._q[1 + rows, last]
+        poses = np.asarray(poses, dtype=float)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            dist = np.linalg.norm(poses[:, :3] - p_last, axis=1)
+            q = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1)[:, None]
+            cos = np.minimum(np.abs(np.sum(q * q_last, axis=1)), 1.0)
+            angle = 2.0 * np.arccos(cos)
+            near = (dist > 0.99 * s.teleport_distance) | (angle > 0.99 * s.teleport_angle)
+        for i in np.flatnonzero(near & (ns > 0)).tolist():
+            checked = ests[i].check(t, poses[i, :3], poses[i, 3:])
+            if checked[3] is None and ests[i].jumped(checked[1], checked[2],
+                                                     s.teleport_distance, s.teleport_angle):
+                ests[i].reset()
+                self._pending_frame_resets.add(i)
 
     def _drain_head(self, t_tick):
         est, s = self.estimator, self.settings
@@ -537,7 +578,8 @@ class ChainRunner:
         return accepted
 
     def _drain_frame(self, i, t_tick):
-        """Frame ``i``'s queued samples, as :meth:`_drain_head` (no teleport detection)."""
+        """Frame ``i``'s queued samples, as :meth:`_drain_head` (a teleport resets only the
+        chains hanging from the frame)."""
         queue = self._frame_queues[i]
         while queue:
             self._take_frame_sample(i, *queue.popleft(), t_tick)
@@ -561,6 +603,10 @@ class ChainRunner:
             self._reset_frames()
             self._newest_stamp = None
             self._pending_reset = 'frame_changed'
+        elif valid and est.jumped(checked[1], checked[2], self.settings.teleport_distance,
+                                  self.settings.teleport_angle):
+            est.reset()
+            self._pending_frame_resets.add(i)
         elif (valid and self.frame_stale(i, t_tick) and est.last_stamp is not None
               and t < est.last_stamp):
             est.reset()                   # the stream restarted with an earlier time base
@@ -616,7 +662,9 @@ class ChainRunner:
 
         report = StepReport()
         reset_reason = None
+        frames_reset = ()
         if self.sim is None or rebuild or self._pending_reset is not None:
+            self._pending_frame_resets.clear()  # (every chain is put at rest)
             # (Re)start at rest relative to the anchor bodies, moving with their estimated
             # velocity and angular velocity; after a new history, from its first pose.
             t0 = self._start_time(t_head) if starting else t_head
@@ -637,6 +685,7 @@ class ChainRunner:
         else:
             if scene is not None:
                 self._apply_tunables(scene)     # not structural
+            frames_reset = self._reset_teleported()
             if t_head - self._t_frame >= self.sim.dt:
                 # Frames closer than one internal step are merged into the next: the core's
                 # anchor track between two frames extrapolates up to a step beyond them, which
@@ -666,7 +715,25 @@ class ChainRunner:
             t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
             orientations=quats, report=report, reset_reason=reset_reason,
             head_stale=self.head_stale(t),
-            newest_stamp=self._newest_stamp, accepted=accepted, t_state=self._t_frame)
+            newest_stamp=self._newest_stamp, accepted=accepted, t_state=self._t_frame,
+            frames_reset=frames_reset)
+
+    def _reset_teleported(self):
+        """The chains hanging from the frames that teleported put at rest on their new poses
+        (the bodies at the last frame's time: the start of this tick's anchor track); returns
+        those frames' names."""
+        if not self._pending_frame_resets:
+            return ()
+        done = sorted(self._pending_frame_resets)
+        self._pending_frame_resets.clear()
+        bodies = {1 + i for i in done}
+        chains = [c for c, spec in enumerate(self.scene.chains) if spec.anchor_body in bodies]
+        if chains:
+            self.sim.reset_chains(chains, self.bodies_at(self._t_frame))
+        names = tuple(self.frames[i] for i in done)
+        self.resets['teleport'] += len(names)
+        self.last_reset = 'teleport: ' + ', '.join(names)
+        return names
 
     def _advance(self, t_head, head, head_prev):
         """``sim.advance_frame`` to ``t_head``; both ends of the frame from this tick's

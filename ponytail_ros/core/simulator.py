@@ -30,8 +30,8 @@ import numpy as np
 
 from . import collision, contact_kernels, lanes, step_unilateral
 from . import step as compiled
-from .head import (STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion, KinematicState,
-                   frame_ends, point_table, stack_anchors)
+from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
+                   KinematicState, frame_ends, point_table, stack_anchors)
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -175,23 +175,7 @@ class Simulator:
         anchor = self.anchors(head)
         q_anchor = anchor.orientation
         if state is None:
-            g = m.gravity
-            down = g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, -1.0])
-            local = ~np.isnan(m.rest_direction[:, 0])
-            # Given in the anchor frame: the twist follows the anchor; along gravity: shortest arc.
-            d_local = np.where(local[:, None], m.rest_direction, 1.0)
-            q_chain = np.where(
-                local[:, None],
-                quat_multiply(q_anchor, quat_from_two_vectors(np.broadcast_to(_X, d_local.shape),
-                                                              d_local)),
-                quat_from_two_vectors(_X, down)[None])
-            q = q_chain[m.chain_of]
-            h = half_vectors(m.length, q)
-            x = project_positions(m, anchor.position, h)
-            head_w = head.angular_velocity[m.anchor_body][m.chain_of]
-            w = head_w.copy()
-            v = project_velocities(m, anchor.velocity, w, h)
-            state = ChainState(x, q, v, w)
+            state = self._rest_state(head, anchor)
         self.state = state.copy()
         m.q_rest[m.is_first] = quat_multiply(quat_conjugate(q_anchor), self.state.q[m.is_first])
         self._last_anchor = (self.t, anchor)
@@ -201,6 +185,56 @@ class Simulator:
             bodies = _body_kinematics(head)
             self._last_bodies = (self.t, bodies)
             self._bodies_at = lambda t: bodies
+
+    def _rest_state(self, head, anchor):
+        """Every chain at rest on ``head`` (``reset``'s state), its anchors ``anchor``."""
+        m = self.model
+        g = m.gravity
+        down = g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, -1.0])
+        local = ~np.isnan(m.rest_direction[:, 0])
+        # Given in the anchor frame: the twist follows the anchor; along gravity: shortest arc.
+        d_local = np.where(local[:, None], m.rest_direction, 1.0)
+        q_chain = np.where(
+            local[:, None],
+            quat_multiply(anchor.orientation,
+                          quat_from_two_vectors(np.broadcast_to(_X, d_local.shape), d_local)),
+            quat_from_two_vectors(_X, down)[None])
+        q = q_chain[m.chain_of]
+        h = half_vectors(m.length, q)
+        x = project_positions(m, anchor.position, h)
+        head_w = head.angular_velocity[m.anchor_body][m.chain_of]
+        w = head_w.copy()
+        v = project_velocities(m, anchor.velocity, w, h)
+        return ChainState(x, q, v, w)
+
+    def reset_chains(self, chains, head):
+        """Put only the chains ``chains`` (indices into the scene's chains) at rest on ``head``
+        (a ``KinematicState``), as ``reset`` puts every chain; the other chains, the time and
+        the step grid are kept. What a runner does when one character's frame teleports: that
+        character's chains restart at rest on its new pose, the rest of the crowd carries on.
+        The next ``advance_frame`` should be given ``head_prev`` (the anchors' track between
+        the frames then starts at the new pose, not at the old one)."""
+        m = self.model
+        chains = np.asarray(chains, dtype=np.int64).reshape(-1)
+        if chains.size and (chains.min() < 0 or chains.max() >= m.n_chains):
+            raise ValueError(f'chains {chains.tolist()}: indices must be in [0, {m.n_chains})')
+        rows = np.isin(m.chain_of, chains)
+        if not rows.any():
+            return
+        anchor = self.anchors(head)
+        rest, st = self._rest_state(head, anchor), self.state
+        self.state = ChainState(*(np.where(rows[:, None], a, b) for a, b in zip(
+            (rest.x, rest.q, rest.v, rest.w), (st.x, st.q, st.v, st.w))))
+        first = m.is_first & rows
+        m.q_rest[first] = quat_multiply(quat_conjugate(anchor.orientation[m.chain_of[first]]),
+                                        self.state.q[first])
+        t_last, last = self._last_anchor
+        reset_chain = np.isin(np.arange(m.n_chains), chains)[:, None]
+        self._last_anchor = (t_last, AnchorKinematics(*(
+            np.where(reset_chain, getattr(anchor, f), getattr(last, f)) for f in ANCHOR_FIELDS)))
+        f_c = np.array(self.dynamics.last_f_c, dtype=float, copy=True)
+        f_c[rows] = 0.0
+        self.dynamics.last_f_c = f_c
 
     # -- parameters -----------------------------------------------------------------------
     def set_parameters(self, chain=None, **values):

@@ -590,6 +590,10 @@ class PonytailNode(Node):
             level = 'warning' if out.reset_reason in ('guard', 'clock_backwards') else 'info'
             self._log_throttled('reset:' + out.reset_reason, 2.0, level,
                                 f'Chain reset at rest ({self.runner.last_reset})')
+        if out.frames_reset:
+            self._log_throttled('reset:frames', 2.0, 'info',
+                                f'Chains on {", ".join(out.frames_reset)} reset at rest '
+                                '(teleport)')
         if out.head_stale and self.runner.needs_head:
             self._log_throttled('stale', 5.0, 'warning',
                                 'Head pose stale (no pose accepted for over '
