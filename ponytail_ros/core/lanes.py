@@ -682,8 +682,8 @@ def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E):
     scattered back, since the caller changes it between steps (contacts). A record kept per
     block across the steps was measured slower: the records of a crowd outgrow the cache the
     contact stage needs between two steps. The same bits as ``step.advance``'s step ``k``."""
-    n_chains = _n_chains(M)
     m = R.shape[0]
+    n_chains = x.shape[0] // m          # (every chain has m segments: ``crowd_layout``)
     for b in range((n_chains + LANES - 1) // LANES):
         _load_model(M, b, n_chains, m, R)
         if M.external_on:

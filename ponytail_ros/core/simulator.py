@@ -672,8 +672,13 @@ class Simulator:
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
                 self._kernel(M) is lanes.advance_lanes, self._contact_workspace(static_pose))
         t0 = time.perf_counter()
-        status, k, uni.workspace = step_unilateral.advance_unilateral(*args)
+        status, k, tables, ids = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0
+        ws = uni.workspace
+        if tables.shape != ws[contact_kernels.WS_TABLES].shape:
+            # A step's rows overflowed the tables: the grown ones are kept (``grown``).
+            uni.workspace = (ws[:contact_kernels.WS_TABLES] + (tables, ids)
+                             + ws[contact_kernels.WS_IDS + 1:])
         self.dynamics.last_f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                     'position_passes': int(stats[2])}

@@ -39,11 +39,14 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     (``contact_kernels.resolve_workspace`` of this model, detector and colliders), kept by the
     caller across calls like MuJoCo's ``mjData`` arena: a crowd's is megabytes (detection
     tables of every colliding segment by every collider), which allocated per call were
-    mapped and page-faulted in at every tick. Returns ``(status, steps taken, workspace)``
-    (the workspace to keep: ``cws``, or a grown one if a step's rows overflowed its tables):
-    status ``SUBSTEPS`` when the next step needs sub-steps (``step.substeps`` > 1; it is not
-    taken: the simulator takes it), else as ``step.advance``. Adds the cycles spent in each
-    of ``step.PROFILE_STAGES``, then in the whole call, to ``profile`` ``(3,)`` int64."""
+    mapped and page-faulted in at every tick. Returns ``(status, steps taken, row tables,
+    row ids)``: the workspace's ``WS_TABLES`` and ``WS_IDS``, the only arrays
+    ``contact_kernels.grown`` replaces when a step's rows overflow them (the caller keeps
+    them in its workspace; handing back the whole workspace cost a boxed array each of its
+    twenty at every call): status ``SUBSTEPS`` when the next step needs sub-steps
+    (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
+    ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
+    whole call, to ``profile`` ``(3,)`` int64."""
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
@@ -91,4 +94,4 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             status, done = JOINT_SOLVE_FAILED, k
             break
     profile[2] += _cycles() - t_call
-    return status, done, cws
+    return status, done, cws[contact_kernels.WS_TABLES], cws[contact_kernels.WS_IDS]
