@@ -641,3 +641,48 @@ def test_a_bank_adds_many_bodies_poses_as_their_own_add_does():
     assert bank.longest_sample_period(range(1, K + 1)) == max(
         e.sample_period for e in own if e.sample_period is not None)
     assert bank.longest_sample_period([0]) is None
+
+
+def _bandwidth_by_sorting(ts, te, window, min_samples):
+    """The bandwidth rule of ``HeadEstimator`` (class docstring) written out with a sort."""
+    d = np.sort(np.abs(ts - te))
+    n, m = len(ts), min(min_samples, len(ts))
+    H = 1.1 * d.max()
+    if n > m:
+        farther = d[m:][d[m:] > d[m - 1]] if m >= 1 else d[:0]
+        if len(farther):
+            H = farther[0]
+        H = max(window, H)
+    return max(H, 1e-9)
+
+
+@settings(max_examples=400, deadline=None)
+@given(n=st.integers(2, 128), regular=st.booleans(),
+       where=st.sampled_from(['sample', 'midway', 'past', 'first', 'inside']),
+       window=st.sampled_from([0.0, 0.005, 0.1, 2.0]), min_samples=st.integers(0, 140),
+       seed=st.integers(0, 2**31))
+def test_the_fit_bandwidth_is_the_documented_nearest_sample_rule(n, regular, where, window,
+                                                                  min_samples, seed):
+    """``head_kernels.bandwidth`` (a merge outward from the nearest stamp) gives the bandwidth of
+    the rule, ties with the ``min_samples``-th nearest sample included (midway between two
+    stamps, a tick on a stamp of a regular stream), and weighs exactly the samples nearer."""
+    from ponytail_ros.core.head_kernels import bandwidth
+    rng = np.random.default_rng(seed)
+    ts = (np.arange(n) / 120.0 if regular
+          else np.cumsum(rng.uniform(0.001, 0.02, n)))
+    i = int(rng.integers(0, n - 1))
+    te = {'sample': ts[i], 'midway': 0.5 * (ts[i] + ts[i + 1]), 'past': ts[-1] + 0.05,
+          'first': ts[0], 'inside': rng.uniform(ts[0], ts[-1])}[where]
+    H, lo, hi, nearest = bandwidth(ts, n, te, window, min_samples)
+    assert H == _bandwidth_by_sorting(ts, te, window, min_samples)
+    weighed = np.flatnonzero(np.abs(ts - te) < H)
+    assert (lo, hi) == (weighed[0], weighed[-1] + 1) and len(weighed) == hi - lo
+    assert nearest == int(np.argmin(np.abs(ts - te)))      # (argmin: the first of a tie)
+
+
+def test_the_fit_refuses_sample_times_that_do_not_increase():
+    from ponytail_ros.core.head_kernels import FIT_SIZE, loess_fit
+    ts = np.array([0.0, 0.2, 0.1, 0.3])
+    with pytest.raises(ValueError, match='sample times must increase'):
+        loess_fit(ts, np.zeros((4, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (4, 1)), 4, 0.15, 0.1, 3,
+                  6, 1.0, 0.0, np.zeros(FIT_SIZE))

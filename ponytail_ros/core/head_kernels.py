@@ -148,6 +148,68 @@ def svd_lstsq(A, B, rcond, X):
 
 
 @njit(cache=True)
+def bandwidth(ts, n, te, window, min_samples):
+    """``loess_fit``'s bandwidth ``H`` and the samples it weighs: ``(H, lo, hi, nearest)``,
+    samples ``lo:hi`` those with ``|t_i - te| < H``, ``nearest`` the first sample nearest
+    ``te``. ``ts[:n]`` must increase (as ``HeadEstimator`` stores them; ``ValueError``
+    otherwise).
+
+    ``H`` is ``window`` widened to the ``(min_samples + 1)``-th nearest sample, past any sample
+    tied with the ``min_samples``-th (a tick on a sample of a regular stream would otherwise
+    drop both); with ``n ≤ min_samples`` it is 1.1 times the farthest sample's distance.
+    Increasing stamps make ``|t_i - te|`` fall to its least at ``nearest`` and then rise, so
+    the distances in increasing order come from a merge outward from ``nearest`` (a few steps
+    instead of sorting the whole history), and the weighed samples are one run of indices.
+    """
+    for i in range(1, n):
+        if not ts[i] > ts[i - 1]:
+            raise ValueError('loess_fit: the sample times must increase')
+    # nearest: the first stamp at or after te, or the one before it if that is as near.
+    a, b = 0, n
+    while a < b:
+        mid = (a + b) // 2
+        if ts[mid] < te:
+            a = mid + 1
+        else:
+            b = mid
+    if a == n:
+        nearest = n - 1
+    elif a == 0:
+        nearest = 0
+    else:
+        nearest = a - 1 if abs(ts[a - 1] - te) <= abs(ts[a] - te) else a
+    m = min(min_samples, n)
+    H = 1.1 * max(abs(ts[0] - te), abs(ts[n - 1] - te))
+    if n > m:
+        left, right = nearest - 1, nearest + 1
+        d = abs(ts[nearest] - te)
+        kth = d if m >= 1 else np.inf      # (no nearest count: the farthest bounds H)
+        for taken in range(2, n + 1):
+            dl = abs(ts[left] - te) if left >= 0 else np.inf
+            dr = abs(ts[right] - te) if right < n else np.inf
+            if dl <= dr:
+                d = dl
+                left -= 1
+            else:
+                d = dr
+                right += 1
+            if taken <= m:
+                kth = d                     # the m-th nearest distance
+            elif d > kth:
+                H = d                       # the first farther than it
+                break
+        H = max(window, H)
+    H = max(H, 1e-9)
+    lo = nearest
+    while lo > 0 and abs(ts[lo - 1] - te) < H:
+        lo -= 1
+    hi = nearest + 1
+    while hi < n and abs(ts[hi] - te) < H:
+        hi += 1
+    return H, lo, hi, nearest
+
+
+@njit(cache=True)
 def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out):
     """The body's state at ``te`` from the first ``n`` samples (``ts`` s, ``ps`` m, ``qs``
     unit quaternions, sign-continuous), into ``out`` ``(FIT_SIZE,)``.
@@ -155,53 +217,28 @@ def loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out)
     Tricube-weighted degree-``degree`` fit in ``τ = (t - te)/H`` of the positions and of the
     rotation vectors ``φ_i = log(q_i ⊗ q_ref⁻¹)`` (``q_ref`` the sample nearest ``te``);
     ``H`` is ``window`` widened to the ``(min_samples + 1)``-th nearest sample (past any
-    sample tied with the ``min_samples``-th, so that at least ``min_samples`` weigh). ``rate`` and
-    ``rate_d`` are the time warp's ``dt_warped/dt`` and its derivative (1, 0 unless the
-    stream is stale and braking), applied by the chain rule. ``n ≥ 2``.
+    sample tied with the ``min_samples``-th, so that at least ``min_samples`` weigh:
+    ``bandwidth``). ``rate`` and ``rate_d`` are the time warp's ``dt_warped/dt`` and its
+    derivative (1, 0 unless the stream is stale and braking), applied by the chain rule.
+    ``n ≥ 2``, ``ts[:n]`` increasing.
     """
-    adt = np.empty(n)
-    for i in range(n):
-        adt[i] = abs(ts[i] - te)
-    m = min(min_samples, n)
-    H = 1.1 * adt.max()
-    if n > m:
-        # The (m+1)-th nearest sample bounds the bandwidth; one tied with the m-th (a tick on
-        # a sample of a regular stream) would drop both, so the bound moves past the tie.
-        srt = np.sort(adt)
-        j = m
-        while j < n and srt[j] <= srt[m - 1]:
-            j += 1
-        if j < n:
-            H = srt[j]
-        H = max(window, H)
-    H = max(H, 1e-9)
-    k = 0
-    nearest = -1
-    for i in range(n):
-        if adt[i] < H:
-            k += 1
-            if nearest < 0 or adt[i] < adt[nearest]:
-                nearest = i
+    H, lo, hi, nearest = bandwidth(ts, n, te, window, min_samples)
+    k = hi - lo
     deg = min(degree, k - 1)
     npar = deg + 1
     q_ref = qconj((qs[nearest, 0], qs[nearest, 1], qs[nearest, 2], qs[nearest, 3]))
-    sel = np.empty(k, dtype=np.int64)
-    j = 0
     mean = np.zeros(3)
-    for i in range(n):
-        if adt[i] < H:
-            sel[j] = i
-            j += 1
-            for a in range(3):
-                mean[a] += ps[i, a]
+    for i in range(lo, hi):
+        for a in range(3):
+            mean[a] += ps[i, a]
     for a in range(3):
         mean[a] /= k
     V = np.empty((k, npar))
     Y = np.empty((k, 6))
     for r in range(k):
-        i = sel[r]
+        i = lo + r
         tau = (ts[i] - te) / H
-        u = adt[i] / H
+        u = abs(ts[i] - te) / H
         wt = math.sqrt((1.0 - u * u * u) ** 3)
         x = wt
         for c in range(npar):
