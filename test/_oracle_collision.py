@@ -63,6 +63,8 @@ from scipy.linalg import lapack
 from scipy.optimize import nnls
 
 import _oracle_limits as limits
+from ponytail_ros.core.head import AnchorKinematics
+from ponytail_ros.core.model import Model
 from ponytail_ros.core.rotations import (cross, quat_axis_x, quat_integrate, quat_normalize,
                                          quat_rotate, quat_to_matrix, skew)
 from ponytail_ros.core.stabilization import project_positions, project_velocities
@@ -389,6 +391,65 @@ def _rows_concat(parts):
 
 
 class Unilateral:
+    """Contacts and joint limits of a model, resolved after every internal step chain by
+    chain: each chain as if it were alone with all the colliders (``_ChainUnilateral`` of a
+    model of that chain alone), as ``contact_kernels.resolve_chains_into`` does: chains do
+    not touch one another. ``last``: contacts and limits summed, the most position passes."""
+
+    def __init__(self, model, dynamics, dt):
+        self.model = model
+        self.step = self.dt = dt
+        self.colliders = Colliders(model) if model.has_colliders else None
+        self._chains = []
+        for c, chain in enumerate(model.scene.chains):
+            sub = Model(model.scene.replace(chains=(chain,)))
+            if sub.has_colliders or sub.has_limits:
+                self._chains.append((model.chain_slice(c), c, _ChainUnilateral(sub, dynamics, dt)))
+        self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
+
+    def pose(self, bodies):
+        """``ColliderPose`` of the colliders for the kinematic bodies' origins (or ``None``)."""
+        return None if self.colliders is None else self.colliders.pose(bodies)
+
+    def _each(self, anchor):
+        """Per chain with something to resolve: its segments, its anchor row, its oracle (its
+        rest rotations taken from the whole model's, which the simulator's reset sets)."""
+        for sl, c, uni in self._chains:
+            uni.model.q_rest[:] = self.model.q_rest[sl]
+            uni.dt = self.dt
+            row = AnchorKinematics(*(a[c:c + 1] for a in (
+                anchor.position, anchor.velocity, anchor.acceleration, anchor.orientation,
+                anchor.angular_velocity)))
+            yield sl, row, uni
+
+    def rows(self, x, q, v, w, anchor, pose):
+        """Every chain's rows (``_ChainUnilateral.rows``), segments numbered in the model."""
+        parts = []
+        for sl, row, uni in self._each(anchor):
+            r = uni.rows(x[sl], q[sl], v[sl], w[sl], row, pose)
+            if r is not None:
+                r = dict(r, seg=r['seg'] + sl.start,
+                         par=np.where(r['par'] >= 0, r['par'] + sl.start, -1))
+                parts.append(r)
+        return _rows_concat(parts)
+
+    def resolve(self, x, q, v, w, anchor, pose, project=True, dt=None):
+        """``_ChainUnilateral.resolve`` of every chain; returns ``(x, q, v, w)``."""
+        self.dt = self.step if dt is None else dt
+        out = [np.array(a, dtype=float) for a in (x, q, v, w)]
+        self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
+        for sl, row, uni in self._each(anchor):
+            got = uni.resolve(x[sl], q[sl], v[sl], w[sl], row, pose, project, self.dt)
+            for o, g in zip(out, got):
+                o[sl] = g
+            self.last['contacts'] += uni.last['contacts']
+            self.last['limits'] += uni.last['limits']
+            self.last['position_passes'] = max(self.last['position_passes'],
+                                               uni.last['position_passes'])
+        return tuple(out)
+
+
+class _ChainUnilateral:
     """Contacts and joint limits of one model, resolved after every internal step."""
 
     def __init__(self, model, dynamics, dt):

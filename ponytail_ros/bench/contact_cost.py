@@ -41,13 +41,13 @@ def record(scene, heads, ticks, rate=120.0):
     calls = []
     inner = K.resolve
 
-    def recording(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt,
-                  stats):
+    def recording(x, q, v, w, anchor, pose, model, det, split, q_rest, has_colliders, project,
+                  dt, stats):
         calls.append(tuple(np.array(a) for a in (x, q, v, w))
                      + (tuple(np.array(a) for a in anchor), tuple(np.array(a) for a in pose),
                         project, dt))
-        return inner(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt,
-                     stats)
+        return inner(x, q, v, w, anchor, pose, model, det, split, q_rest, has_colliders,
+                     project, dt, stats)
 
     sim._compiled = False
     K.resolve = recording
@@ -62,20 +62,21 @@ def record(scene, heads, ticks, rate=120.0):
     anchor = tuple(np.stack([c[4][i] for c in calls]) for i in range(4))
     pose = tuple(np.stack([c[5][i] for c in calls]) for i in range(7))
     inputs = (*stack, anchor, pose, bool(calls[0][6]), float(calls[0][7]))
-    constants = (uni.model_args, uni.detector_args, np.ascontiguousarray(sim.model.q_rest),
+    constants = (uni.model_args, uni.detector_args, uni.split_args,
+                 np.ascontiguousarray(sim.model.q_rest),
                  uni.detector is not None)
     return inputs, constants
 
 
 @njit
-def _replay(X, Q, V, W, AN, PO, project, dt, model, det, q_rest, has_colliders):
+def _replay(X, Q, V, W, AN, PO, project, dt, model, det, split, q_rest, has_colliders):
     stats = np.zeros(3, dtype=np.int64)
     total = np.zeros(3, dtype=np.int64)
     for k in range(X.shape[0]):
         anchor = (AN[0][k], AN[1][k], AN[2][k], AN[3][k])
         pose = (PO[0][k], PO[1][k], PO[2][k], PO[3][k], PO[4][k], PO[5][k], PO[6][k])
-        K.resolve(X[k], Q[k], V[k], W[k], anchor, pose, model, det, q_rest, has_colliders,
-                  project, dt, stats)
+        K.resolve(X[k], Q[k], V[k], W[k], anchor, pose, model, det, split, q_rest,
+                  has_colliders, project, dt, stats)
         total += stats
     return total
 

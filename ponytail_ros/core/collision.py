@@ -242,6 +242,37 @@ def segment_depths(model, x, q, anchor_position, bodies):
     return out
 
 
+def _split_args(model, detector):
+    """``Unilateral.split_args``: what each chain's own model and detector tuples take besides
+    views of the whole model's (``contact_kernels.chain_model``, ``chain_det``)."""
+    i64 = np.int64
+    start, end = model.chain_start.astype(i64), model.chain_end.astype(i64)
+    seg_start = start[model.chain_of]                    # each segment's chain's first
+    parent = np.where(model.is_first, -1, model.parent - seg_start).astype(i64)
+    lim = np.flatnonzero(np.isfinite(model.swing_limit) | np.isfinite(model.twist_limit))
+    lim_range = np.stack([np.searchsorted(lim, start), np.searchsorted(lim, end)]).astype(i64)
+    C = model.n_chains
+    slot, first, max_half = np.full(C, -1, i64), np.full(C, -1, i64), np.zeros(C)
+    if detector is None:
+        seg = np.zeros(0, i64)
+        det_seg, first_of = seg, seg
+    else:
+        seg = detector.seg
+        det_seg = (seg - seg_start[seg]).astype(i64)
+        first_of = np.where(detector.args[K.D_FIRST_OF] >= 0, 0, -1).astype(i64)
+        for k, c in enumerate(detector.args[K.D_CHAINS]):             # the colliding chains, in order
+            slot[c] = k
+        for f, c in enumerate(detector.args[K.D_FIRST_CHAIN]):             # each first segment's chain
+            first[c] = f
+    det_range = np.stack([np.searchsorted(seg, start), np.searchsorted(seg, end)]).astype(i64)
+    for c in range(C):
+        if det_range[1, c] > det_range[0, c]:
+            max_half[c] = 0.5 * float(model.length[seg[det_range[0, c]:det_range[1, c]]].max())
+    return (parent, np.zeros(model.n, i64), (end - start).astype(i64),
+            (lim - seg_start[lim]).astype(i64), lim_range, det_range, det_seg, first_of, slot,
+            first, max_half)
+
+
 def _anchor_arrays(anchor):
     return (_c(anchor.position), _c(anchor.velocity), _c(anchor.orientation),
             _c(anchor.angular_velocity))
@@ -261,7 +292,9 @@ class Unilateral:
     ``(n, 3)``, the largest 1/I, is_first, has_child, parent, chain_of, chain_start,
     chain_end, axisymmetric, the limited joints, swing and twist limits; ``detector_args``:
     see ``_Detector``), ``colliders.args`` the one of ``contact_kernels.collider_pose``;
-    ``resolve`` is callable from other njit code with them.
+    ``resolve`` is callable from other njit code with them. ``split_args``: their split by
+    chain (``contact_kernels.SP_*``): the kernels resolve each chain on its own, as if it
+    were alone with all the colliders (``contact_kernels.resolve_chains_into``).
     """
 
     def __init__(self, model, dynamics, dt):
@@ -284,6 +317,7 @@ class Unilateral:
                        model.swing_limit.astype(float), model.twist_limit.astype(float))
         self.detector_args = (self.detector.args if self.detector is not None else
                      _Detector.empty_args())
+        self.split_args = _split_args(model, self.detector)
         self._stats = np.zeros(3, dtype=np.int64)
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
         # The compiled step loop's contact workspace, built at its first call and kept (see
@@ -308,7 +342,7 @@ class Unilateral:
         R, I = K.build_rows(*self._state(x, q, v, w), _anchor_arrays(anchor),
                             _c(self.model.q_rest),
                             self._pose_arrays(pose), self.model_args, self.detector_args,
-                            self.detector is not None, float(self.dt))
+                            self.split_args, self.detector is not None, float(self.dt))
         if R.shape[0] == 0:
             return None
         return _rows_dict(R, I)
@@ -350,7 +384,7 @@ class Unilateral:
         stats = self._stats
         status, x, q, v, w = K.resolve(
             *self._state(x, q, v, w), _anchor_arrays(anchor), self._pose_arrays(pose),
-            self.model_args, self.detector_args, _c(self.model.q_rest),
+            self.model_args, self.detector_args, self.split_args, _c(self.model.q_rest),
             self.detector is not None, bool(project), float(self.dt), stats)
         self.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                      'position_passes': int(stats[2])}

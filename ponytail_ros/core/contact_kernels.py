@@ -517,31 +517,27 @@ def outside_box(p, aj, dj, radius, reach):
 
 
 @njit(cache=True, inline='always')
-def surface_speed(pose, v, w, det):
+def surface_speed(v, w, det, fastest):
     """A bound (m/s) on how fast any colliding segment's surface nears any collider: the
     fastest centre's speed, plus the fastest spin times the longest half segment, plus the
-    fastest collider's surface speed."""
+    fastest collider's surface speed ``fastest`` (``broad_phase_setup``)."""
     v2 = 0.0
     w2 = 0.0
     for i in range(v.shape[0]):
         v2 = max(v2, dot(v3(v, i), v3(v, i)))
         w2 = max(w2, dot(v3(w, i), v3(w, i)))
-    col_speed = pose[P_SPEED]
-    fastest = 0.0
-    for j in range(col_speed.shape[0]):
-        fastest = max(fastest, col_speed[j])
     return math.sqrt(v2) + math.sqrt(w2) * det[D_MAX_HALF] + fastest
 
 
 @njit(cache=True, _nrt=False)
-def near(anchor_position, pose, v, w, det, dt):
+def near(anchor_position, pose, v, w, det, dt, fastest):
     """Broad phase: could any collider be within reach of a chain? A chain lies in the ball of
     its length (plus radius) about its anchor; its surface moves at most at
     ``surface_speed``."""
     det_chains, chain_reach = det[D_CHAINS], det[D_CHAIN_REACH]
     a0, d2, normal = pose[P_A0], pose[P_D2], pose[P_NORMAL]
     col_radius, n_round = det[D_COL_RADIUS], det[D_N_ROUND]
-    speed = surface_speed(pose, v, w, det)
+    speed = surface_speed(v, w, det, fastest)
     for c in range(det_chains.shape[0]):
         reach = chain_reach[c] + POSITION_SKIN + 2.0 * SPECULATIVE_STEPS * dt * speed
         p = v3(anchor_position, det_chains[c])
@@ -561,7 +557,7 @@ def near(anchor_position, pose, v, w, det, dt):
 # into the first axis of its stacked arrays:
 (WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
  WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT, WS_STATE, WS_BOX, WS_TOUCHED, WS_SOLVE,
- WS_ORDER) = range(20)
+ WS_ORDER, WS_SWEEP) = range(21)
 # WS_VEC (7, n, 3): the half-vectors of the factorisation, four scratch vectors, then the
 # step's velocities on entry (kept to resolve it again if the row tables overflow).
 V_H, V_N0, V_N1, V_N2, V_N3, V_V0, V_W0 = range(7)
@@ -578,11 +574,36 @@ R_B, R_LAM, R_SPEED, R_BOUND = range(4)
 # floats and WS_ORDER (K,) integers: the per-pair broad phase (``near_pairs``: kept pairs,
 # slots, pair states, the round colliders' boxes and their sweep order, ``sweep_order``).
 S_COUNT, S_FIRST, S_END = range(3)
+# WS_SWEEP (5,) floats: what ``broad_phase_setup`` found for this step's colliders (whether
+# the sweep is on, its axis, the widest box along it, the largest bound, the fastest
+# collider's surface speed), for every chain's ``near_pairs``.
+SW_ON, SW_AXIS, SW_WIDEST, SW_BOUND, SW_FASTEST = range(5)
 # WS_TOUCHED (2, C) integers: a mark per chain and the list of the chains with rows
 # (``factor_touched``).
 # WS_SOLVE: ``solve_rows_into``'s scratch (``solve_scratch``), sized for the usual row groups.
 # Indices into it:
 SC_INT, SC_MOBILE, SC_RESP, SC_CDOT, SC_W, SC_LC, SC_DS = range(7)
+
+
+# The workspace is sized for the largest chain (``resolve_workspace``) and a call resolves one
+# chain: its per-segment arrays are taken at that chain's length (leading-axis views, the same
+# C-contiguous types), so that no loop over an array's length reads another chain's leftovers.
+@njit(cache=True, inline='always')
+def vec(ws, i, n):
+    """The workspace's vector ``i`` (``V_*``), ``(n, 3)``."""
+    return ws[WS_VEC][i][:n]
+
+
+@njit(cache=True, inline='always')
+def mat(ws, i, n):
+    """The workspace's block array ``i`` (``M_*``), ``(n, 3, 3)``."""
+    return ws[WS_MAT][i][:n]
+
+
+@njit(cache=True, inline='always')
+def factors(ws, n):
+    """The factorisation in the workspace (half-vectors, I⁻¹, pivots, Lo) of ``n`` segments."""
+    return vec(ws, V_H, n), mat(ws, M_INV_I, n), mat(ws, M_PIVOTS, n), mat(ws, M_LO, n)
 SOLVE_GROUP_ROWS = 32        # the workspace's solve scratch holds row groups up to this many
                              # rows (a larger group's scratch is allocated by its call)
 
@@ -621,7 +642,7 @@ def workspace(n, m, K, nl, nd, n_chains, nc_max):
             np.empty((nd, K), dtype=np.uint8), np.empty((K, 7)),
             np.empty((2, n_chains), dtype=np.int64),
             solve_scratch(cap, min(cap, SOLVE_GROUP_ROWS), nc_max, n_chains),
-            np.empty(K, dtype=np.int64))
+            np.empty(K, dtype=np.int64), np.empty(5))
 
 
 @njit(cache=True, _nrt=True)
@@ -634,20 +655,90 @@ def grown(ws):
             np.empty((3, k_max, 3), dtype=np.int64), ws[WS_DET], ws[WS_OWN], ws[WS_Q],
             ws[WS_AXIS], ws[WS_LIM], ws[WS_ROWVEC], ws[WS_KEEP], ws[WS_PAIRS], ws[WS_SLOTS],
             ws[WS_CHAIN_SLOT], ws[WS_STATE], ws[WS_BOX], ws[WS_TOUCHED], ws[WS_SOLVE],
-            ws[WS_ORDER])
+            ws[WS_ORDER], ws[WS_SWEEP])
 
 
 @njit(cache=True, inline='always')
-def resolve_workspace(n, model, det, pose, has_colliders):
-    """``workspace`` for a model (``n`` segments) and its colliders."""
-    m = det[D_SEG].shape[0] if has_colliders else 0
-    K = pose[P_A0].shape[0] if has_colliders else 0
-    nd = det[D_CHAINS].shape[0] if has_colliders else 0
+def resolve_workspace(model, det, split, pose, has_colliders):
+    """``workspace`` for resolving a model's chains one at a time (``resolve_chains_into``):
+    sized for its largest chain (segments, colliding segments, limited joints), against all
+    the colliders."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
-    nc_max = 0
+    lim, rows = split[SP_LIM_RANGE], split[SP_DET_RANGE]
+    n = m = nl = 0
     for c in range(chain_start.shape[0]):
-        nc_max = max(nc_max, chain_end[c] - chain_start[c])
-    return workspace(n, m, K, model[LIMITED].shape[0], nd, chain_start.shape[0], nc_max)
+        n = max(n, chain_end[c] - chain_start[c])
+        m = max(m, rows[1, c] - rows[0, c])
+        nl = max(nl, lim[1, c] - lim[0, c])
+    if not has_colliders:
+        return workspace(n, 0, 0, nl, 0, 1, n)
+    return workspace(n, m, pose[P_A0].shape[0], nl, 1, 1, n)
+
+
+# -- one chain at a time ----------------------------------------------------------------------
+# Chains do not touch one another (colliders are kinematic bodies), so each chain's contacts
+# and limits are resolved on their own: its own rows, skin, deepest violation, position passes,
+# factorisation and projections, as if it were alone with all the colliders. A stage that
+# pooled the chains (one skin, one deepest violation, passes and re-projection of all of
+# them) made a character's motion depend on what the others touched.
+# The split of the constant tuples (``collision.Unilateral.split_args``), what a chain's own
+# tuples (``chain_model``, ``chain_det``) take besides views of the whole model's: parent
+# indices in chain numbering (n), zeros (n), each chain's segment count (C), the limited
+# joints in chain numbering (n_l, chain by chain) and each chain's range of them (2, C), each
+# chain's range of the colliding segments (2, C), those in chain numbering (m) and their index
+# among the chain's first segments (0 or -1, m), each chain's slot among the colliding chains
+# and the index of its first segment among all first colliding segments (C, -1: none), and
+# each chain's longest half colliding segment (C, m).
+(SP_PARENT, SP_ZERO, SP_COUNT, SP_LIMITED, SP_LIM_RANGE, SP_DET_RANGE, SP_DET_SEG,
+ SP_FIRST_OF, SP_SLOT, SP_FIRST, SP_MAX_HALF) = range(11)
+
+
+@njit(cache=True, inline='always')
+def chain_model(model, split, c):
+    """The model tuple of chain ``c`` alone (views of ``model`` and ``split``)."""
+    s, e = model[CHAIN_START][c], model[CHAIN_END][c]
+    ls, le = split[SP_LIM_RANGE][0, c], split[SP_LIM_RANGE][1, c]
+    zero = split[SP_ZERO]
+    return (model[LENGTH][s:e], model[INV_MASS][s:e], model[INV_INERTIA][s:e],
+            model[INV_I_MAX][s:e], model[IS_FIRST][s:e], model[HAS_CHILD][s:e],
+            split[SP_PARENT][s:e], zero[s:e], zero[0:1], split[SP_COUNT][c:c + 1],
+            model[AXISYMMETRIC], split[SP_LIMITED][ls:le], model[SWING_LIMIT][s:e],
+            model[TWIST_LIMIT][s:e])
+
+
+@njit(cache=True, inline='always')
+def chain_det(det, split, c):
+    """The detector tuple of chain ``c`` alone, with every collider (views)."""
+    ms, me = split[SP_DET_RANGE][0, c], split[SP_DET_RANGE][1, c]
+    slot, f = split[SP_SLOT][c], split[SP_FIRST][c]
+    ns, nf = (1 if slot >= 0 else 0), (1 if f >= 0 else 0)
+    slot, f = max(slot, 0), max(f, 0)
+    zero = split[SP_ZERO]
+    return (split[SP_DET_SEG][ms:me], det[D_RADIUS][ms:me], det[D_LENGTH][ms:me],
+            det[D_INNER][ms:me], split[SP_FIRST_OF][ms:me], zero[0:nf],
+            det[D_ROOT_FIXED][f:f + nf], det[D_ROOTED_FIXED][f:f + nf],
+            det[D_SUM_RADIUS][ms:me], zero[0:ns], det[D_CHAIN_REACH][slot:slot + ns],
+            split[SP_MAX_HALF][c], det[D_N_SPHERE], det[D_N_ROUND], det[D_COL_RADIUS],
+            det[D_FRICTION])
+
+
+@njit(cache=True, inline='always')
+def chain_anchor(anchor, c):
+    """Chain ``c``'s row of the anchors' ``(position, velocity, orientation, ω)`` (views)."""
+    return (anchor[0][c:c + 1], anchor[1][c:c + 1], anchor[2][c:c + 1], anchor[3][c:c + 1])
+
+
+@njit(cache=True)
+def chain_args(model, det, split, c):
+    """``(chain_model, chain_det)`` of chain ``c`` (for callers in Python)."""
+    return chain_model(model, split, c), chain_det(det, split, c)
+
+
+@njit(cache=True, inline='always')
+def chain_is_free(split, has_colliders, c):
+    """Whether chain ``c`` has nothing to resolve (no colliding segment, no limit)."""
+    collides = has_colliders and split[SP_SLOT][c] >= 0
+    return not collides and split[SP_LIM_RANGE][1, c] == split[SP_LIM_RANGE][0, c]
 
 
 # -- rows ----------------------------------------------------------------------------------------
@@ -729,6 +820,33 @@ def sweep_order(box, nr, order):
     return True, ax, wmax, bound
 
 
+@njit(cache=True, _nrt=False)
+def broad_phase_setup(pose, det, ws):
+    """What the broad phase of every chain shares in a step (``WS_BOX``, ``WS_ORDER``,
+    ``WS_SWEEP``): the round colliders' boxes (``outside_box``'s bounds before the reach), their
+    sweep order (``sweep_order``) and the fastest collider's surface speed; once per step, not
+    once per chain and detection."""
+    a0, d2, col_radius, n_round = pose[P_A0], pose[P_D2], det[D_COL_RADIUS], det[D_N_ROUND]
+    box, sweep = ws[WS_BOX], ws[WS_SWEEP]
+    K = a0.shape[0]
+    nr = min(K, n_round)
+    for j in range(nr):
+        for a in range(3):
+            e = a0[j, a] + d2[j, a]
+            box[j, a] = min(a0[j, a], e) - col_radius[j]
+            box[j, 3 + a] = max(a0[j, a], e) + col_radius[j]
+    on, ax, wmax, bound = sweep_order(box, nr, ws[WS_ORDER][:nr])
+    col_speed = pose[P_SPEED]
+    fastest = 0.0
+    for j in range(col_speed.shape[0]):
+        fastest = max(fastest, col_speed[j])
+    sweep[SW_ON] = 1.0 if on else 0.0
+    sweep[SW_AXIS] = ax
+    sweep[SW_WIDEST] = wmax
+    sweep[SW_BOUND] = bound
+    sweep[SW_FASTEST] = fastest
+
+
 @njit(cache=True, inline='always')
 def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: C901 (kernel loops)
     """Broad phase per (colliding chain, collider) pair, then detection (``detect_segments``) of
@@ -749,15 +867,8 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
     state, pair_list, count = ws[WS_STATE], ws[WS_PAIRS], ws[WS_SLOTS][S_COUNT]
     first_seg, end_seg, slot = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END], ws[WS_CHAIN_SLOT]
-    box = ws[WS_BOX]
-    nd, K = state.shape
-    # The round colliders' boxes (``outside_box``'s bounds before the reach: the same
-    # operations, once per call instead of once per pair and pass).
-    for j in range(min(K, n_round)):
-        for a in range(3):
-            e = a0[j, a] + d2[j, a]
-            box[j, a] = min(a0[j, a], e) - col_radius[j]
-            box[j, 3 + a] = max(a0[j, a], e) + col_radius[j]
+    box, sw = ws[WS_BOX], ws[WS_SWEEP]
+    nd, K = det_chains.shape[0], a0.shape[0]
     # Each chain's colliding segments are consecutive in det[D_SEG].
     for c in range(nd):
         slot[det_chains[c]] = c
@@ -768,12 +879,13 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
         first_seg[c] = min(first_seg[c], i)
         end_seg[c] = i + 1
     state[:] = 0            # 0: left out, 1: kept in this pass, 2: detected
-    speed = surface_speed(pose, v, w, det)
+    speed = surface_speed(v, w, det, sw[SW_FASTEST])
     deepest = 0.0
     skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
     tested = -1.0
+    # (the boxes and their order: ``broad_phase_setup``, once per step)
     order = ws[WS_ORDER][:min(K, n_round)]
-    sweep, ax, wmax, bound = sweep_order(box, order.shape[0], order)
+    sweep, ax, wmax, bound = sw[SW_ON] != 0.0, int(sw[SW_AXIS]), sw[SW_WIDEST], sw[SW_BOUND]
     while skin > tested:
         tested = skin
         for c in range(nd):
@@ -836,7 +948,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     chain_of = model[CHAIN_OF]
     m = seg.shape[0]
     # The workspace's second (n, 3) vector: build_rows' callers keep nothing there.
-    h = ws[WS_VEC][V_N1]
+    h = vec(ws, V_N1, q.shape[0])
     half_vectors(model[LENGTH], q, h)
     depth, s, t, own = ws[WS_DET][DT_DEPTH], ws[WS_DET][DT_S], ws[WS_DET][DT_T], ws[WS_OWN]
     skin = near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws)
@@ -844,7 +956,7 @@ def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     first_seg, end_seg = ws[WS_SLOTS][S_FIRST], ws[WS_SLOTS][S_END]
     # Room for every kept pair's segments, and for the limit rows after them.
     most = 2 * model[LIMITED].shape[0]
-    for c in range(count.shape[0]):
+    for c in range(det[D_CHAINS].shape[0]):
         most += (end_seg[c] - first_seg[c]) * count[c]
     if most > R.shape[0]:
         return -1, R, I             # the caller grows the tables (``grown``) and starts over
@@ -922,32 +1034,61 @@ def build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
     nl = model[LIMITED].shape[0]
     R, I = ws[WS_TABLES][T_ROWS], ws[WS_IDS][T_ROWS]
     k = 0
-    if has_colliders and near(anchor[0], pose, v, w, det, dt):
+    # With the sweep on, ``near_pairs`` finds the pairs within reach faster than ``near``
+    # tests every collider (a crowd's); without a pair in ``near``'s reach it makes no row.
+    sw = ws[WS_SWEEP]
+    if has_colliders and (sw[SW_ON] != 0.0 or near(anchor[0], pose, v, w, det, dt,
+                                                    sw[SW_FASTEST])):
         k, R, I = contact_rows(x, q, v, w, anchor[0], pose, model, det, dt, R, I, ws)
         if k < 0:
             return False, R[:0], I[:0]
     if nl:
-        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS], ws[WS_LIM][L_GAP],
-                       ws[WS_LIM][L_SEP])
+        k = limit_rows(q, w, anchor, q_rest, model, dt, R, I, k, ws[WS_AXIS][:2 * nl],
+                       ws[WS_LIM][L_GAP][:2 * nl], ws[WS_LIM][L_SEP][:2 * nl])
     return True, R[:k], I[:k]
 
 
 @njit(cache=True)
-def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt):
-    """Contact and limit rows within reach of this step's stages: ``(R, I)`` (new arrays).
+def build_rows(x, q, v, w, anchor, q_rest, pose, model, det, split, has_colliders, dt):
+    """Contact and limit rows within reach of this step's stages: ``(R, I)`` (new arrays),
+    chain by chain (each chain's as ``resolve`` builds them), segments numbered in the whole
+    model.
 
     A pair is a candidate if it is inside, within the position skin, or could close within
     ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds (after the broad
-    phase, ``near``). Contacts first (segment-major), then the limits (``limit_rows``).
+    phase, ``near``). Per chain: contacts first (segment-major), then the limits
+    (``limit_rows``).
     """
-    ws = resolve_workspace(x.shape[0], model, det, pose, has_colliders)
-    fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
-                                 dt, ws)
-    if not fits:
-        ws = grown(ws)
-        fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
-                                     has_colliders, dt, ws)
-    return R.copy(), I.copy()
+    ws = resolve_workspace(model, det, split, pose, has_colliders)
+    if has_colliders:
+        broad_phase_setup(pose, det, ws)
+    R_all, I_all = np.empty((0, NCOL)), np.empty((0, 3), dtype=np.int64)
+    k = 0
+    for copy_pass in range(2):          # count the rows, then copy them
+        if copy_pass == 1:
+            R_all, I_all = np.empty((k, NCOL)), np.empty((k, 3), dtype=np.int64)
+        k = 0
+        for c in range(model[CHAIN_START].shape[0]):
+            if chain_is_free(split, has_colliders, c):
+                continue
+            s, e = model[CHAIN_START][c], model[CHAIN_END][c]
+            collides = has_colliders and split[SP_SLOT][c] >= 0
+            sub, sub_det = chain_model(model, split, c), chain_det(det, split, c)
+            fits, R, I = build_rows_into(x[s:e], q[s:e], v[s:e], w[s:e], chain_anchor(anchor, c),
+                                         q_rest[s:e], pose, sub, sub_det, collides, dt, ws)
+            if not fits:
+                ws = grown(ws)
+                fits, R, I = build_rows_into(x[s:e], q[s:e], v[s:e], w[s:e],
+                                             chain_anchor(anchor, c), q_rest[s:e], pose, sub,
+                                             sub_det, collides, dt, ws)
+            if copy_pass == 1:
+                for r in range(R.shape[0]):
+                    R_all[k + r, :] = R[r, :]
+                    I_all[k + r, SEG] = I[r, SEG] + s
+                    I_all[k + r, PAR] = I[r, PAR] + s if I[r, PAR] >= 0 else -1
+                    I_all[k + r, CONTACT] = I[r, CONTACT]
+            k += R.shape[0]
+    return R_all, I_all
 
 
 @njit(cache=True, inline='always')
@@ -1547,7 +1688,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
     n = v.shape[0]
     k = R.shape[0]
-    dv, dw = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
+    dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
     dv[:] = 0.0
     dw[:] = 0.0
     lam = ws[WS_ROWVEC][R_LAM][:k]
@@ -1634,9 +1775,9 @@ def rotate_segments(q, dth, length):
 def factor_ws(q, model, ws):
     """``factor_chain`` into the workspace's factorisation (``V_H``, ``M_INV_I`` … ``M_LO``),
     every chain (``factor_segments`` over all segments)."""
-    mat = ws[WS_MAT]
-    return factor_segments(q, model, 0, q.shape[0], ws[WS_VEC][V_H], mat[M_INV_I],
-                           mat[M_PIVOTS], mat[M_LO], mat[M_G], ws[WS_R3])
+    n = q.shape[0]
+    return factor_segments(q, model, 0, n, vec(ws, V_H, n), mat(ws, M_INV_I, n),
+                           mat(ws, M_PIVOTS, n), mat(ws, M_LO, n), mat(ws, M_G, n), ws[WS_R3])
 
 
 @njit(cache=True, _nrt=False)
@@ -1668,9 +1809,10 @@ def factor_touched(q, model, I, h, inv_I, C, Lo, G, R3, touched):
 @njit(cache=True, inline='always')
 def factor_rows_ws(q, model, I, ws):
     """``factor_touched`` into the workspace's factorisation."""
-    mat = ws[WS_MAT]
-    return factor_touched(q, model, I, ws[WS_VEC][V_H], mat[M_INV_I], mat[M_PIVOTS], mat[M_LO],
-                          mat[M_G], ws[WS_R3], ws[WS_TOUCHED])
+    n = q.shape[0]
+    return factor_touched(q, model, I, vec(ws, V_H, n), mat(ws, M_INV_I, n),
+                          mat(ws, M_PIVOTS, n), mat(ws, M_LO, n), mat(ws, M_G, n), ws[WS_R3],
+                          ws[WS_TOUCHED])
 
 
 @njit(cache=True, inline='always')
@@ -1682,7 +1824,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     place. Returns ``(status, moved, R, I)``: the rows at the final pose (views of the
     workspace ``ws``)."""
     length = model[LENGTH]
-    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
+    h, inv_I, C, Lo = factors(ws, q.shape[0])
     fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
                                  dt, ws)
     if not fits:
@@ -1707,7 +1849,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         for r in range(ks):
             b[r] = -Rs[r, DEPTH]
         # The displacements (centres unused: positions are rebuilt from the rotations).
-        dx, dth = ws[WS_VEC][V_N2], ws[WS_VEC][V_N3]
+        dx, dth = vec(ws, V_N2, x.shape[0]), vec(ws, V_N3, x.shape[0])
         dx[:] = 0.0
         dth[:] = 0.0
         solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
@@ -1715,7 +1857,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
-        x_old = ws[WS_VEC][V_N0]
+        x_old = vec(ws, V_N0, x.shape[0])
         for i in range(x.shape[0]):
             for a in range(3):
                 x_old[i, a] = x[i, a]
@@ -1739,7 +1881,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
 def limit_stage(x, q, anchor, q_rest, model, ws):
     """The limits' exact projection (``project_limits``) for what the linearisation of their
     cones left; ``x``, ``q`` in place. Returns whether anything moved."""
-    q_lim = ws[WS_Q]
+    q_lim = ws[WS_Q][:q.shape[0]]
     if not project_limits(q, anchor[2], q_rest, model[IS_FIRST], model[CHAIN_OF],
                           model[CHAIN_START], model[CHAIN_END], model[LIMITED],
                           model[SWING_LIMIT], model[TWIST_LIMIT], POSITION_TOLERANCE, q_lim):
@@ -1747,7 +1889,7 @@ def limit_stage(x, q, anchor, q_rest, model, ws):
     for i in range(q.shape[0]):
         for a in range(4):
             q[i, a] = q_lim[i, a]
-    h = ws[WS_VEC][V_N1]
+    h = vec(ws, V_N1, q.shape[0])
     half_vectors(model[LENGTH], q, h)
     project_positions(anchor[0], h, model, x)
     return True
@@ -1773,7 +1915,7 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
     steps at its current rate, gets the inelastic impulse of the LCP
     ``W λ + sep + max(gap, 0)/dt ≥ 0``, then friction; ``v``, ``w`` in place. Returns the
     status (the chain is factorised here if it was not yet)."""
-    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
+    h, inv_I, C, Lo = factors(ws, q.shape[0])
     k = R.shape[0]
     keep = ws[WS_KEEP][:k]
     for r in range(k):
@@ -1812,8 +1954,7 @@ def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colli
     is then resolved again from its entry state).
 
     The stages run borrowing (``_resolve_stages``)."""
-    vec = ws[WS_VEC]
-    v0, w0 = vec[V_V0], vec[V_W0]
+    v0, w0 = vec(ws, V_V0, v.shape[0]), vec(ws, V_W0, v.shape[0])
     for i in range(v.shape[0]):
         for a in range(3):
             v0[i, a] = v[i, a]
@@ -1834,13 +1975,45 @@ def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colli
                            project, dt, stats, ws), ws
 
 
+@njit(cache=True, _nrt=True)
+def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_rest,
+                        has_colliders, project, dt, stats, ws):
+    """``resolve_into`` chain by chain (``chain_model``, ``chain_det``, ``chain_anchor``): each
+    chain is resolved as if it were alone with all the colliders, so that what one chain
+    touches never changes another's step. Chains with nothing to resolve (no colliding
+    segment, no limit) are skipped. The broad phase's per-step setup
+    (``broad_phase_setup``) is done once, for all of them. ``stats``: the contacts and limits
+    summed over the chains, the most position passes any took. Returns ``(status, ws)`` as
+    ``resolve_into`` (a chain that fails stops the call)."""
+    stats[:] = 0
+    own = np.empty(3, dtype=np.int64)
+    if has_colliders:
+        broad_phase_setup(pose, det, ws)
+    chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
+    for c in range(chain_start.shape[0]):
+        if chain_is_free(split, has_colliders, c):
+            continue
+        s, e = chain_start[c], chain_end[c]
+        collides = has_colliders and split[SP_SLOT][c] >= 0
+        status, ws = resolve_into(x0[s:e], q0[s:e], x[s:e], q[s:e], v[s:e], w[s:e],
+                                  chain_anchor(anchor, c), pose, chain_model(model, split, c),
+                                  chain_det(det, split, c), q_rest[s:e], collides, project,
+                                  dt, own, ws)
+        stats[0] += own[0]
+        stats[1] += own[1]
+        stats[2] = max(stats[2], own[2])
+        if status != OK:
+            return status, ws
+    return OK, ws
+
+
 @njit(cache=True, _nrt=False)
 def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
                     project, dt, stats, ws):
     """``resolve_into``'s stages, in order, borrowing every array (no reference counting);
     ``NO_ROOM`` if the row tables overflow."""
     stats[:] = 0
-    h, inv_I, C, Lo = ws[WS_VEC][V_H], ws[WS_MAT][M_INV_I], ws[WS_MAT][M_PIVOTS], ws[WS_MAT][M_LO]
+    h, inv_I, C, Lo = factors(ws, q.shape[0])
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws, stats)
     if status != OK:
@@ -1849,13 +2022,14 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
     moved = moved or stale
     if moved:
         if not project:
-            unprojected_positions(x0, q0, q, anchor, model, x, ws[WS_VEC][V_N1], ws[WS_VEC][V_N0],
-                                  ws[WS_VEC][V_N2])
+            n = x.shape[0]
+            unprojected_positions(x0, q0, q, anchor, model, x, vec(ws, V_N1, n),
+                                  vec(ws, V_N0, n), vec(ws, V_N2, n))
         if not factor_ws(q, model, ws):
             return NOT_POSITIVE_DEFINITE
-        vec = ws[WS_VEC]
-        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec[V_N0], vec[V_N2],
-                         vec[V_N3])
+        n = x.shape[0]
+        joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec(ws, V_N0, n),
+                         vec(ws, V_N2, n), vec(ws, V_N3, n))
         if stale:
             fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws)
@@ -1874,7 +2048,8 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
 
 
 @njit(cache=True)
-def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project, dt, stats):
+def resolve(x, q, v, w, anchor, pose, model, det, split, q_rest, has_colliders, project, dt,
+            stats):
     """Contacts and limits at the end of a step of length ``dt`` (s): positions, then
     velocities (inelastic impulses, then friction). Returns ``(status, x, q, v, w)`` (new
     arrays; the inputs are not changed); ``stats`` ``(3,)`` receives the contacts and limits
@@ -1883,7 +2058,9 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     ``anchor``: ``(position, velocity, orientation, angular_velocity)`` of every chain's
     attachment (C rows); ``pose``: ``(a0, d2, normal, origin, velocity, omega, speed)`` of the
     colliders (``collision.ColliderPose``); ``model`` and ``det``: the constant tuples built by
-    ``collision.Unilateral``; ``q_rest``: the joints' rest rotations (``Model.q_rest``).
+    ``collision.Unilateral`` and ``split`` their split by chain (``SP_*``); ``q_rest``: the
+    joints' rest rotations (``Model.q_rest``). Chains are resolved one at a time
+    (``resolve_chains_into``).
 
     Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
     unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
@@ -1892,7 +2069,7 @@ def resolve(x, q, v, w, anchor, pose, model, det, q_rest, has_colliders, project
     place, on a workspace kept across steps).
     """
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
-    status, _ = resolve_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, q_rest,
-                             has_colliders, project, dt, stats,
-                             resolve_workspace(x.shape[0], model, det, pose, has_colliders))
+    status, _ = resolve_chains_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, split,
+                                    q_rest, has_colliders, project, dt, stats,
+                                    resolve_workspace(model, det, split, pose, has_colliders))
     return status, x1, q1, v1, w1

@@ -667,7 +667,7 @@ class Simulator:
         static_pose = uni._pose_arrays(None if cols is None else cols._static)
         args = (M, A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
                 moving, cols.args if cols is not None else _NO_COLLIDER_ARGS,
-                static_pose, uni.model_args, uni.detector_args,
+                static_pose, uni.model_args, uni.detector_args, uni.split_args,
                 np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
                 self._kernel(M) is lanes.advance_lanes, self._contact_workspace(static_pose))
@@ -694,7 +694,7 @@ class Simulator:
         uni = self.unilateral
         if uni.workspace is None:
             uni.workspace = contact_kernels.resolve_workspace(
-                self.model.n, uni.model_args, uni.detector_args, static_pose,
+                uni.model_args, uni.detector_args, uni.split_args, static_pose,
                 uni.detector is not None)
         return uni.workspace
 

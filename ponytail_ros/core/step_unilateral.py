@@ -1,6 +1,7 @@
 """The compiled step loop of scenes with colliders or joint limits: per step, the chains' own
 step (``step``, or for a crowd the SIMD lanes of ``lanes``), then the contacts and limits at
-its end (``contact_kernels.resolve_into``), all the steps of a call in one compiled call.
+its end, chain by chain (``contact_kernels.resolve_chains_into``), all the steps of a call in
+one compiled call.
 
 Stages of a step, in order: the sub-step test (``step.substeps``: a joint turning faster than
 the simulator's ``SUBSTEP_ANGLE`` per step stops the call there, and the simulator takes that
@@ -28,12 +29,13 @@ __all__ = ['advance_unilateral']
 # error_model='numpy': the lanes' loops inlined here divide as plain ``fdiv`` (see ``lanes``).
 @nb.njit(cache=True, nogil=True, error_model='numpy')
 def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
-                       static_pose, umodel, det, q_rest, has_colliders, stats,
+                       static_pose, umodel, det, split, q_rest, has_colliders, stats,
                        substep_angle, max_substeps, profile, in_lanes, cws):
     """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
     chain by chain, or if ``in_lanes`` (``lanes.crowd_layout`` and ``lanes.supports`` allow
     it) in the SIMD lanes of ``lanes.step_blocks``, the same bits; then its contacts and
-    limits are resolved (``contact_kernels.resolve_into``) at the step's end, the colliders
+    limits are resolved chain by chain (``contact_kernels.resolve_chains_into``; ``split``:
+    ``collision.Unilateral.split_args``) at the step's end, the colliders
     posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
     ``static_pose``. ``cws``: the contact stage's workspace
     (``contact_kernels.resolve_workspace`` of this model, detector and colliders), kept by the
@@ -86,8 +88,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         x0[:] = x
         q0[:] = q
         # (a workspace grown for one step's rows is kept for the rest of the call)
-        resolved, cws = contact_kernels.resolve_into(
-            x0, q0, x, q, v, w, anchor, pose, umodel, det, q_rest, has_colliders,
+        resolved, cws = contact_kernels.resolve_chains_into(
+            x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
             M.projection, h, stats, cws)
         profile[1] += _cycles() - t1
         if resolved != contact_kernels.OK:
