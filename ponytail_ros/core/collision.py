@@ -260,9 +260,9 @@ def _split_args(model, detector):
         seg = detector.seg
         det_seg = (seg - seg_start[seg]).astype(i64)
         first_of = np.where(detector.args[K.D_FIRST_OF] >= 0, 0, -1).astype(i64)
-        for k, c in enumerate(detector.args[K.D_CHAINS]):             # the colliding chains, in order
+        for k, c in enumerate(detector.args[K.D_CHAINS]):       # colliding chains, in order
             slot[c] = k
-        for f, c in enumerate(detector.args[K.D_FIRST_CHAIN]):             # each first segment's chain
+        for f, c in enumerate(detector.args[K.D_FIRST_CHAIN]):  # each first segment's chain
             first[c] = f
     det_range = np.stack([np.searchsorted(seg, start), np.searchsorted(seg, end)]).astype(i64)
     for c in range(C):
