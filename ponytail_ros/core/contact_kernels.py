@@ -74,8 +74,8 @@ SEG, PAR, CONTACT = 0, 1, 2
  D_FRICTION) = range(16)
 P_A0, P_D2, P_NORMAL, P_ORIGIN, P_VELOCITY, P_OMEGA, P_SPEED = range(7)
 
-# Status of ``resolve`` (``NO_ROOM``: internal to ``resolve_into``, the row tables overflowed:
-# it grows them and resolves the step again).
+# Status of ``resolve`` (``NO_ROOM``: internal to ``resolve_chains_into``, the row tables
+# overflowed: it grows them and resolves the chain again).
 OK, NOT_POSITIVE_DEFINITE, NO_ROOM = 0, 1, 2
 
 
@@ -1307,9 +1307,19 @@ def sign_violations(Ws, bs, active, lam, bad):
 
 
 @njit(cache=True, _nrt=True)
+def _lcp_fallback(Ws, bs, d, out):
+    """``lcp``'s Lawson–Hanson fallback into ``out`` (it allocates: kept out of the
+    borrowing ``lcp_into``)."""
+    lam_fb = nnls_quadratic(Ws, bs)
+    for i in range(out.shape[0]):
+        out[i] = lam_fb[i] * d[i]
+
+
+@njit(cache=True, _nrt=False)
 def lcp_into(W, b, out, ds, Ws):  # noqa: C901 - the pivoting loop reads as the algorithm
     """``lcp`` into ``out`` (k,), with the scratch ``ds`` (``dense_scratch`` of ≥ k rows;
-    ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix."""
+    ``W`` may be its square 0) and ``Ws`` (k×k) for the scaled matrix; borrowing its
+    arguments (no reference counting: it runs for every touching chain and step)."""
     k = b.shape[0]
     any_closing = False
     for i in range(k):
@@ -1348,9 +1358,7 @@ def lcp_into(W, b, out, ds, Ws):  # noqa: C901 - the pivoting loop reads as the 
                 active[i] ^= bad[i]
         else:
             active[first] = not active[first]
-    lam_fb = nnls_quadratic(Ws, bs)
-    for i in range(k):
-        out[i] = lam_fb[i] * d[i]
+    _lcp_fallback(Ws, bs, d, out)
 
 
 @njit(cache=True)
@@ -1942,76 +1950,81 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
 
 
 @njit(cache=True, _nrt=True)
-def resolve_into(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
-                 project, dt, stats, ws):
-    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state), with
-    its workspace ``ws`` given (``resolve_workspace`` of this model, detector and colliders: a
-    step loop allocates it once for all its steps; every stage writes what it reads there
-    first, as it must of ``np.empty``'s contents). ``x0``, ``q0``: a copy of the step's
-    positions (they must not be ``x``, ``q`` themselves). Returns ``(status, ws)``: the
-    workspace to keep for the next steps, ``grown(ws)`` if this step's candidate rows
-    overflowed its row tables (a segment near more than ``ROW_COLLIDERS`` colliders; the step
-    is then resolved again from its entry state).
-
-    The stages run borrowing (``_resolve_stages``)."""
-    v0, w0 = vec(ws, V_V0, v.shape[0]), vec(ws, V_W0, v.shape[0])
-    for i in range(v.shape[0]):
-        for a in range(3):
-            v0[i, a] = v[i, a]
-            w0[i, a] = w[i, a]
-    status = _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest,
-                             has_colliders, project, dt, stats, ws)
-    if status != NO_ROOM:
-        return status, ws
-    for i in range(x.shape[0]):
-        for a in range(3):
-            x[i, a] = x0[i, a]
-            v[i, a] = v0[i, a]
-            w[i, a] = w0[i, a]
-        for a in range(4):
-            q[i, a] = q0[i, a]
-    ws = grown(ws)
-    return _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
-                           project, dt, stats, ws), ws
-
-
-@njit(cache=True, _nrt=True)
 def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_rest,
                         has_colliders, project, dt, stats, ws):
-    """``resolve_into`` chain by chain (``chain_model``, ``chain_det``, ``chain_anchor``): each
-    chain is resolved as if it were alone with all the colliders, so that what one chain
-    touches never changes another's step. Chains with nothing to resolve (no colliding
-    segment, no limit) are skipped. The broad phase's per-step setup
-    (``broad_phase_setup``) is done once, for all of them. ``stats``: the contacts and limits
-    summed over the chains, the most position passes any took. Returns ``(status, ws)`` as
-    ``resolve_into`` (a chain that fails stops the call)."""
+    """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state), chain
+    by chain (``chain_model``, ``chain_det``, ``chain_anchor``): each chain is resolved as if
+    it were alone with all the colliders, so that what one chain touches never changes
+    another's step. Chains with nothing to resolve (no colliding segment, no limit) are
+    skipped; the broad phase's per-step setup (``broad_phase_setup``) is done once, for all.
+    ``x0``, ``q0``: a copy of the step's positions (not ``x``, ``q`` themselves). ``ws``: the
+    workspace (``resolve_workspace`` of this model, detector and colliders: a step loop
+    allocates it once for all its steps; every stage writes what it reads there first, as it
+    must of ``np.empty``'s contents). ``stats``: the contacts and limits summed over the
+    chains, the most position passes any took.
+
+    Returns ``(status, ws)`` (a chain that fails stops the call): the workspace to keep for
+    the next steps, ``grown(ws)`` if a chain's candidate rows overflowed its row tables (a
+    segment near more than ``ROW_COLLIDERS`` colliders; that chain is then resolved again from
+    its entry state). The chains run borrowing (``_resolve_chains``): reference counting on
+    a chain's ~100 views and tuple members cost more than resolving it."""
     stats[:] = 0
     own = np.empty(3, dtype=np.int64)
     if has_colliders:
         broad_phase_setup(pose, det, ws)
+    c = 0
+    while True:
+        status, c = _resolve_chains(x0, q0, x, q, v, w, anchor, pose, model, det, split,
+                                    q_rest, has_colliders, project, dt, stats, own, ws, c)
+        if status != NO_ROOM:
+            return status, ws
+        ws = grown(ws)
+
+
+@njit(cache=True, _nrt=False)
+def _resolve_chains(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_rest,
+                    has_colliders, project, dt, stats, own, ws, first):
+    """``resolve_chains_into``'s loop from chain ``first`` on, without reference counting:
+    ``(status, chain)``, the chain that stopped it (``NO_ROOM``: that chain restored to its
+    entry state, to be resolved again with a grown workspace). ``own`` ``(3,)``: scratch."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
-    for c in range(chain_start.shape[0]):
+    for c in range(first, chain_start.shape[0]):
         if chain_is_free(split, has_colliders, c):
             continue
         s, e = chain_start[c], chain_end[c]
+        n = e - s
+        v0, w0 = vec(ws, V_V0, n), vec(ws, V_W0, n)
+        for i in range(n):
+            for a in range(3):
+                v0[i, a] = v[s + i, a]
+                w0[i, a] = w[s + i, a]
         collides = has_colliders and split[SP_SLOT][c] >= 0
-        status, ws = resolve_into(x0[s:e], q0[s:e], x[s:e], q[s:e], v[s:e], w[s:e],
-                                  chain_anchor(anchor, c), pose, chain_model(model, split, c),
-                                  chain_det(det, split, c), q_rest[s:e], collides, project,
-                                  dt, own, ws)
+        status = _resolve_stages(x0[s:e], q0[s:e], x[s:e], q[s:e], v[s:e], w[s:e],
+                                 chain_anchor(anchor, c), pose, chain_model(model, split, c),
+                                 chain_det(det, split, c), q_rest[s:e], collides, project,
+                                 dt, own, ws)
+        if status == NO_ROOM:
+            for i in range(n):
+                for a in range(3):
+                    x[s + i, a] = x0[s + i, a]
+                    v[s + i, a] = v0[i, a]
+                    w[s + i, a] = w0[i, a]
+                for a in range(4):
+                    q[s + i, a] = q0[s + i, a]
+            return status, c
         stats[0] += own[0]
         stats[1] += own[1]
         stats[2] = max(stats[2], own[2])
         if status != OK:
-            return status, ws
-    return OK, ws
+            return status, c
+    return OK, chain_start.shape[0]
 
 
 @njit(cache=True, _nrt=False)
 def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
                     project, dt, stats, ws):
-    """``resolve_into``'s stages, in order, borrowing every array (no reference counting);
-    ``NO_ROOM`` if the row tables overflow."""
+    """One chain's stages (``resolve``), in order, borrowing every array (no reference
+    counting); ``NO_ROOM`` if the row tables overflow."""
     stats[:] = 0
     h, inv_I, C, Lo = factors(ws, q.shape[0])
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
@@ -2065,8 +2078,8 @@ def resolve(x, q, v, w, anchor, pose, model, det, split, q_rest, has_colliders, 
     Stages, in order: ``position_stage``, ``limit_stage``, then (if anything moved) the
     unchanged velocities projected M-orthogonally onto the moved joints (never adding kinetic
     energy), ``velocity_stage``, and the centre velocities rebuilt from ω. All scratch is one
-    workspace (``workspace``), a few allocations per call (``resolve_into``: the same in
-    place, on a workspace kept across steps).
+    workspace (``workspace``), a few allocations per call (``resolve_chains_into``: the same
+    in place, on a workspace kept across steps).
     """
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
     status, _ = resolve_chains_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, split,
