@@ -323,6 +323,10 @@ class Unilateral:
         # The compiled step loop's contact workspace, built at its first call and kept (see
         # ``step_unilateral.advance_unilateral``): it belongs to this structure.
         self.workspace = None
+        # The colliders' pose arrays in their bodies (the compiled loop poses moving ones
+        # from them): constant for this structure, built once.
+        self.static_pose = self._pose_arrays(None if self.colliders is None
+                                             else self.colliders._static)
 
     def pose(self, bodies):
         """``ColliderPose`` of the colliders for the kinematic bodies' origins (or ``None``)."""

@@ -42,7 +42,9 @@ def _warm_free():
     from .simulator import Simulator
     free = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
                            solver=SolverSpec(integrator='rk4', dt=0.01)))
-    free.advance_frame(0.02, KinematicState.still())
+    still = KinematicState.still()
+    free.advance_frame(0.02, still)
+    free.advance_frame(0.04, still, head_prev=still)    # (a node's frames: frame_tables)
     free.segment_poses(free.t + 0.001)
 
 
@@ -91,7 +93,7 @@ def _kernels():
             lanes.advance_lanes,
             head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,
             head_kernels.add_samples, head_kernels.longest_median_interval,
-            head_kernels.track_table, head_kernels.point_kinematics,
+            head_kernels.track_table, head_kernels.point_kinematics, head_kernels.frame_tables,
             head_kernels.median_interval, state_kernels.guard_measures,
             state_kernels.segment_poses)
 

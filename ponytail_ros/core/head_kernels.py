@@ -12,7 +12,9 @@ costs microseconds instead of hundreds of NumPy calls:
   frames, the slerped anchor-body orientation and the interpolated angular velocity, at all the
   stage times of a call (the compiled step's anchor table);
 * ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``);
-  ``frame_ends`` evaluates it at both ends of a frame in one call (the track's two ends).
+  ``frame_ends`` evaluates it at both ends of a frame in one call (the track's two ends);
+  ``frame_tables`` does a tick's whole head side in one call: the ends of the anchors' and
+  the colliders' bodies' tracks and both tables at the stage times of the call's steps.
 * ``add_samples``: ``HeadEstimator.add`` of one pose of each of many bodies at one stamp (a
   crowd's poses, one message for all its frames), its checks and arithmetic; and
   ``longest_median_interval``, the input period of a crowd (``median_interval`` of each).
@@ -29,7 +31,7 @@ from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormali
                             qto_rotvec, scale)
 
 __all__ = ['loess_fit', 'states_fit', 'fit_time', 'svd_lstsq', 'track_table',
-           'point_kinematics', 'frame_ends', 'median_interval', 'add_samples',
+           'point_kinematics', 'frame_ends', 'frame_tables', 'median_interval', 'add_samples',
            'longest_median_interval', 'FIT_SIZE', 'ACCEPTED']
 
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
@@ -520,3 +522,46 @@ def frame_ends(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local,
                      end_q[0], end_w[0])
     point_kinematics(p1, q1, v1, w1, a1, al1, body, r_local, end_p[1], end_v[1], end_a[1],
                      end_q[1], end_w[1])
+
+
+@njit(cache=True)
+def frame_tables(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local, n_anchor,
+                 t0, t1, t_base, k0, n_steps, dt, ends_a, ends_b, table_a, table_b):
+    """A frame's head side in one call: whether both bodies' states (``p0 … al0`` at the
+    frame's start ``t0``, ``p1 … al1`` at its end ``t1``) are finite, and, bit for bit as
+    ``frame_ends`` then ``track_table`` compute them, into the output tuples (each the five
+    arrays of an ``AnchorKinematics``: p, ṗ, p̈ ``(·, ·, 3)``, orientation ``(·, ·, 4)``,
+    ω ``(·, ·, 3)``):
+
+    * ``ends_a`` ``(2, n_anchor, ·)`` and ``ends_b`` ``(2, K, ·)``: the points ``body`` /
+      ``r_local`` ``(n_anchor + K,)`` at both ends, the anchors' attachment points first,
+      then the colliders' body origins;
+    * ``table_a`` and ``table_b`` ``(2 n_steps + 1, ·, ·)``: their tracks (``AnchorTrack``,
+      ``h = max(t1 - t0, 1e-12)``) at the stage times of steps ``k0 … k0 + n_steps - 1`` of
+      ``dt`` from ``t_base`` (``Simulator._stage_times``: row ``2k`` at ``t_base + (k0 + k)
+      dt``, ``2k + 1`` half a step later).
+    """
+    finite = True
+    for arr in (p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1):
+        for i in range(arr.shape[0]):
+            for j in range(arr.shape[1]):
+                if not math.isfinite(arr[i, j]):
+                    finite = False
+    n = body.shape[0]
+    frame_ends(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body[:n_anchor],
+               r_local[:n_anchor], ends_a[0], ends_a[1], ends_a[2], ends_a[3], ends_a[4])
+    frame_ends(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body[n_anchor:n],
+               r_local[n_anchor:n], ends_b[0], ends_b[1], ends_b[2], ends_b[3], ends_b[4])
+    times = np.empty(2 * n_steps + 1)
+    half = 0.5 * dt
+    for k in range(n_steps + 1):
+        t = t_base + float(k0 + k) * dt
+        times[2 * k] = t
+        if k < n_steps:
+            times[2 * k + 1] = t + half
+    h = max(t1 - t0, 1e-12)
+    track_table(times, t0, h, ends_a[0], ends_a[1], ends_a[2], ends_a[3], ends_a[4],
+                table_a[0], table_a[1], table_a[2], table_a[3], table_a[4])
+    track_table(times, t0, h, ends_b[0], ends_b[1], ends_b[2], ends_b[3], ends_b[4],
+                table_b[0], table_b[1], table_b[2], table_b[3], table_b[4])
+    return finite

@@ -32,6 +32,7 @@ from . import collision, contact_kernels, lanes, step_unilateral
 from . import step as compiled
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
                    KinematicState, frame_ends, point_table, stack_anchors)
+from .head_kernels import frame_tables
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
 from .forces import applied_forces
@@ -132,6 +133,8 @@ class Simulator:
         self._compiled = s.linear_solver == 'banded'
         self._half = 0.5 * self.model.length
         self._anchor_body = np.ascontiguousarray(self.model.anchor_body, dtype=np.int64)
+        # ``_advance_between``'s points: (bodies K, body indices, points in the bodies).
+        self._frame_points = (-1, None, None)
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self._step_model_cache = None
@@ -417,8 +420,10 @@ class Simulator:
         only shifts the anchor kinematically at the frame boundary, which the projection
         absorbs. Default: the end of the previous frame.
         """
-        _check_head(head)
         t_prev, a_prev = self._last_anchor
+        if head_prev is not None and self._compiled:
+            return self._advance_between(t_prev, t_frame, head_prev, head)
+        _check_head(head)
         m = self.model
         if head_prev is not None:
             # Both ends from the same estimate, in one compiled call.
@@ -450,6 +455,58 @@ class Simulator:
         self._anchor_at = track.at
         self._last_anchor = (float(t_frame), a_new)
         return report
+
+    def _advance_between(self, t_prev, t_frame, head_prev, head):
+        """``advance_frame`` with ``head_prev``, compiled: the check that both states are finite,
+        the ends of the anchors' track (and of the colliders' bodies') and their tables at the
+        stage times of the steps this call will take, in one compiled call
+        (``head_kernels.frame_tables``; bit for bit ``frame_ends``, ``AnchorTrack.table`` and
+        ``_stage_times``), then the steps."""
+        k = head.n_bodies if self._needs_bodies else 0
+        if self._frame_points[0] != k:
+            m = self.model
+            self._frame_points = (k, np.concatenate([self._anchor_body, np.arange(k)]),
+                                  np.ascontiguousarray(np.concatenate([m.attach,
+                                                                       np.zeros((k, 3))])))
+        _, body, r_local = self._frame_points
+        C = self._anchor_body.shape[0]
+        n0, n = self._n_steps, self._planned_steps(t_frame)
+        ends_a, ends_b = _anchor_tuple(2, C), _anchor_tuple(2, k)
+        table_a, table_b = _anchor_tuple(2 * n + 1, C), _anchor_tuple(2 * n + 1, k)
+        if not frame_tables(*(_c(getattr(head_prev, f)) for f in STATE_FIELDS),
+                            *(_c(getattr(head, f)) for f in STATE_FIELDS), body, r_local, C,
+                            float(t_prev), float(t_frame), self._t_base, n0, n, self.dt,
+                            ends_a, ends_b, table_a, table_b):
+            _check_head(head)           # raises, naming the field
+            _check_head(head_prev)
+        # The steps' tables, for the steps from n0 (``_steps_unilateral``, ``_advance``).
+        planned = (n0, n, compiled.AnchorTable(*table_a), compiled.AnchorTable(*table_b))
+        ends = AnchorKinematics(*ends_a)
+        track = AnchorTrack.from_ends(t_prev, t_frame, ends)
+        if not self._needs_bodies:
+            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+                                   anchor_table=track.table, planned=planned)
+        else:
+            body_ends = AnchorKinematics(*ends_b)
+            body_track = AnchorTrack.from_ends(t_prev, t_frame, body_ends)
+            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+                                   _memo_last(body_track.at), anchor_table=track.table,
+                                   body_table=body_track.table, planned=planned)
+            self._bodies_at = body_track.at
+            self._last_bodies = (float(t_frame), body_ends.row(1))
+        self._anchor_at = track.at
+        self._last_anchor = (float(t_frame), ends.row(1))
+        return report
+
+    def _planned_steps(self, t_target):
+        """The steps a call to ``t_target`` takes from the current one, when they are all
+        taken (none beyond ``max_steps_per_call``), else 0."""
+        n = self._steps_to(t_target)
+        return n if 0 < n <= self.scene.solver.max_steps_per_call else 0
+
+    def _steps_to(self, t_target):
+        """Internal steps from the current one to the last at or before ``t_target``."""
+        return int(np.floor((t_target - self._t_base) / self.dt + 1e-9)) - self._n_steps
 
     def _stage_times(self, n_steps):
         """Times ``(2 n_steps + 1,)`` of the anchor table of the next ``n_steps`` steps: row
@@ -513,10 +570,12 @@ class Simulator:
         return lanes.kernel_for(model, self._crowd)
 
     def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
-                 body_table=None):
+                 body_table=None, planned=None):
+        """``planned``: ``(k0, n, A, B)``, the ``AnchorTable`` of the anchors and of the bodies
+        for the ``n`` steps from step ``k0`` (``_advance_between``), used when they are the
+        steps taken."""
         report = StepReport()
-        n_target = int(np.floor((t_target - self._t_base) / self.dt + 1e-9))
-        n_steps = n_target - self._n_steps
+        n_steps = self._steps_to(t_target)
         cap = self.scene.solver.max_steps_per_call
         m, st = self.model, self.state
         x, q, v, w = st.x, st.q, st.v, st.w
@@ -542,11 +601,11 @@ class Simulator:
         try:
             if self.unilateral is not None:
                 x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
-                                                    x, q, v, w, anchor_table, body_table)
+                                                    x, q, v, w, anchor_table, body_table,
+                                                    planned)
             elif self._compiled:
                 if n_steps > 0:
-                    table = anchor_table(self._stage_times(n_steps)) if anchor_table else \
-                        stack_anchors([anchor_at(t) for t in self._stage_times(n_steps)])
+                    table, _ = self._tables(n_steps, anchor_at, anchor_table, planned)
                     x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
                     self._run_compiled(n_steps, self.dt, table, x, q, v, w)
                     self._n_steps += n_steps
@@ -620,7 +679,7 @@ class Simulator:
         return x, v
 
     def _steps_unilateral(self, n_steps, system, anchor_at, bodies_at, x, q, v, w,
-                          anchor_table=None, body_table=None):
+                          anchor_table=None, body_table=None, planned=None):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
         above, then its contacts and limits are resolved (``collision``), all in one compiled
         call (``step_unilateral.advance_unilateral``). A step in which some joint turns faster
@@ -638,15 +697,9 @@ class Simulator:
         x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
         done = 0
         while done < n_steps:
-            times = self._stage_times(n_steps - done)
-            table = anchor_table(times) if anchor_table else \
-                stack_anchors([anchor_at(t) for t in times])
-            A = self._table(table)
-            self._end_row = table           # its end row is the call's end, sub-steps or not
-            B = A
-            if moving:
-                B = self._table(body_table(times) if body_table else
-                                stack_anchors([bodies_at(t) for t in times]))
+            A, B = self._tables(n_steps - done, anchor_at, anchor_table, planned, moving,
+                                bodies_at, body_table)
+            self._end_row = A               # its end row is the call's end, sub-steps or not
             status, k = self._call_unilateral(n_steps - done, A, B, moving, x, q, v, w)
             done += k
             self._n_steps += k
@@ -657,6 +710,22 @@ class Simulator:
         uni.dt = self.dt
         return x, q, v, w
 
+    def _tables(self, n_steps, anchor_at, anchor_table, planned, moving=False, bodies_at=None,
+                body_table=None):
+        """The compiled ``AnchorTable``s of the anchors and of the bodies (the anchors' again
+        when the colliders do not move: not ``moving``) at the stage times of the next ``n_steps`` steps: ``planned``'s
+        (``_advance``) when they are its steps, else from the tables' functions (or the
+        anchors and bodies at each time)."""
+        if planned is not None and planned[:2] == (self._n_steps, n_steps):
+            return planned[2], planned[3] if moving else planned[2]
+        times = self._stage_times(n_steps)
+        A = self._table(anchor_table(times) if anchor_table else
+                        stack_anchors([anchor_at(t) for t in times]))
+        if not moving:
+            return A, A
+        return A, self._table(body_table(times) if body_table else
+                              stack_anchors([bodies_at(t) for t in times]))
+
     def _call_unilateral(self, n_steps, A, B, moving, x, q, v, w):
         uni = self.unilateral
         ext_F, ext_T = self._external_arrays()
@@ -664,7 +733,7 @@ class Simulator:
         stats = uni._stats
         cols = uni.colliders
         M = self._step_model()
-        static_pose = uni._pose_arrays(None if cols is None else cols._static)
+        static_pose = uni.static_pose
         args = (M, A, n_steps, self.dt, x, q, v, w, ext_F, ext_T, f_c, B,
                 moving, cols.args if cols is not None else _NO_COLLIDER_ARGS,
                 static_pose, uni.model_args, uni.detector_args, uni.split_args,
@@ -950,6 +1019,12 @@ def _body_kinematics(head):
 
 def _c(a):
     return np.ascontiguousarray(a, dtype=float)
+
+
+def _anchor_tuple(S, C):
+    """Empty arrays of an ``AnchorKinematics`` table of ``S`` rows of ``C`` points."""
+    return (np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 4)),
+            np.empty((S, C, 3)))
 
 
 def _check_head(head):
