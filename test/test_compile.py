@@ -55,7 +55,7 @@ def test_one_compile_job_starts_no_child(monkeypatch):
                         lambda *a, **k: pytest.fail('a child was started'))
     assert kernels_compile._warm_up() == 0
     assert list(kernels_compile.STAGE_SECONDS) == ['free step', 'crowd lanes', 'head fit',
-                                                   'contact step']
+                                                   'markers', 'contact step']
 
 
 @pytest.mark.parametrize('value', ['0', '3', 'two'])

@@ -686,3 +686,33 @@ def test_the_fit_refuses_sample_times_that_do_not_increase():
     with pytest.raises(ValueError, match='sample times must increase'):
         loess_fit(ts, np.zeros((4, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (4, 1)), 4, 0.15, 0.1, 3,
                   6, 1.0, 0.0, np.zeros(FIT_SIZE))
+
+
+def test_prefetched_states_are_state_at_bit_for_bit():
+    """``prefetch`` (a tick's instants fitted in one compiled call) keeps exactly the states
+    that ``state_at`` fits one at a time: inside the history, before its oldest sample, past
+    its newest (extrapolated, then braked, then held), with a delay, with few samples; and
+    ``state_at`` then answers them without fitting again."""
+    rng = np.random.default_rng(3)
+    motion = SwayYawMotion()
+    fields = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
+              'linear_acceleration', 'angular_acceleration')
+    for n, delay in ((2, 0.0), (3, 0.01), (60, 0.0), (60, 0.02)):
+        ests = [HeadEstimator(delay=delay) for _ in range(2)]
+        t = 0.0
+        for _ in range(n):
+            s = motion.state_at(t)
+            p = s.position[0] + rng.normal(0, 1e-4, 3)
+            for e in ests:
+                e.add(t, p, s.orientation[0])
+            t += rng.uniform(0.006, 0.012)
+        fetched, fitted = ests
+        for times in ((-0.1, 0.3 * t, 0.7 * t), (t, t + 0.04, t + 0.3), (0.5 * t, 0.5 * t)):
+            fetched.prefetch(times)
+            fetched._state_at = None            # (a fit now would fail: look-ups only)
+            for when in times:
+                got, want = fetched.state_at(when), fitted.state_at(when)
+                for name in fields:
+                    assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), \
+                        (n, delay, when, name)
+            del fetched._state_at

@@ -1,6 +1,6 @@
-"""The markers' numbers (``app/messages.py``'s few-call forms) are bit for bit those of
-``core.rotations``: random quaternions and vectors, with exact and signed zeros (planar
-motion), antiparallel and zero vectors."""
+"""The markers' numbers (``app/messages.py``'s few-call forms, ``core.marker_kernels``'
+compiled ones) are bit for bit those of ``core.rotations``: random quaternions and vectors,
+with exact and signed zeros (planar motion), antiparallel and zero vectors."""
 import numpy as np
 import pytest
 
@@ -56,21 +56,37 @@ def test_collider_marker_numbers(seed):
 
 
 @pytest.mark.parametrize('seed', range(3))
-def test_collider_marker_rows_are_each_colliders_numbers(seed):
-    """``_rotate_rows`` and ``_z_onto_rows`` (all colliders at once) give bit for bit each
-    row's ``_rotate`` and ``_from_two_vectors`` (antiparallel and zero vectors included)."""
+def test_collider_kernel_rows_are_each_colliders_numbers(seed):
+    """``core.marker_kernels.collider_numbers`` (every collider in one compiled call) gives
+    bit for bit each collider's ``_rotate`` and ``_from_two_vectors``, and flags exactly the
+    rows it leaves to ``_from_two_vectors`` (a zero axis, or one opposite +Z)."""
+    from ponytail_ros.core.marker_kernels import collider_numbers
     rng = np.random.default_rng(200 + seed)
-    qs = _quats(rng, 2000)
-    vs = rng.normal(size=(2000, 3)) * rng.choice([1e-3, 1.0, 1e3], size=(2000, 1))
-    vs[rng.random(2000) < 0.2, 1] = 0.0
-    vs[rng.random(2000) < 0.2, 0] = -0.0
+    n = 2000
+    qs = _quats(rng, n)
+    qs[:25] = [0.0, 0.0, 0.0, 1.0]        # (so that the next rows stay opposite +Z, or zero)
+    vs = rng.normal(size=(n, 3)) * rng.choice([1e-3, 1.0, 1e3], size=(n, 1))
+    vs[rng.random(n) < 0.2, 1] = 0.0
+    vs[rng.random(n) < 0.2, 0] = -0.0
     vs[:20] = [0.0, 0.0, -1.0]
     vs[20:25] = [0.0, 0.0, 0.0]
-    rows = m._rotate_rows(qs, vs)
-    z = m._z_onto_rows(vs)
-    for k in range(2000):
-        assert _same(rows[k], m._rotate(qs[k].tolist(), vs[k].tolist()))
-        assert _same(z[k], m._from_two_vectors([0.0, 0.0, 1.0], vs[k].tolist()))
+    cs, ps = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    rows, none = np.arange(n), np.zeros(0, dtype=np.int64)
+    centres, axes = cs.copy(), vs.copy()
+    poses, degenerate = np.empty((n, 7)), np.empty(n, dtype=np.bool_)
+    flagged = collider_numbers(centres, axes, rows, rows, ps, qs, rows, none, none, np.zeros(0),
+                               poses, np.empty((0, 3)), degenerate)
+    assert flagged == degenerate.sum() and degenerate[:25].all()
+    for k in range(n):
+        axis = m._rotate(qs[k].tolist(), vs[k].tolist())
+        centre = [a + b for a, b in zip(ps[k].tolist(), m._rotate(qs[k].tolist(),
+                                                                   cs[k].tolist()))]
+        assert _same(poses[k, :3], centre) and _same(axes[k], axis)
+        norm = np.linalg.norm(axis)
+        opposite = norm == 0.0 or 1.0 + axis[2] / norm < 1e-12
+        assert degenerate[k] == opposite
+        if not opposite:
+            assert _same(poses[k, 3:], m._from_two_vectors([0.0, 0.0, 1.0], axis))
 
 
 def test_collider_markers_pose_every_collider_as_one_by_one():

@@ -34,6 +34,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 import numpy as np
 
+from ponytail_ros.core.marker_kernels import chain_numbers, collider_numbers
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
 from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
@@ -127,32 +128,6 @@ def _from_two_vectors(a, b):
     except ZeroDivisionError:
         return tuple(quat_from_two_vectors(np.array(a, dtype=float),
                                            np.array(b, dtype=float)).tolist())
-
-
-def _rotate_rows(q, v):
-    """``_rotate`` of each row of ``q`` ``(K, 4)`` and ``v`` ``(K, 3)``: the same operations
-    in the same order, so the same bits."""
-    u0, u1, u2, w = q.T
-    v0, v1, v2 = v.T
-    t0, t1, t2 = 2.0 * (u1 * v2 - u2 * v1), 2.0 * (u2 * v0 - u0 * v2), 2.0 * (u0 * v1 - u1 * v0)
-    return np.stack((v0 + w * t0 + (u1 * t2 - u2 * t1), v1 + w * t1 + (u2 * t0 - u0 * t2),
-                     v2 + w * t2 + (u0 * t1 - u1 * t0)), axis=1)
-
-
-def _z_onto_rows(b):
-    """``_from_two_vectors(+Z, b)`` of each row of ``b`` ``(K, 3)``, bit for bit (a zero or
-    antiparallel row by ``_from_two_vectors`` itself)."""
-    a0, a1, a2 = 0.0, 0.0, 1.0          # +Z, normalised as _from_two_vectors does: unchanged
-    with np.errstate(divide='ignore', invalid='ignore'):
-        nb = np.sqrt((b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2])
-        b0, b1, b2 = b[:, 0] / nb, b[:, 1] / nb, b[:, 2] / nb
-        w = 1.0 + ((a0 * b0 + a1 * b1) + a2 * b2)
-        x, y, z = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-        n = np.sqrt(((x * x + y * y) + z * z) + w * w)
-        out = np.stack((x / n, y / n, z / n, w / n), axis=1)
-    for k in np.flatnonzero(~(w >= 1e-12) | (nb == 0.0)):
-        out[k] = _from_two_vectors(_Z_FLOATS, b[k].tolist())
-    return out
 
 
 _Z_FLOATS = (0.0, 0.0, 1.0)
@@ -434,7 +409,6 @@ IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 #: ``Marker.DELETEALL`` (namespace '', id 0).
 DELETE_ALL = MarkerSpec('', 0, Marker.ARROW, Marker.DELETEALL)
 _NO_POINTS = np.zeros((0, 3))
-_IDENTITY_ROW = IDENTITY_POSE.tolist()
 
 
 def _rgba(color) -> tuple:
@@ -526,7 +500,7 @@ class ChainsMarkerNumbers:
         chain_of = np.repeat(c, counts)
         self.n = int(counts.sum())
         self.n_chains = len(counts)
-        self._lengths_column = np.asarray(lengths, dtype=float)[:, None]
+        self._lengths = np.ascontiguousarray(lengths, dtype=float)
         self._last = starts + counts - 1                 # each chain's tip segment
         # capsules: chain c's rows in poses: its sphere list (identity), then its segments
         self._identity_rows = starts + c
@@ -543,16 +517,16 @@ class ChainsMarkerNumbers:
                                           + 1])
 
     def numbers(self, origins: np.ndarray, quats: np.ndarray, style: str):
-        """``(poses, points)`` of style 'capsules' or 'line' (as ``ChainMessages.markers``)."""
-        axes = _axis_x(quats) * self._lengths_column
+        """``(poses, points)`` of style 'capsules' or 'line' (as ``ChainMessages.markers``),
+        computed in one compiled call (``core.marker_kernels.chain_numbers``)."""
+        capsules = style == 'capsules'
         joints = np.empty((self.n + self.n_chains, 3))
-        joints[self._origin_rows] = origins
-        joints[self._tip_rows] = origins[self._last] + axes[self._last]
-        if style == 'capsules':
-            poses = np.empty((self.n + self.n_chains, 7))
-            poses[self._identity_rows] = IDENTITY_POSE
-            poses[self._capsule_rows, :3] = origins + 0.5 * axes
-            poses[self._capsule_rows, 3:] = _times_z_to_x(quats)
+        poses = np.empty((self.n + self.n_chains, 7) if capsules else (0, 7))
+        chain_numbers(np.ascontiguousarray(origins, dtype=float),
+                      np.ascontiguousarray(quats, dtype=float), self._lengths, self._last,
+                      self._origin_rows, self._tip_rows, self._capsule_rows, self._identity_rows,
+                      capsules, *_Q_Z_TO_X_TERMS, poses, joints)
+        if capsules:
             return poses, joints
         points = np.empty((2 * len(joints), 3))
         points[self._line_rows] = np.concatenate([joints, joints])
@@ -629,21 +603,17 @@ class ColliderMarkers:
                 self._build(colliders)
         if key is None:
             return (), np.zeros((0, 7)), _NO_POINTS, changed
-        # Every collider at once (a crowd has one skull per character), each row with the
-        # arithmetic of ``_rotate`` and ``_from_two_vectors``, so the same bits.
+        # Every collider in one compiled call (a crowd has one skull per character), each
+        # number by the arithmetic of ``_rotate`` and ``_from_two_vectors``, so the same bits.
         centres, axes = self._centres.copy(), self._axes.copy()
-        moving = self._moving
-        if moving.size:
-            qb = np.asarray(bodies.orientation)[self._bodies]
-            centres[moving] = np.asarray(bodies.position)[self._bodies] + _rotate_rows(
-                qb, centres[moving])
-            axes[moving] = _rotate_rows(qb, axes[moving])
         poses = np.empty((self._n_rows, 7))
-        poses[self._identity_rows] = _IDENTITY_ROW
-        at = self._pose_rows
-        poses[at, :3] = centres
-        poses[at, 3:] = _z_onto_rows(axes)        # marker Z along the axis / normal
-        caps, h = self._capsules, self._half_lengths[:, None]
-        points = np.stack((centres[caps] - h * axes[caps], centres[caps] + h * axes[caps]),
-                          axis=1).reshape(-1, 3)
+        points = np.empty((2 * len(self._capsules), 3))
+        degenerate = np.empty(len(centres), dtype=np.bool_)
+        if collider_numbers(centres, axes, self._moving, self._bodies,
+                            np.ascontiguousarray(bodies.position, dtype=float),
+                            np.ascontiguousarray(bodies.orientation, dtype=float),
+                            self._pose_rows, self._identity_rows, self._capsules,
+                            self._half_lengths, poses, points, degenerate):
+            for k in np.flatnonzero(degenerate).tolist():   # zero or opposite +Z: by its branch
+                poses[self._pose_rows[k], 3:] = _from_two_vectors(_Z_FLOATS, axes[k].tolist())
         return (self._specs, poses, points, changed)

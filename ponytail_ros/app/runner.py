@@ -658,6 +658,11 @@ class ChainRunner:
         rebuild = scene is not None and (self.sim is None or structural_change(self.scene, scene))
         if rebuild:
             self.scene = scene
+        if self.has_head and not self._banked():
+            # The head at the instants this tick asks for (the frame, its start, the clock's),
+            # fitted in one compiled call.
+            self.estimator.prefetch((t_head, t) if self.sim is None else
+                                    (t_head, self._t_frame, t))
         head = self.bodies_at(t_head)
 
         report = StepReport()

@@ -80,6 +80,7 @@ def _warm_head():
     for t in (0.0, 0.01, 0.02):
         head.add(t, (t, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     head.state_at(0.015)
+    head.prefetch((0.012, 0.017))   # (a tick's instants in one call: fits_at)
     _ = head.sample_period          # compiles median_interval
     bank = HeadEstimatorBank([HeadEstimator(), head])   # (a node with frames)
     bank.states_at(0.015)
@@ -87,14 +88,31 @@ def _warm_head():
     bank.longest_sample_period([1])
 
 
+def _warm_markers():
+    import numpy as np
+    from . import marker_kernels
+    i0, none = np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    k, unit = np.zeros(4), np.array([[0.0, 0.0, 0.0, 1.0]])
+    # One segment: joint rows 0 (its origin) and 1 (the tip), capsule row 1, identity row 0.
+    marker_kernels.chain_numbers(np.zeros((1, 3)), unit, np.ones(1), i0, i0, i0 + 1, i0 + 1, i0,
+                                 True, k, k, k, k, np.empty((2, 7)), np.empty((2, 3)))
+    # One sphere fixed in body 0.
+    marker_kernels.collider_numbers(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), i0, i0,
+                                    np.zeros((1, 3)), unit, i0, none, none, np.zeros(0),
+                                    np.empty((1, 7)), np.empty((0, 3)),
+                                    np.empty(1, dtype=np.bool_))
+
+
 def _kernels():
-    from . import contact_kernels, head_kernels, lanes, state_kernels, step, step_unilateral
+    from . import (contact_kernels, head_kernels, lanes, marker_kernels, state_kernels, step,
+                   step_unilateral)
     return (step.advance, step_unilateral.advance_unilateral, contact_kernels.resolve_workspace,
             lanes.advance_lanes,
             head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,
             head_kernels.add_samples, head_kernels.longest_median_interval,
             head_kernels.track_table, head_kernels.point_kinematics, head_kernels.frame_tables,
-            head_kernels.median_interval, state_kernels.guard_measures,
+            head_kernels.median_interval, head_kernels.fits_at, marker_kernels.chain_numbers,
+            marker_kernels.collider_numbers, state_kernels.guard_measures,
             state_kernels.segment_poses)
 
 
@@ -150,7 +168,7 @@ def _warm_up():
             child = None
     try:
         for name, part in (('free step', _warm_free), ('crowd lanes', _warm_crowd),
-                           ('head fit', _warm_head)):
+                           ('head fit', _warm_head), ('markers', _warm_markers)):
             t0 = time.perf_counter()
             part()
             STAGE_SECONDS[name] = time.perf_counter() - t0

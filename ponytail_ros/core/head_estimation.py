@@ -70,12 +70,15 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .head_kernels import (ACCEPTED, FIT_SIZE, add_samples, loess_fit, longest_median_interval,
-                           median_interval, states_fit)
+from .head_kernels import (ACCEPTED, FIT_SIZE, add_samples, fits_at, loess_fit,
+                           longest_median_interval, median_interval, states_fit)
 from .head_kernels import fit_time as kernel_fit_time
 
 __all__ = ['HeadEstimator', 'HeadEstimatorBank', 'REJECT_REASONS', 'ACCEPTED', 'RESTARTED',
-           'fit_state']
+           'fit_state', 'MEMO_SIZE']
+
+#: ``HeadEstimator.state_at``'s memo: the states of the last few times asked (or prefetched).
+MEMO_SIZE = 4
 
 #: ``HeadEstimatorBank.add_poses``' outcome of a sample accepted as the first of a restarted
 #: history (``ACCEPTED``: accepted).
@@ -317,13 +320,40 @@ class HeadEstimator:
         """
         if not math.isfinite(t):
             raise ValueError(f'state_at({t!r}): time must be finite')
-        key = (float(t), self._version, self.delay, self.window, self.degree, self.min_samples,
-               self.max_extrapolation)
+        key = self._key(t)
         state = self._memo.get(key)
         if state is None:
-            if len(self._memo) >= 4:
-                self._memo.pop(next(iter(self._memo)))
-            state = self._memo[key] = self._state_at(t)
+            state = self._keep(key, self._state_at(t))
+        return state
+
+    def prefetch(self, times):
+        """Fit ``state_at`` of each of ``times`` (finite, at most ``MEMO_SIZE``) in one
+        compiled call (``head_kernels.fits_at``) and keep them, so that asking for them next
+        costs a look-up: a tick asks for three instants (the frame, its start, the clock's).
+        The same states bit for bit; nothing is done with fewer than two samples."""
+        if self._n < 2:
+            return
+        keys = {self._key(t): float(t) for t in times}
+        missing = [k for k in keys if k not in self._memo]
+        if not missing:
+            return
+        out = np.empty((len(missing), FIT_SIZE))
+        fits_at(self._t, self._p, self._q, self._n, np.array([keys[k] for k in missing]),
+                self.delay, self.max_extrapolation, self.window, self.degree, self.min_samples,
+                out)
+        for r, key in enumerate(missing):
+            self._keep(key, fit_state(out[r:r + 1]))
+
+    def _key(self, t):
+        """The memo's key of ``state_at(t)``: the time, the history's version, the settings."""
+        return (float(t), self._version, self.delay, self.window, self.degree, self.min_samples,
+                self.max_extrapolation)
+
+    def _keep(self, key, state):
+        """``state`` kept under ``key``, the oldest of ``MEMO_SIZE`` dropped; returns it."""
+        if len(self._memo) >= MEMO_SIZE:
+            self._memo.pop(next(iter(self._memo)))
+        self._memo[key] = state
         return state
 
     def _state_at(self, t):

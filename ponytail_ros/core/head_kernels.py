@@ -30,7 +30,7 @@ from numba import njit
 from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
                             qto_rotvec, scale)
 
-__all__ = ['loess_fit', 'states_fit', 'fit_time', 'svd_lstsq', 'track_table',
+__all__ = ['loess_fit', 'states_fit', 'fits_at', 'fit_time', 'svd_lstsq', 'track_table',
            'point_kinematics', 'frame_ends', 'frame_tables', 'median_interval', 'add_samples',
            'longest_median_interval', 'FIT_SIZE', 'ACCEPTED']
 
@@ -330,6 +330,17 @@ def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, mi
                     out[k, a] = ps[k, 0, a]
                 for a in range(4):
                     out[k, 3 + a] = qs[k, 0, a]
+
+
+
+@njit(cache=True)
+def fits_at(ts, ps, qs, n, times, delay, max_extrapolation, window, degree, min_samples, out):
+    """One body's ``HeadEstimator.state_at`` numbers at every time of ``times`` ``(T,)`` into
+    the rows of ``out`` ``(T, FIT_SIZE)``: for each, its fit time (``fit_time``) and the fit
+    (``loess_fit``) of the first ``n`` ≥ 2 samples, as one call each would give them."""
+    for r in range(times.shape[0]):
+        te, rate, rate_d = fit_time(ts, n, times[r], delay, max_extrapolation)
+        loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out[r])
 
 
 #: ``add_samples``' outcome of an accepted sample; a rejected one's is its reason's index in

@@ -19,7 +19,7 @@ from pathlib import Path
 __all__ = ['KERNEL_MODULES', 'ensure_fresh']
 
 KERNEL_MODULES = ('chain_solve', 'step', 'contact_kernels', 'limit_kernels', 'head_kernels',
-                  'state_kernels', 'lanes', 'step_unilateral')
+                  'state_kernels', 'lanes', 'step_unilateral', 'marker_kernels')
 _STAMP = 'ponytail_kernels.sha256'
 _checked = False
 
