@@ -336,6 +336,58 @@ def test_anchor_track_at_is_its_table():
             assert np.array_equal(getattr(one, field), getattr(table, field)[k]), (field, t)
 
 
+
+def test_frame_tables_are_the_frame_ends_and_their_tracks():
+    """``head_kernels.frame_tables`` (a tick's head side in one call) gives bit for bit what
+    ``frame_ends``, ``AnchorTrack.table`` at ``Simulator._stage_times`` and ``AnchorTrack.at``
+    at the frame's end give, for the anchors and for the colliders' bodies, and says whether
+    both states are finite (a NaN anywhere in either: False)."""
+    from ponytail_ros.core.head import STATE_FIELDS, AnchorTrack, SwayYawMotion, frame_ends
+    from ponytail_ros.core.head_kernels import frame_tables
+    from helpers import TwoBodies
+    fields = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
+
+    def empty(S, C):
+        return (np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 3)),
+                np.empty((S, C, 4)), np.empty((S, C, 3)))
+
+    for motion in (SwayYawMotion(), TwoBodies()):
+        for t0, t1, t_base, k0, n, dt in ((0.3, 0.3 + 1 / 120, 0.25, 48, 8, 1 / 960),
+                                          (1.0, 1.0 + 1e-6, 0.5, 479, 0, 1 / 960),
+                                          (2.0, 2.05, 1.9, 7, 3, 0.013)):
+            s0, s1 = motion.state_at(t0), motion.state_at(t1)
+            K = s0.position.shape[0]
+            body_a, attach = np.arange(K), np.linspace(-0.1, 0.1, 3 * K).reshape(K, 3)
+            body = np.concatenate([body_a, np.arange(K)])
+            r_local = np.concatenate([attach, np.zeros((K, 3))])
+            ends_a, ends_b = empty(2, K), empty(2, K)
+            tab_a, tab_b = empty(2 * n + 2, K), empty(2 * n + 2, K)
+            assert frame_tables(*(np.ascontiguousarray(getattr(s0, f)) for f in STATE_FIELDS),
+                                *(np.ascontiguousarray(getattr(s1, f)) for f in STATE_FIELDS),
+                                body, r_local, K, t0, t1, t_base, k0, n, dt, ends_a, ends_b,
+                                tab_a, tab_b)
+            kt = k0 + np.arange(n + 1)
+            t = t_base + kt * dt
+            times = np.empty(2 * n + 1)
+            times[0::2], times[1::2] = t, t[:-1] + 0.5 * dt
+            for got_ends, got_tab, b, r in ((ends_a, tab_a, body_a, attach),
+                                            (ends_b, tab_b, np.arange(K), np.zeros((K, 3)))):
+                ends = frame_ends(s0, s1, b, r)
+                track = AnchorTrack.from_ends(t0, t1, ends)
+                table, at_end = track.table(times), track.at(t1)
+                for j, f in enumerate(fields):
+                    assert np.array_equal(got_ends[j], getattr(ends, f)), f
+                    assert np.array_equal(got_tab[j][:-1], getattr(table, f)), f
+                    assert np.array_equal(got_tab[j][-1], getattr(at_end, f)), f
+            bad = np.ascontiguousarray(s1.angular_acceleration).copy()
+            bad[-1, 2] = np.nan
+            assert not frame_tables(*(np.ascontiguousarray(getattr(s0, f))
+                                      for f in STATE_FIELDS),
+                                    *(np.ascontiguousarray(getattr(s1, f))
+                                      for f in STATE_FIELDS[:-1]), bad,
+                                    body, r_local, K, t0, t1, t_base, k0, n, dt, ends_a, ends_b,
+                                    tab_a, tab_b)
+
 def test_vectorised_motions_equal_their_per_time_states_bit_for_bit():
     """``states_at(times)`` (what ``advance_to`` evaluates before each compiled call) and
     ``state_at(t)`` at each time are two codings of one motion: equal bit for bit, and so are

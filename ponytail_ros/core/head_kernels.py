@@ -547,10 +547,11 @@ def frame_tables(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local
     * ``ends_a`` ``(2, n_anchor, ·)`` and ``ends_b`` ``(2, K, ·)``: the points ``body`` /
       ``r_local`` ``(n_anchor + K,)`` at both ends, the anchors' attachment points first,
       then the colliders' body origins;
-    * ``table_a`` and ``table_b`` ``(2 n_steps + 1, ·, ·)``: their tracks (``AnchorTrack``,
+    * ``table_a`` and ``table_b`` ``(2 n_steps + 2, ·, ·)``: their tracks (``AnchorTrack``,
       ``h = max(t1 - t0, 1e-12)``) at the stage times of steps ``k0 … k0 + n_steps - 1`` of
       ``dt`` from ``t_base`` (``Simulator._stage_times``: row ``2k`` at ``t_base + (k0 + k)
-      dt``, ``2k + 1`` half a step later).
+      dt``, ``2k + 1`` half a step later), and in the last row at ``t1`` (the frame's end,
+      where the published chain is posed).
     """
     finite = True
     for arr in (p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1):
@@ -563,13 +564,14 @@ def frame_tables(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local
                r_local[:n_anchor], ends_a[0], ends_a[1], ends_a[2], ends_a[3], ends_a[4])
     frame_ends(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body[n_anchor:n],
                r_local[n_anchor:n], ends_b[0], ends_b[1], ends_b[2], ends_b[3], ends_b[4])
-    times = np.empty(2 * n_steps + 1)
+    times = np.empty(2 * n_steps + 2)
     half = 0.5 * dt
     for k in range(n_steps + 1):
         t = t_base + float(k0 + k) * dt
         times[2 * k] = t
         if k < n_steps:
             times[2 * k + 1] = t + half
+    times[2 * n_steps + 1] = t1
     h = max(t1 - t0, 1e-12)
     track_table(times, t0, h, ends_a[0], ends_a[1], ends_a[2], ends_a[3], ends_a[4],
                 table_a[0], table_a[1], table_a[2], table_a[3], table_a[4])

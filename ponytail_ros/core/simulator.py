@@ -472,15 +472,18 @@ class Simulator:
         C = self._anchor_body.shape[0]
         n0, n = self._n_steps, self._planned_steps(t_frame)
         ends_a, ends_b = _anchor_tuple(2, C), _anchor_tuple(2, k)
-        table_a, table_b = _anchor_tuple(2 * n + 1, C), _anchor_tuple(2 * n + 1, k)
+        table_a, table_b = _anchor_tuple(2 * n + 2, C), _anchor_tuple(2 * n + 2, k)
         if not frame_tables(*(_c(getattr(head_prev, f)) for f in STATE_FIELDS),
                             *(_c(getattr(head, f)) for f in STATE_FIELDS), body, r_local, C,
                             float(t_prev), float(t_frame), self._t_base, n0, n, self.dt,
                             ends_a, ends_b, table_a, table_b):
             _check_head(head)           # raises, naming the field
             _check_head(head_prev)
-        # The steps' tables, for the steps from n0 (``_steps_unilateral``, ``_advance``).
-        planned = (n0, n, compiled.AnchorTable(*table_a), compiled.AnchorTable(*table_b))
+        # The steps' tables, for the steps from n0 (``_steps_unilateral``, ``_advance``); their
+        # last row is the anchors at the frame's end, where the chain is published.
+        planned = (n0, n, compiled.AnchorTable(*(a[:-1] for a in table_a)),
+                   compiled.AnchorTable(*(a[:-1] for a in table_b)))
+        at_frame = AnchorKinematics(*(a[-1] for a in table_a))
         ends = AnchorKinematics(*ends_a)
         track = AnchorTrack.from_ends(t_prev, t_frame, ends)
         if not self._needs_bodies:
@@ -494,8 +497,9 @@ class Simulator:
                                    body_table=body_track.table, planned=planned)
             self._bodies_at = body_track.at
             self._last_bodies = (float(t_frame), body_ends.row(1))
-        self._anchor_at = track.at
-        self._last_anchor = (float(t_frame), ends.row(1))
+        t_frame = float(t_frame)
+        self._anchor_at = lambda t: at_frame if t == t_frame else track.at(t)
+        self._last_anchor = (t_frame, ends.row(1))
         return report
 
     def _planned_steps(self, t_target):
