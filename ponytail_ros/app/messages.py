@@ -519,6 +519,9 @@ class ChainsMarkerNumbers:
     def numbers(self, origins: np.ndarray, quats: np.ndarray, style: str):
         """``(poses, points)`` of style 'capsules' or 'line' (as ``ChainMessages.markers``),
         computed in one compiled call (``core.marker_kernels.chain_numbers``)."""
+        if origins.shape != (self.n, 3) or quats.shape != (self.n, 4):
+            raise ValueError(f'origins {origins.shape} and quats {quats.shape} must be '
+                             f'({self.n}, 3) and ({self.n}, 4): one row per segment')
         capsules = style == 'capsules'
         joints = np.empty((self.n + self.n_chains, 3))
         poses = np.empty((self.n + self.n_chains, 7) if capsules else (0, 7))
@@ -550,6 +553,7 @@ class ColliderMarkers:
         self._local: list = []
         self._local_floats: list = []
         self._z = _Z.tolist()
+        self._last_body = -1                # the largest body a collider is fixed in
 
     def _build(self, colliders):
         #: per collider its centre and unit axis in its body (the sphere's: +Z)
@@ -565,6 +569,7 @@ class ColliderMarkers:
         self._moving = np.array([k for k, c in enumerate(colliders) if c.body is not None],
                                 dtype=np.intp)
         self._bodies = np.array([colliders[k].body for k in self._moving], dtype=np.intp)
+        self._last_body = int(self._bodies.max()) if self._bodies.size else -1
         rows = np.cumsum([0] + [2 if c.kind == 'capsule' else 1 for c in colliders])
         self._pose_rows, self._n_rows = rows[:-1], int(rows[-1])
         self._capsules = np.array([k for k, c in enumerate(colliders) if c.kind == 'capsule'],
@@ -605,6 +610,9 @@ class ColliderMarkers:
             return (), np.zeros((0, 7)), _NO_POINTS, changed
         # Every collider in one compiled call (a crowd has one skull per character), each
         # number by the arithmetic of ``_rotate`` and ``_from_two_vectors``, so the same bits.
+        if self._last_body >= len(bodies.position):
+            raise ValueError(f'a collider is fixed in body {self._last_body}; the kinematic '
+                             f'bodies given are 0 to {len(bodies.position) - 1}')
         centres, axes = self._centres.copy(), self._axes.copy()
         poses = np.empty((self._n_rows, 7))
         points = np.empty((2 * len(self._capsules), 3))

@@ -717,9 +717,9 @@ class Simulator:
     def _tables(self, n_steps, anchor_at, anchor_table, planned, moving=False, bodies_at=None,
                 body_table=None):
         """The compiled ``AnchorTable``s of the anchors and of the bodies (the anchors' again
-        when the colliders do not move: not ``moving``) at the stage times of the next ``n_steps`` steps: ``planned``'s
-        (``_advance``) when they are its steps, else from the tables' functions (or the
-        anchors and bodies at each time)."""
+        unless the colliders are ``moving``) at the stage times of the next ``n_steps``
+        steps: ``planned``'s (``_advance``) when they are its steps, else from the tables'
+        functions (or the anchors and bodies at each time)."""
         if planned is not None and planned[:2] == (self._n_steps, n_steps):
             return planned[2], planned[3] if moving else planned[2]
         times = self._stage_times(n_steps)
