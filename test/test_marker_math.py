@@ -145,3 +145,16 @@ def test_many_chains_marker_numbers_are_each_chains_concatenated(style):
             for c, s, e in zip(chains, starts[:-1], starts[1:])]
     assert _same(poses, np.concatenate([e[1] for e in each]))
     assert _same(points, np.concatenate([e[2] for e in each]))
+
+
+def test_marker_numbers_refuse_inputs_that_do_not_fit():
+    """The compiled numbers read no row that is not there: a collider fixed in a body beyond
+    the bodies given, or poses of another segment count, are refused, naming them."""
+    from ponytail_ros.core.head import KinematicState
+    from ponytail_ros.core.scene import ColliderSpec
+    cols = [ColliderSpec(kind='sphere', center=(0.0, 0.0, 0.0), radius=0.1, body=2)]
+    with pytest.raises(ValueError, match='fixed in body 2.*0 to 1'):
+        m.ColliderMarkers().markers(cols, KinematicState.still(np.zeros((2, 3))), 'capsules')
+    numbers = m.ChainsMarkerNumbers([3], np.full(3, 0.1))
+    with pytest.raises(ValueError, match=r'\(3, 3\) and \(3, 4\)'):
+        numbers.numbers(np.zeros((2, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)), 'capsules')
