@@ -61,6 +61,7 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
              np.empty_like(static_pose[2]), np.empty_like(static_pose[3]),
              np.empty_like(static_pose[4]), np.empty_like(static_pose[5]),
              np.empty_like(static_pose[6]))
+    own = np.empty(3, dtype=np.int64)   # (the contact stage's scratch)
     status, done = OK, n_steps
     for k in range(n_steps):
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
@@ -85,15 +86,29 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             pose = mpose
         else:
             pose = static_pose
-        x0[:] = x
-        q0[:] = q
-        # (a workspace grown for one step's rows is kept for the rest of the call)
-        resolved, cws = contact_kernels.resolve_chains_into(
+        _copy_positions(x, q, x0, q0)
+        resolved, c = contact_kernels.resolve_chains_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
-            M.projection, h, stats, cws)
+            M.projection, h, stats, own, cws, 0)
+        while resolved == contact_kernels.NO_ROOM:
+            # (a workspace grown for one step's rows is kept for the rest of the call)
+            cws = contact_kernels.grown(cws)
+            resolved, c = contact_kernels.resolve_chains_into(
+                x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
+                M.projection, h, stats, own, cws, c)
         profile[1] += _cycles() - t1
         if resolved != contact_kernels.OK:
             status, done = JOINT_SOLVE_FAILED, k
             break
     profile[2] += _cycles() - t_call
     return status, done, cws[contact_kernels.WS_TABLES], cws[contact_kernels.WS_IDS]
+
+
+@nb.njit(cache=True, _nrt=False, inline='always')
+def _copy_positions(x, q, x0, q0):
+    """``x0[:] = x; q0[:] = q`` as plain loops (slice assignment makes and counts views)."""
+    for i in range(x.shape[0]):
+        for a in range(3):
+            x0[i, a] = x[i, a]
+        for a in range(4):
+            q0[i, a] = q[i, a]
