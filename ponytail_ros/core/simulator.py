@@ -31,7 +31,7 @@ import numpy as np
 from . import collision, contact_kernels, lanes, step_unilateral
 from . import step as compiled
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
-                   KinematicState, frame_ends, point_table, stack_anchors)
+                   KinematicState, point_table, stack_anchors)
 from .head_kernels import frame_tables
 from .integrators import INTEGRATOR_STEPS
 from .model import Model
@@ -421,32 +421,18 @@ class Simulator:
         absorbs. Default: the end of the previous frame.
         """
         t_prev, a_prev = self._last_anchor
-        if head_prev is not None and self._compiled:
+        if head_prev is not None:
             return self._advance_between(t_prev, t_frame, head_prev, head)
         _check_head(head)
-        m = self.model
-        if head_prev is not None:
-            # Both ends from the same estimate, in one compiled call.
-            _check_head(head_prev)
-            ends = frame_ends(head_prev, head, self._anchor_body, m.attach)
-            track = AnchorTrack.from_ends(t_prev, t_frame, ends)
-            a_new = ends.row(1)
-        else:
-            a_new = self.anchors(head)
-            track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
+        a_new = self.anchors(head)
+        track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         if not self._needs_bodies:
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
                                    anchor_table=track.table)
         else:
             # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
-            if head_prev is None:
-                b_new = _body_kinematics(head)
-                body_track = AnchorTrack(t_prev, self._last_bodies[1], t_frame, b_new)
-            else:
-                k = head.n_bodies
-                ends = frame_ends(head_prev, head, np.arange(k), np.zeros((k, 3)))
-                body_track = AnchorTrack.from_ends(t_prev, t_frame, ends)
-                b_new = ends.row(1)
+            b_new = _body_kinematics(head)
+            body_track = AnchorTrack(t_prev, self._last_bodies[1], t_frame, b_new)
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
                                    _memo_last(body_track.at), anchor_table=track.table,
                                    body_table=body_track.table)
@@ -457,11 +443,12 @@ class Simulator:
         return report
 
     def _advance_between(self, t_prev, t_frame, head_prev, head):
-        """``advance_frame`` with ``head_prev``, compiled: the check that both states are finite,
-        the ends of the anchors' track (and of the colliders' bodies') and their tables at the
-        stage times of the steps this call will take, in one compiled call
-        (``head_kernels.frame_tables``; bit for bit ``frame_ends``, ``AnchorTrack.table`` and
-        ``_stage_times``), then the steps."""
+        """``advance_frame`` with ``head_prev``: the check that both states are finite, the
+        ends of the anchors' track (and of the colliders' bodies', both from the one estimate)
+        and their tables at the stage times of the steps this call will take, in one compiled
+        call (``head_kernels.frame_tables``; bit for bit ``frame_ends``, ``AnchorTrack.table``
+        and ``_stage_times``), then the steps (the NumPy reference step, ``linear_solver:
+        dense``, takes the tracks and leaves the tables)."""
         k = head.n_bodies if self._needs_bodies else 0
         if self._frame_points[0] != k:
             m = self.model
