@@ -1970,9 +1970,9 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
     ``first`` 0 starts a step (the stats and the broad phase's setup).
 
     It allocates nothing and borrows every array (``_nrt=False``): entering a function
-    that counts references costs an atomic increment of each of its ~80 arrays and a
-    decrement on the way out, a third of the contact stage of a chain that touches nothing
-    (cycles counted in an instrumented copy, 2026-12-06)."""
+    that counts references costs an atomic increment of each of its arrays (the model's, the
+    detector's, the workspace's) and a decrement on the way out, at every step; what that
+    cost is in ``docs/bench/README.md``."""
     if first == 0:
         stats[:] = 0
         if has_colliders:
