@@ -6,7 +6,8 @@ install) would stall a node's first tick, or a replay's, without a word. The ent
 (node, replay, demo, bench, the test suite) call ``report_compile`` at start instead: it runs
 small scenes through every kernel of the step -- the free step, a crowd's step in lanes, the
 step with contacts and limits, the depth and joint-angle queries, the head's pose fit, the
-guard and the published poses -- and says in one line when that compiled rather than loaded.
+guard, the published poses and the markers' numbers -- and says in one line when that
+compiled rather than loaded.
 
 A cold cache is compiled on two cores when there are two: the step with contacts and limits
 (the largest kernel, about half of the compile) in a child process, the rest here at the same
