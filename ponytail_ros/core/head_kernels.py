@@ -332,7 +332,6 @@ def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, mi
                     out[k, 3 + a] = qs[k, 0, a]
 
 
-
 @njit(cache=True)
 def fits_at(ts, ps, qs, n, times, delay, max_extrapolation, window, degree, min_samples, out):
     """One body's ``HeadEstimator.state_at`` numbers at every time of ``times`` ``(T,)`` into
