@@ -418,8 +418,9 @@ def test_timer_callback_receives_the_timer_info(ros_context):
 
 def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
     """``/diagnostics`` carries the compiled step's stage means (``StepReport.timings``):
-    with a skull collider both stages take time and fit within the solve time; without
-    colliders there is no contact stage."""
+    with a skull collider both stages take time and fit within the solve time, and the
+    contact stage's parts (rows, positions, velocities) within it; without colliders there
+    is no contact stage."""
     from ponytail_ros.core.step import HAS_CYCLE_COUNTER
     skull = overrides(colliders=['skull'], skull__kind='sphere', skull__radius=0.09,
                       skull__friction=0.3)
@@ -430,10 +431,15 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
         d = h.fresh_diagnostics(3.0)
         integrate, contact = (float(d[k]) for k in ('integrate time mean (ms)',
                                                      'contact time mean (ms)'))
+        parts = [float(d[f'contact {name} time mean (ms)'])
+                 for name in ('rows', 'positions', 'velocities')]
         assert integrate > 0.0
         assert integrate + contact <= float(d['solve time mean (ms)'])
+        # (each value is rounded to 0.001 ms: four roundings of at most 0.0005)
+        assert sum(parts) <= contact + 0.002
         if not colliding:
-            assert contact == 0.0
+            assert contact == 0.0 and parts == [0.0, 0.0, 0.0]
         elif HAS_CYCLE_COUNTER:
-            assert contact > 0.0
+            # (a resting chain may go a window without a position pass: only its check)
+            assert contact > 0.0 and parts[0] > 0.0 and parts[1] >= 0.0 and parts[2] > 0.0
         h.close()

@@ -39,3 +39,17 @@ def test_a_chain_on_a_collider_reports_its_contact_stage():
     steps = np.array([r.timings['steps'] for r in reports])
     assert np.all(integrate > 0.0) and np.all(contacts > 0.0)
     assert np.all(integrate + contacts <= steps)
+    # The contact stage's parts: each is timed at every step of a chain that rests on the
+    # sphere (rows built, a position check, velocities), and together they are within it
+    # (the rest is per-chain bookkeeping); the cycles are split in proportion, so exactly.
+    parts = np.array([[r.timings[f'contact_{name}'] for name in compiled.CONTACT_STAGES]
+                      for r in reports])
+    assert np.all(parts > 0.0)
+    assert np.all(parts.sum(axis=1) <= contacts)
+
+
+def test_the_contact_parts_are_zero_without_colliders_or_limits():
+    reports = _reports(Scene(chains=[ChainSpec(n_segments=12)], solver=SOLVER))
+    for r in reports:
+        assert all(r.timings.get(f'contact_{name}', 0.0) == 0.0
+                   for name in compiled.CONTACT_STAGES)

@@ -31,8 +31,9 @@ LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_
 
 #: Diagnostics keys of wall-clock timing (the node measures them; a replay has none).
 TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time mean (ms)',
-               'contact time mean (ms)', 'tick time p99 (ms)', 'tick time max (ms)',
-               'timer lateness max (ms)')
+               'contact time mean (ms)', 'contact rows time mean (ms)',
+               'contact positions time mean (ms)', 'contact velocities time mean (ms)',
+               'tick time p99 (ms)', 'tick time max (ms)', 'timer lateness max (ms)')
 
 
 def time_msg(t_ns: int) -> Time:

@@ -35,21 +35,29 @@ from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.head import KinematicState, SwayYawMotion
 from ponytail_ros.core.scene import Scene
 from ponytail_ros.core.simulator import Simulator
+from ponytail_ros.core.step import CONTACT_STAGES
 from ponytail_ros.testing import load_config
 
 __all__ = ['measure', 'main']
 
 
 STAGES = ('integrate', 'contacts')
+#: ``contacts``' parts (``step.CONTACT_STAGES``), printed after it.
+PARTS = tuple(f'contact_{name}' for name in CONTACT_STAGES)
 
 
 def _stage_medians(reports):
     """Median s per tick of each of the compiled step's stages (``StepReport.timings``)."""
-    return {k: float(np.median([r.timings.get(k, 0.0) for r in reports])) for k in STAGES}
+    return {k: float(np.median([r.timings.get(k, 0.0) for r in reports]))
+            for k in STAGES + PARTS}
 
 
 def _stages_text(stages):
-    return ', '.join(f'{k} {1e3 * v:.3f}' for k, v in stages.items())
+    text = ', '.join(f'{k} {1e3 * stages[k]:.3f}' for k in STAGES)
+    if stages.get('contacts', 0.0) > 0.0:
+        text += ' (' + ', '.join(f'{k[len("contact_"):]} {1e3 * stages[k]:.3f}'
+                                 for k in PARTS) + ')'
+    return text
 
 
 def measure(params, chain, n_segments, collide, ticks, idle=0.0):

@@ -39,6 +39,7 @@ from .chain_solve import solve_from
 from .chain_solve import store_factors as _store_factors
 from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
                             qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
+from .step import PROFILE_POSITIONS, PROFILE_ROWS, PROFILE_VELOCITIES, _cycles
 
 POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
 POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
@@ -1824,17 +1825,20 @@ def factor_rows_ws(q, model, I, ws):
 
 
 @njit(cache=True, inline='always')
-def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats):  # noqa: C901, E501
+def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats,  # noqa: C901, E501
+                   profile):
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
     rows and those within the skin (plus 4× the deepest violation), each displacement
     ``P M⁻¹ J_rᵀ μ`` applied as segment rotations, positions rebuilt from the anchor, while a
     contact is deeper than ``POSITION_TOLERANCE`` (limits: the first pass). ``x``, ``q`` in
     place. Returns ``(status, moved, R, I)``: the rows at the final pose (views of the
-    workspace ``ws``)."""
+    workspace ``ws``). The cycles of its row builds are added to ``profile``'s rows."""
     length = model[LENGTH]
     h, inv_I, C, Lo = factors(ws, q.shape[0])
+    t0 = _cycles()
     fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
                                  dt, ws)
+    profile[PROFILE_ROWS] += _cycles() - t0
     if not fits:
         return NO_ROOM, False, R, I
     moved = False
@@ -1878,8 +1882,10 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
                     dx[i, a] = x[i, a] - x_old[i, a]
             moved_rows(R, I, dx, dth)
             break
+        t0 = _cycles()
         fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
                                      has_colliders, dt, ws)
+        profile[PROFILE_ROWS] += _cycles() - t0
         if not fits:
             return NO_ROOM, moved, R, I
     return OK, moved, R, I
@@ -1951,7 +1957,7 @@ def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, s
 
 @njit(cache=True, _nrt=False)
 def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_rest,  # noqa: C901
-                        has_colliders, project, dt, stats, own, ws, first):
+                        has_colliders, project, dt, stats, own, ws, first, profile):
     """``resolve`` on ``x``, ``q``, ``v``, ``w`` in place (on entry: the step's state), chain
     by chain (``chain_model``, ``chain_det``, ``chain_anchor``): each chain is resolved as if
     it were alone with all the colliders, so that what one chain touches never changes
@@ -1967,7 +1973,9 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
     ``chain``'s candidate rows overflowed the row tables (a segment near more than
     ``ROW_COLLIDERS`` colliders), that chain is restored to its entry state and the caller
     resolves again from it (``first``) with ``grown(ws)``, kept for the next steps.
-    ``first`` 0 starts a step (the stats and the broad phase's setup).
+    ``first`` 0 starts a step (the stats and the broad phase's setup). ``profile``: the
+    step's profile (``step.PROFILE_SIZE`` int64), whose contact stages (``step.CONTACT_STAGES``)
+    get the cycles of each chain's rows, positions and velocities.
 
     It allocates nothing and borrows every array (``_nrt=False``): entering a function
     that counts references costs an atomic increment of each of its arrays (the model's, the
@@ -1992,7 +2000,7 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
         status = _resolve_stages(x0[s:e], q0[s:e], x[s:e], q[s:e], v[s:e], w[s:e],
                                  chain_anchor(anchor, c), pose, chain_model(model, split, c),
                                  chain_det(det, split, c), q_rest[s:e], collides, project,
-                                 dt, own, ws)
+                                 dt, own, ws, profile)
         if status == NO_ROOM:
             for i in range(n):
                 for a in range(3):
@@ -2012,13 +2020,16 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
 
 @njit(cache=True, _nrt=False)
 def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_colliders,
-                    project, dt, stats, ws):
+                    project, dt, stats, ws, profile):
     """One chain's stages (``resolve``), in order, borrowing every array (no reference
-    counting); ``NO_ROOM`` if the row tables overflow."""
+    counting); ``NO_ROOM`` if the row tables overflow. Their cycles go to ``profile``'s
+    contact stages (``step.CONTACT_STAGES``)."""
     stats[:] = 0
     h, inv_I, C, Lo = factors(ws, q.shape[0])
+    t0 = _cycles()
+    rows0 = profile[PROFILE_ROWS]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
-                                         has_colliders, dt, ws, stats)
+                                         has_colliders, dt, ws, stats, profile)
     if status != OK:
         return status
     stale = model[LIMITED].shape[0] > 0 and limit_stage(x, q, anchor, q_rest, model, ws)
@@ -2034,12 +2045,16 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
         joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec(ws, V_N0, n),
                          vec(ws, V_N2, n), vec(ws, V_N3, n))
         if stale:
+            t = _cycles()
             fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws)
+            profile[PROFILE_ROWS] += _cycles() - t
             if not fits:
                 return NO_ROOM
         else:
             refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
+    t1 = _cycles()
+    profile[PROFILE_POSITIONS] += (t1 - t0) - (profile[PROFILE_ROWS] - rows0)
     if R.shape[0]:
         status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, ws, stats)
         if status != OK:
@@ -2047,6 +2062,7 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
     if moved and project:
         half_vectors(model[LENGTH], q, h)
         project_velocities(anchor[1], w, h, model, v)
+    profile[PROFILE_VELOCITIES] += _cycles() - t1
     return OK
 
 
@@ -2074,11 +2090,13 @@ def resolve(x, q, v, w, anchor, pose, model, det, split, q_rest, has_colliders, 
     x1, q1, v1, w1 = x.copy(), q.copy(), v.copy(), w.copy()
     ws = resolve_workspace(model, det, split, pose, has_colliders)
     own = np.empty(3, dtype=np.int64)
+    profile = np.zeros(PROFILE_VELOCITIES + 1, dtype=np.int64)     # (not reported)
     status, c = resolve_chains_into(x, q, x1, q1, v1, w1, anchor, pose, model, det, split,
-                                    q_rest, has_colliders, project, dt, stats, own, ws, 0)
+                                    q_rest, has_colliders, project, dt, stats, own, ws, 0,
+                                    profile)
     while status == NO_ROOM:
         ws = grown(ws)
         status, c = resolve_chains_into(x, q, x1, q1, v1, w1, anchor, pose, model, det,
                                         split, q_rest, has_colliders, project, dt, stats, own,
-                                        ws, c)
+                                        ws, c, profile)
     return status, x1, q1, v1, w1

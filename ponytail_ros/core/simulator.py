@@ -82,7 +82,10 @@ class StepReport:
     compiled step ran, also the split of its calls' time into ``integrate`` (the chains' own
     steps: forces, joint solves, integration, projection) and ``contacts`` (the contact and
     limit stage; 0 without colliders and limits), by the CPU's cycle counter
-    (``step.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time).
+    (``step.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time),
+    and of ``contacts`` into ``contact_rows``, ``contact_positions`` and
+    ``contact_velocities`` (``step.CONTACT_STAGES``; the rest of ``contacts`` is per-chain
+    bookkeeping).
     """
 
     steps: int = 0
@@ -143,7 +146,7 @@ class Simulator:
         # then its calls' total).
         self._call_wall = 0.0
         self._uni_wall = 0.0
-        self._profile = np.zeros(len(compiled.PROFILE_STAGES) + 1, dtype=np.int64)
+        self._profile = np.zeros(compiled.PROFILE_SIZE, dtype=np.int64)
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
         m = self.model
@@ -631,12 +634,12 @@ class Simulator:
         return report
 
     def _split_timings(self, report):
-        """``report.timings``' ``integrate`` and ``contacts``: the contact step's calls' wall
-        time split by the cycles it counted in each stage, plus the free step's (sub-steps
-        after an impact) as ``integrate``."""
+        """``report.timings``' ``integrate`` and ``contacts`` (and the latter's parts): the
+        contact step's calls' wall time split by the cycles it counted in each stage, plus the
+        free step's (sub-steps after an impact) as ``integrate``."""
         if not self._compiled:
             return
-        integrate, contacts, total = self._profile.tolist()
+        integrate, contacts, total, *parts = self._profile.tolist()
         free, uni = self._call_wall, self._uni_wall
         if total > 0:
             report.timings['integrate'] = free + uni * (integrate / total)
@@ -644,6 +647,8 @@ class Simulator:
         else:
             report.timings['integrate'] = free + uni
             report.timings['contacts'] = 0.0
+        for name, cycles in zip(compiled.CONTACT_STAGES, parts):
+            report.timings[f'contact_{name}'] = uni * (cycles / total) if total > 0 else 0.0
 
     def _end_call(self, report, anchor, failure, head_at):
         """The end of a call at ``self.t`` with the anchor there: its joint gap into

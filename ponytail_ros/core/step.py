@@ -39,7 +39,7 @@ from .limit_kernels import qmatrix, qto_rotvec
 __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', 'RK4',
            'SYMPLECTIC_EULER', 'RATTLE',
            'OK', 'JOINT_SOLVE_FAILED', 'DAMPING_SOLVE_FAILED', 'SUBSTEPS', 'substeps',
-           'PROFILE_STAGES', 'HAS_CYCLE_COUNTER']
+           'PROFILE_STAGES', 'CONTACT_STAGES', 'PROFILE_SIZE', 'HAS_CYCLE_COUNTER']
 
 RK4, SYMPLECTIC_EULER, RATTLE = 0, 1, 2
 OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
@@ -49,6 +49,17 @@ OK, JOINT_SOLVE_FAILED, DAMPING_SOLVE_FAILED, SUBSTEPS = 0, 1, 2, 3
 #: (forces, joint solves, integration, projection) and the contact and limit stage
 #: (``resolve``).
 PROFILE_STAGES = ('integrate', 'contacts')
+#: The parts of ``contacts`` that ``contact_kernels`` times, after the whole call's cycles in
+#: the same array (``PROFILE_SIZE`` entries in all): the rows (broad phase, detection, the
+#: contact and limit rows, at the step's end and again after a position pass), the positions
+#: (the position passes, the limits' projection and, after a move, the chain refactorised and
+#: its velocities projected onto the joints) and the velocities (the inelastic impulses and
+#: friction, the chain factorised first if nothing moved). What ``contacts`` holds beyond
+#: their sum is the per-chain bookkeeping.
+CONTACT_STAGES = ('rows', 'positions', 'velocities')
+PROFILE_SIZE = len(PROFILE_STAGES) + 1 + len(CONTACT_STAGES)
+PROFILE_ROWS, PROFILE_POSITIONS, PROFILE_VELOCITIES = range(len(PROFILE_STAGES) + 1,
+                                                            PROFILE_SIZE)
 #: Whether ``_cycles`` reads a counter here (x86-64's time-stamp counter); elsewhere it is 0
 #: and the profile stays empty. (A counter that user code may read exists on other CPUs, e.g.
 #: AArch64's CNTVCT_EL0, but not through one LLVM intrinsic: ``readcyclecounter`` there is the

@@ -9,7 +9,8 @@ step in sub-steps), ``integrate`` (applied forces, the joint solves, RK4 or the 
 integrators, projection), the colliders posed at the step's end (moving bodies), and
 ``contacts`` (detection, rows, the exact complementarity solve per touching chain,
 friction, position passes). The cycles of ``integrate`` and ``contacts`` are counted
-(``step.PROFILE_STAGES``), like Box2D's ``b2Profile``.
+(``step.PROFILE_STAGES``), and those of the contact stage's parts (``step.CONTACT_STAGES``:
+rows, positions, velocities), like Box2D's ``b2Profile``.
 
 Frames and units: world frame (REP 103), SI; the arrays are ``step.advance``'s.
 """
@@ -48,7 +49,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     twenty at every call): status ``SUBSTEPS`` when the next step needs sub-steps
     (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
     ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
-    whole call, to ``profile`` ``(3,)`` int64."""
+    whole call, then in each of ``step.CONTACT_STAGES``, to ``profile``
+    ``(step.PROFILE_SIZE,)`` int64."""
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
@@ -89,13 +91,13 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         _copy_positions(x, q, x0, q0)
         resolved, c = contact_kernels.resolve_chains_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
-            M.projection, h, stats, own, cws, 0)
+            M.projection, h, stats, own, cws, 0, profile)
         while resolved == contact_kernels.NO_ROOM:
             # (a workspace grown for one step's rows is kept for the rest of the call)
             cws = contact_kernels.grown(cws)
             resolved, c = contact_kernels.resolve_chains_into(
                 x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
-                M.projection, h, stats, own, cws, c)
+                M.projection, h, stats, own, cws, c, profile)
         profile[1] += _cycles() - t1
         if resolved != contact_kernels.OK:
             status, done = JOINT_SOLVE_FAILED, k

@@ -26,7 +26,8 @@ Topics (all relative, so a namespace per character scales out; no global state):
   recorder is one more ``TickSink`` (``app/sink.py``) next to the publishers;
 * publishes ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every
   ``diagnostics_period`` s of wall time): one status named ``ponytail: <node FQN>`` with the
-  solve time (and its compiled stages' means: integrate, contacts), joint gap, dropped inputs
+  solve time (and its compiled stages' means: integrate, contacts and the latter's rows,
+  positions and velocities), joint gap, dropped inputs
   by reason, resets by reason, dropped time, head state and each frame's (``frame <name>``:
   none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
@@ -69,6 +70,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.step import CONTACT_STAGES
 from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
                                        tf_cdr)
 from ponytail_ros.app.node_core import NodeCore, NodeTick
@@ -159,9 +161,19 @@ class _Timing:
         # the compiled step's stages per tick (``StepReport.timings``)
         self.integrate = []
         self.contacts = []
+        # the contact stage's parts (``step.CONTACT_STAGES``): rows, positions, velocities
+        self.contact_parts = {name: [] for name in CONTACT_STAGES}
         self.tick_wall = []
         self.lateness = 0.0
         self.wall0 = time.monotonic()
+
+    def add_tick(self, solve, timings):
+        """One tick's solve time (s) and its ``StepReport.timings``."""
+        self.solve.append(solve)
+        self.integrate.append(timings.get('integrate', 0.0))
+        self.contacts.append(timings.get('contacts', 0.0))
+        for name, v in self.contact_parts.items():
+            v.append(timings.get(f'contact_{name}', 0.0))
 
     def values(self):
         solve = np.array(self.solve) if self.solve else np.zeros(1)
@@ -170,6 +182,8 @@ class _Timing:
             'solve time max (ms)': f'{1e3 * float(np.max(solve)):.3f}',
             'integrate time mean (ms)': f'{1e3 * float(np.mean(self.integrate or [0.0])):.3f}',
             'contact time mean (ms)': f'{1e3 * float(np.mean(self.contacts or [0.0])):.3f}',
+            **{f'contact {name} time mean (ms)': f'{1e3 * float(np.mean(v or [0.0])):.3f}'
+               for name, v in self.contact_parts.items()},
             # of the window's ticks (~120 at 120 Hz and a 1 s period: its second largest)
             'tick time p99 (ms)': f'{1e3 * float(np.percentile(self.tick_wall or [0.0], 99)):.3f}',
             'tick time max (ms)': f'{1e3 * max(self.tick_wall, default=0.0):.3f}',
@@ -582,9 +596,7 @@ class PonytailNode(Node):
         self._emit(tick)
         wall_published = self._publisher_sink.poses_published_at
         out, rep = tick.output, tick.output.report
-        timing.solve.append(wall1 - wall0)
-        timing.integrate.append(rep.timings.get('integrate', 0.0))
-        timing.contacts.append(rep.timings.get('contacts', 0.0))
+        timing.add_tick(wall1 - wall0, rep.timings)
         timing.tick_wall.append(time.perf_counter() - wall0)
         if out.reset_reason is not None:
             level = 'warning' if out.reset_reason in ('guard', 'clock_backwards') else 'info'
