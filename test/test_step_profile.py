@@ -41,7 +41,8 @@ def test_a_chain_on_a_collider_reports_its_contact_stage():
     assert np.all(integrate + contacts <= steps)
     # The contact stage's parts: each is timed at every step of a chain that rests on the
     # sphere (rows built, a position check, velocities), and together they are within it
-    # (the rest is per-chain bookkeeping); the cycles are split in proportion, so exactly.
+    # (the rest: the sphere posed, the positions kept, the call into the chain's stages);
+    # the cycles are split in proportion, so exactly.
     parts = np.array([[r.timings[f'contact_{name}'] for name in compiled.CONTACT_STAGES]
                       for r in reports])
     assert np.all(parts > 0.0)

@@ -84,8 +84,8 @@ class StepReport:
     limit stage; 0 without colliders and limits), by the CPU's cycle counter
     (``step.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time),
     and of ``contacts`` into ``contact_rows``, ``contact_positions`` and
-    ``contact_velocities`` (``step.CONTACT_STAGES``; the rest of ``contacts`` is per-chain
-    bookkeeping).
+    ``contact_velocities`` (``step.CONTACT_STAGES``; the rest of ``contacts``: the
+    colliders posed, the positions kept, the call into each chain's stages).
     """
 
     steps: int = 0

@@ -55,7 +55,8 @@ PROFILE_STAGES = ('integrate', 'contacts')
 #: (the position passes, the limits' projection and, after a move, the chain refactorised and
 #: its velocities projected onto the joints) and the velocities (the inelastic impulses and
 #: friction, the chain factorised first if nothing moved). What ``contacts`` holds beyond
-#: their sum is the per-chain bookkeeping.
+#: their sum: the colliders posed at the step's end, the step's positions kept, and the call
+#: into each chain's stages with its views of the model.
 CONTACT_STAGES = ('rows', 'positions', 'velocities')
 PROFILE_SIZE = len(PROFILE_STAGES) + 1 + len(CONTACT_STAGES)
 PROFILE_ROWS, PROFILE_POSITIONS, PROFILE_VELOCITIES = range(len(PROFILE_STAGES) + 1,
