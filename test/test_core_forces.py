@@ -30,6 +30,47 @@ def test_bending_stiffness_holds_a_segment_at_its_static_angle():
     assert theta == pytest.approx(expected, abs=1e-4)
 
 
+def test_atan_nonneg_is_within_two_ulps_of_atan2():
+    """The stiffness's arctangent (``limit_kernels.atan_nonneg``, Cephes' ``atan``) against
+    libm's ``atan2`` over the quadrant: each reduction branch, their boundaries, ratios at
+    every magnitude and the edges (zero, subnormal, huge); and ``qto_rotvec`` over random
+    rotations (q and -q) against the angle and axis it must give."""
+    import math
+
+    from numba import njit
+
+    from ponytail_ros.core.limit_kernels import atan_nonneg, qto_rotvec
+
+    @njit
+    def atan_rows(s, c, out):
+        for i in range(s.shape[0]):
+            out[i] = atan_nonneg(s[i], c[i])
+
+    rng = np.random.default_rng(3)
+    t = np.concatenate([rng.random(200_000) ** 4, 0.66 + rng.normal(0, 1e-6, 1000),
+                        2.41421356237309504880 + rng.normal(0, 1e-6, 1000),
+                        10 ** rng.uniform(-150, 150, 20_000),
+                        [0.0, 0.66, 1.0, 2.4142135623730951]])
+    scale = 10 ** rng.uniform(-150, 150, t.size)
+    s = np.concatenate([t * scale, [1.0, 5e-324, 1e300, 1.0, 0.0]])
+    c = np.concatenate([scale, [0.0, 1.0, 1e-300, 5e-324, 1.0]])
+    got = np.empty(s.size)
+    atan_rows(s, c, got)
+    want = np.array([math.atan2(a, b) for a, b in zip(s, c)])
+    ulps = np.abs(got - want) / np.spacing(np.maximum(want, 5e-324))
+    assert ulps.max() <= 2.0
+    assert got[-5:].tolist() == [math.pi / 2, 5e-324, math.pi / 2, math.pi / 2, 0.0]
+
+    axes = rng.normal(size=(2000, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    theta = np.concatenate([rng.uniform(0.0, np.pi, 1990), [0.0, 1e-9, 1e-7, np.pi,
+                                                             np.pi - 1e-9, 1.0, 2.0, 3.0,
+                                                             0.5, 1e-3]])
+    for axis, th, sign in zip(axes, theta, rng.choice([-1.0, 1.0], 2000)):
+        q = sign * np.append(axis * np.sin(th / 2), np.cos(th / 2))
+        assert np.allclose(qto_rotvec(tuple(q)), axis * th, rtol=0, atol=1e-14)
+
+
 @pytest.mark.parametrize('c1, c2', [(0.05, 0.0), (0.0, 0.05), (0.03, 0.02)])
 def test_wind_holds_a_segment_at_its_drag_angle(c1, c2):
     """Still segment in wind u along +X: drag f = (c1 + c2|u|) u per metre at the centre.

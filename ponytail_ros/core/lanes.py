@@ -26,7 +26,9 @@ At 4 lanes the loops of the joint solve (all joints but the first, both sweeps),
 updates, the step's start and the applied forces' gravity are vectorised (<4 x double>); the
 first joint's loop, the projection, the joint damping and the drag loops are not (LLVM asks
 for runtime checks it will not make there) and run lane by lane: the same bits, more time.
-The bending stiffness loop calls ``qto_rotvec`` (atan2, branches) and runs lane by lane too.
+The bending stiffness takes three passes (``_joint_torques``): its rotation vectors' factors in
+one flat loop over every joint of the block, which vectorises (``limit_kernels.rotvec_factor``:
+no call, no branch).
 
 Covered (the rest goes to ``step.advance``, see ``supports``): RK4, axisymmetric segments
 (the gyroscopic term ω × Iω), gravity, explicit joint damping, bending stiffness, linear and
@@ -45,14 +47,12 @@ Frames and units: world frame, SI, as ``step``: ``x`` ``(n, 3)`` centres (m), ``
 """
 import numba as nb
 import numpy as np
-from llvmlite import ir as llvm_ir
-from numba.core import types
-from numba.extending import intrinsic
 
 from . import step
 from .chain_solve import invert_pivot, pivot
 from .kernel_cache import ensure_fresh
-from .limit_kernels import qto_rotvec
+from .limit_kernels import rotvec_factor
+from .limit_kernels import sqrt_ieee as _sqrt
 from .step import (JOINT_SOLVE_FAILED, OK, RK4, _G_axisymmetric, _cross,
                    _inv_inertia_axisymmetric, _qmul, _qrot)
 
@@ -108,18 +108,6 @@ def _offsets(*widths):
     3, 4, 3, 3, 3, 3, 4, 3, 3, 3, 3, 3, 3, 3, 4, 3, 3, 3,
     3, 9, 6, 6, 9, 3, 3, 1, 3, 3, 3, 3, 1, 1, 1, 1, 1,
     1, 3, 1, 1, 1, 1, 1, 1, 4)
-
-
-@intrinsic
-def _sqrt(typingctx, x):
-    """IEEE square root as LLVM's ``llvm.sqrt.f64``: vectorisable, unlike numba's libm call
-    (which returns the same, correctly rounded, value)."""
-    sig = types.float64(types.float64)
-
-    def codegen(context, builder, signature, args):
-        fn = builder.module.declare_intrinsic('llvm.sqrt', [llvm_ir.DoubleType()])
-        return builder.call(fn, args)
-    return sig, codegen
 
 
 # -- layout: the crowd into blocks of lanes and back -------------------------------------------
@@ -214,7 +202,7 @@ def _start(m, R):
 
 
 @_inline
-def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, stiffness_on, drag_on,
+def _applied(m, row, R, E, S, wind0, wind1, wind2, explicit_damping, stiffness_on, drag_on,
              external_on):
     """Applied forces and torques (N, N·m, world) at the stage state, ``step._applied``'s
     terms in its order: gravity, the joint torques (damping, then bending stiffness: τ on the
@@ -224,7 +212,7 @@ def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, stiffness_on, 
             for a in range(3):
                 R[i, _F + a, l] = R[i, _FG + a, l]
                 R[i, _T + a, l] = 0.0
-    _joint_terms(m, row, R, E, explicit_damping, stiffness_on)
+    _joint_terms(m, row, R, E, S, explicit_damping, stiffness_on)
     if drag_on:
         _drag(m, R, wind0, wind1, wind2)
     if external_on:
@@ -236,10 +224,10 @@ def _applied(m, row, R, E, wind0, wind1, wind2, explicit_damping, stiffness_on, 
 
 
 @_inline
-def _joint_terms(m, row, R, E, explicit_damping, stiffness_on):
+def _joint_terms(m, row, R, E, S, explicit_damping, stiffness_on):
     """The joint torques switched on: damping alone, or with bending stiffness."""
     if stiffness_on:
-        _joint_torques(m, row, R, E, explicit_damping)
+        _joint_torques(m, row, R, E, S, explicit_damping)
     elif explicit_damping:
         _joint_damping(m, row, R, E)
 
@@ -261,46 +249,58 @@ def _joint_damping(m, row, R, E):
 
 
 @_inline
-def _bending(R, i, l, px, py, pz, pw):
-    """k times joint i's deviation from rest as a world rotation vector, its parent's
-    orientation p given: q = p ⊗ q_rest ⊗ q_err, q_err as a rotation vector in the child frame,
-    rotated to the world (``step._applied``'s expressions, so the same bits; ``qto_rotvec``
-    is a call with branches: this loop runs lane by lane)."""
+def _deviation(R, i, l, px, py, pz, pw, S):
+    """Joint i's deviation from rest in lane l, its parent's orientation p given: q = p ⊗
+    q_rest ⊗ q_err, q_err = (p ⊗ q_rest)* ⊗ q into ``S``'s quaternions (``step._applied``'s
+    expressions, so the same bits)."""
     rx, ry, rz, rw = _qmul(px, py, pz, pw, R[i, _QR, l], R[i, _QR + 1, l], R[i, _QR + 2, l],
                            R[i, _QR + 3, l])
-    qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
-    ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, qx, qy, qz, qw)
-    p0, p1, p2 = qto_rotvec((ex, ey, ez, ew))
-    s0, s1, s2 = _qrot(qx, qy, qz, qw, p0, p1, p2)
-    k = R[i, _STIFF, l]
-    return k * s0, k * s1, k * s2
+    ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, R[i, _QS, l], R[i, _QS + 1, l],
+                           R[i, _QS + 2, l], R[i, _QS + 3, l])
+    Sq = S[0]
+    k = i * LANES + l
+    Sq[0, k], Sq[1, k], Sq[2, k], Sq[3, k] = ex, ey, ez, ew
 
 
 @_inline
-def _joint_torques(m, row, R, E, explicit_damping):
+def _joint_torques(m, row, R, E, S, explicit_damping):
     """Joint damping (if ``explicit_damping``) and bending stiffness at every joint: τ =
     -c (ω_child - ω_parent) - k θ_err (summed in ``step._applied``'s order), on the child, and
-    -τ on the parent."""
+    -τ on the parent. In three passes over the block's joints: their deviations q_err into
+    the scratch ``S`` (``stiffness_scratch``), the rotation vectors' factors
+    (``limit_kernels.rotvec_factor``, one flat loop over every joint of every lane: it
+    vectorises, where called per lane it ran lane by lane), then the torques."""
+    for l in range(LANES):              # the first joint: the anchor body is the parent
+        _deviation(R, 0, l, E[row, _AQ, l], E[row, _AQ + 1, l], E[row, _AQ + 2, l],
+                   E[row, _AQ + 3, l], S)
+    for i in range(1, m):
+        for l in range(LANES):
+            _deviation(R, i, l, R[i - 1, _QS, l], R[i - 1, _QS + 1, l], R[i - 1, _QS + 2, l],
+                       R[i - 1, _QS + 3, l], S)
+    Sq, Sf = S
+    for k in range(m * LANES):
+        Sf[k] = rotvec_factor(Sq[0, k], Sq[1, k], Sq[2, k], Sq[3, k])
     for i in range(m):
         for l in range(LANES):
             tau0, tau1, tau2 = 0.0, 0.0, 0.0
-            if i == 0:                  # the first joint: the anchor body is the parent
-                pw0, pw1, pw2 = E[row, _AW, l], E[row, _AW + 1, l], E[row, _AW + 2, l]
-                px, py, pz, pw = (E[row, _AQ, l], E[row, _AQ + 1, l], E[row, _AQ + 2, l],
-                                  E[row, _AQ + 3, l])
-            else:
-                pw0, pw1, pw2 = R[i - 1, _WS, l], R[i - 1, _WS + 1, l], R[i - 1, _WS + 2, l]
-                px, py, pz, pw = (R[i - 1, _QS, l], R[i - 1, _QS + 1, l],
-                                  R[i - 1, _QS + 2, l], R[i - 1, _QS + 3, l])
             if explicit_damping:
-                k = R[i, _DAMP, l]
-                tau0 -= k * (R[i, _WS, l] - pw0)
-                tau1 -= k * (R[i, _WS + 1, l] - pw1)
-                tau2 -= k * (R[i, _WS + 2, l] - pw2)
-            s0, s1, s2 = _bending(R, i, l, px, py, pz, pw)
-            tau0 -= s0
-            tau1 -= s1
-            tau2 -= s2
+                if i == 0:              # the first joint: the anchor body is the parent
+                    pw0, pw1, pw2 = E[row, _AW, l], E[row, _AW + 1, l], E[row, _AW + 2, l]
+                else:
+                    pw0, pw1, pw2 = (R[i - 1, _WS, l], R[i - 1, _WS + 1, l],
+                                     R[i - 1, _WS + 2, l])
+                c = R[i, _DAMP, l]
+                tau0 -= c * (R[i, _WS, l] - pw0)
+                tau1 -= c * (R[i, _WS + 1, l] - pw1)
+                tau2 -= c * (R[i, _WS + 2, l] - pw2)
+            k = i * LANES + l
+            f = Sf[k]
+            s0, s1, s2 = _qrot(R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l],
+                               R[i, _QS + 3, l], Sq[0, k] * f, Sq[1, k] * f, Sq[2, k] * f)
+            stiff = R[i, _STIFF, l]
+            tau0 -= stiff * s0
+            tau1 -= stiff * s1
+            tau2 -= stiff * s2
             R[i, _T, l] += tau0
             R[i, _T + 1, l] += tau1
             R[i, _T + 2, l] += tau2
@@ -308,6 +308,14 @@ def _joint_torques(m, row, R, E, explicit_damping):
                 R[i - 1, _T, l] -= tau0
                 R[i - 1, _T + 1, l] -= tau1
                 R[i - 1, _T + 2, l] -= tau2
+
+
+@_inline
+def stiffness_scratch(m):
+    """The bending stiffness's scratch for blocks of m segments per chain: the joints'
+    deviations ``(4, m LANES)`` and rotation-vector factors ``(m LANES,)``, joint-major (its
+    own arrays, allocated where the loops are: see ``advance_lanes``)."""
+    return np.empty((4, m * LANES)), np.empty(m * LANES)
 
 
 @_inline
@@ -583,15 +591,15 @@ def _project(m, row, R, E):
 
 # -- the call ----------------------------------------------------------------------------------
 @_inline
-def _block_step(M, k, h, R, E):
+def _block_step(M, k, h, R, E, S):
     """Step ``k`` of the table for one block (``step._rk4``, then ``step._project``), its
-    record ``R`` and anchors ``E`` given. Returns ``OK`` or ``JOINT_SOLVE_FAILED`` (some
-    lane's A was not positive definite)."""
+    record ``R``, anchors ``E`` and stiffness scratch ``S`` given. Returns ``OK`` or
+    ``JOINT_SOLVE_FAILED`` (some lane's A was not positive definite)."""
     m = R.shape[0]
     _start(m, R)
     for s in range(4):
         row = 2 * k + (0 if s == 0 else (1 if s < 3 else 2))
-        _applied(m, row, R, E, M.wind[0], M.wind[1], M.wind[2], M.explicit_damping,
+        _applied(m, row, R, E, S, M.wind[0], M.wind[1], M.wind[2], M.explicit_damping,
                  M.stiffness_on, M.drag_on, M.external_on)
         _forward(m, row, R, E)
         if _failed(m, R):
@@ -654,11 +662,12 @@ def advance_lanes(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     m = x.shape[0] // n_chains
     R = np.zeros((m, _NF, LANES))
     E = np.empty((A.position.shape[0], _NE, LANES))
+    S = stiffness_scratch(m)
     for b in range((n_chains + LANES - 1) // LANES):
         _load_block(M, A, b, n_chains, m, ext_F, ext_T, R, E)
         _gather_state(b, n_chains, m, x, q, v, w, R)
         for k in range(n_steps):
-            status = _block_step(M, k, h, R, E)
+            status = _block_step(M, k, h, R, E, S)
             if status != OK:
                 return status
         _scatter_state(R, b, n_chains, m, x, q, v, w, f_c)
@@ -667,17 +676,18 @@ def advance_lanes(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
 
 @_inline
 def crowd_records(M, n, in_lanes):
-    """One block's record and anchor rows, ``(m, _NF, LANES)`` (m segments per chain of the
-    ``n``) and ``(3, _NE, LANES)``, for ``step_blocks`` (empty unless ``in_lanes``). Inline:
-    the caller that allocates them is the one whose loops use them (see ``advance_lanes``)."""
+    """One block's record, anchor rows and stiffness scratch, ``(m, _NF, LANES)`` (m
+    segments per chain of the ``n``), ``(3, _NE, LANES)`` and ``stiffness_scratch(m)``, for
+    ``step_blocks`` (empty unless ``in_lanes``). Inline: the caller that allocates them is the
+    one whose loops use them (see ``advance_lanes``)."""
     m = n // _n_chains(M) if in_lanes else 0
-    return np.zeros((m, _NF, LANES)), np.empty((3, _NE, LANES))
+    return np.zeros((m, _NF, LANES)), np.empty((3, _NE, LANES)), stiffness_scratch(m)
 
 
 @_inline
-def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E):
+def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E, S):
     """Step ``k`` of the table ``A`` for every chain, block by block, in one block's record
-    ``R`` and anchor rows ``E`` (``crowd_records``): each
+    ``R``, anchor rows ``E`` and stiffness scratch ``S`` (``crowd_records``): each
     block's model, anchors of the step and state are loaded, the step taken and the state
     scattered back, since the caller changes it between steps (contacts). A record kept per
     block across the steps was measured slower: the records of a crowd outgrow the cache the
@@ -691,7 +701,7 @@ def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E):
             _gather(ext_T, b, n_chains, m, R, _EXTT)
         _gather_anchors(A, 2 * k, b, n_chains, E)
         _gather_state(b, n_chains, m, x, q, v, w, R)
-        status = _block_step(M, 0, h, R, E)
+        status = _block_step(M, 0, h, R, E, S)
         if status != OK:
             return status
         _scatter_state(R, b, n_chains, m, x, q, v, w, f_c)

@@ -9,7 +9,10 @@ all frames are the world frame. Joint ``i``'s parent is the anchor body of its c
 import math
 
 import numpy as np
+from llvmlite import ir as llvm_ir
 from numba import njit
+from numba.core import types
+from numba.extending import intrinsic
 
 from .kernel_cache import ensure_fresh
 
@@ -123,17 +126,71 @@ def qfrom_rotvec(phi):
     return (phi[0] * s, phi[1] * s, phi[2] * s, math.cos(half))
 
 
+@intrinsic
+def sqrt_ieee(typingctx, x):
+    """IEEE square root as LLVM's ``llvm.sqrt.f64``: vectorisable, unlike numba's libm call
+    (which returns the same, correctly rounded, value)."""
+    sig = types.float64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic('llvm.sqrt', [llvm_ir.DoubleType()])
+        return builder.call(fn, args)
+    return sig, codegen
+
+
+# Cephes' ``atan`` (S. L. Moshier): its range reduction and its rational approximation
+# z + z³ P(z²)/Q(z²) on |z| ≤ 0.66; within 2 ulp of libm's ``atan2``
+# (``test_atan_nonneg_is_within_two_ulps_of_atan2``).
+_ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1,
+           -7.500855792314704667340e1, -1.228866684490136173410e2,
+           -6.485021904942025371773e1)
+_ATAN_Q = (2.485846490142306297962e1, 1.650270098316988542046e2,
+           4.328810604912902668951e2, 4.853903996359136964868e2,
+           1.945506571482613964425e2)
+_ATAN_MOREBITS = 6.123233995736765886130e-17     # π/2 - fl(π/2)
+_TAN_3PI_8 = 2.41421356237309504880
+
+
+@njit(cache=True, inline='always', error_model='numpy')
+def atan_nonneg(s, c):
+    """atan2(s, c) (rad, in [0, π/2]) for s ≥ 0, c ≥ 0, not both zero: Cephes' ``atan`` of
+    the ratio, reduced as -c/s, (s - c)/(s + c) or s/c (so that no ratio can overflow), in
+    one division and selects, no branch and no call: a loop of them vectorises (libm's
+    ``atan2`` is a call, which LLVM cannot)."""
+    big = s > _TAN_3PI_8 * c
+    mid = s > 0.66 * c
+    num = -c if big else (s - c if mid else s)
+    den = s if big else (s + c if mid else c)
+    x = num / den
+    y = 0.5 * math.pi if big else (0.25 * math.pi if mid else 0.0)
+    more = _ATAN_MOREBITS if big else (0.5 * _ATAN_MOREBITS if mid else 0.0)
+    P0, P1, P2, P3, P4 = _ATAN_P
+    Q0, Q1, Q2, Q3, Q4 = _ATAN_Q
+    z = x * x
+    p = (((P0 * z + P1) * z + P2) * z + P3) * z + P4
+    q = ((((z + Q0) * z + Q1) * z + Q2) * z + Q3) * z + Q4
+    return y + ((x * (z * p / q) + x) + more)
+
+
+@njit(cache=True, inline='always', error_model='numpy')
+def rotvec_factor(x, y, z, w):
+    """f with (x f, y f, z f) the rotation vector (axis × angle, angle in [0, π]) of the
+    unit quaternion (x, y, z, w): 2 atan2(|v|, |w|)/|v|, negated if w < 0 (q and -q are the
+    same rotation). Selects only, so that the bending stiffness's loop over every joint
+    vectorises (``lanes``); ``qto_rotvec`` is the same arithmetic."""
+    aw = abs(w)
+    s = sqrt_ieee(x * x + y * y + z * z)
+    small = s < 1e-8
+    ss = 1.0 if small else s
+    f = 2.0 / max(aw, 1e-300) if small else 2.0 * atan_nonneg(ss, aw) / ss
+    return -f if w < 0.0 else f
+
+
 @njit(cache=True)
 def qto_rotvec(q):
     """Rotation vector (axis × angle, angle in [0, π]) of the unit quaternion ``q``."""
     x, y, z, w = q
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-8:
-        f = 2.0 / max(w, 1e-300)
-    else:
-        f = 2.0 * math.atan2(s, w) / s
+    f = rotvec_factor(x, y, z, w)
     return (x * f, y * f, z * f)
 
 
