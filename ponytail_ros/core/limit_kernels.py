@@ -182,7 +182,11 @@ def rotvec_factor(x, y, z, w):
     s = sqrt_ieee(x * x + y * y + z * z)
     small = s < 1e-8
     ss = 1.0 if small else s
-    f = 2.0 / max(aw, 1e-300) if small else 2.0 * atan_nonneg(ss, aw) / ss
+    # 2 / |w| near the identity, else 2 atan2(s, |w|) / s: one division of the chosen terms
+    # (both sides are computed, as selects: one division fewer than dividing each).
+    num = 2.0 if small else 2.0 * atan_nonneg(ss, aw)
+    den = max(aw, 1e-300) if small else ss
+    f = num / den
     return -f if w < 0.0 else f
 
 
