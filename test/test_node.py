@@ -440,6 +440,7 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
         if not colliding:
             assert contact == 0.0 and parts == [0.0, 0.0, 0.0]
         elif HAS_CYCLE_COUNTER:
-            # (a resting chain may go a window without a position pass: only its check)
-            assert contact > 0.0 and parts[0] > 0.0 and parts[1] >= 0.0 and parts[2] > 0.0
+            # (positions not asserted: a resting chain may go a window without a position
+            # pass, and its check alone rounds to 0.000 ms)
+            assert contact > 0.0 and parts[0] > 0.0 and parts[2] > 0.0
         h.close()
