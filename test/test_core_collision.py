@@ -306,3 +306,36 @@ def test_a_collider_fixed_in_a_second_moving_body(frames):
         worst, hits = max(worst, depth), hits + (depth > -1e-3)
     assert hits > 50
     assert worst < (TOLERANCE if frames is None else 1e-3)
+
+
+def test_steps_after_a_sub_stepped_one_take_the_rest_of_the_frames_tables():
+    """A frame's call (``advance_frame`` with ``head_prev``, as the runner calls it) whose
+    step is taken in sub-steps goes on with the rest of the frame's anchor and collider
+    tables, sliced from the call's (``Simulator._tables``), bit for bit the tables evaluated
+    again at the steps' stage times; the ponytail on its skull in the violent shake (some of
+    whose steps sub-step, which this checks first)."""
+    from ponytail_ros.app.motions import shake_motion
+    from ponytail_ros.testing import load_config
+    scene = load_config('config/ponytail.yaml').scene
+    motion = shake_motion()
+    sims = [Simulator(scene, motion.state_at(0.0)) for _ in range(2)]
+    resumed = []
+
+    def evaluated(sim):
+        tables = sim._tables
+
+        def again(n_steps, anchor_at, anchor_table, planned, *args):
+            if planned is not None and planned[0] != sim._n_steps:
+                resumed.append(sim.t)
+                planned = None          # evaluated at the stage times, as before slicing
+            return tables(n_steps, anchor_at, anchor_table, planned, *args)
+        sim._tables = again
+    evaluated(sims[1])
+    for k in range(1, 4 * 120):
+        for sim in sims:
+            report = sim.advance_frame(k / 120, motion.state_at(k / 120),
+                                       motion.state_at((k - 1) / 120))
+            assert report.reset_reason is None
+        for f in ('x', 'q', 'v', 'w'):
+            assert np.array_equal(getattr(sims[0].state, f), getattr(sims[1].state, f))
+    assert len(resumed) >= 5

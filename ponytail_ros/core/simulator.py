@@ -711,9 +711,20 @@ class Simulator:
         """The compiled ``AnchorTable``s of the anchors and of the bodies (the anchors' again
         unless the colliders are ``moving``) at the stage times of the next ``n_steps``
         steps: ``planned``'s (``_advance``) when they are its steps, else from the tables'
-        functions (or the anchors and bodies at each time)."""
-        if planned is not None and planned[:2] == (self._n_steps, n_steps):
-            return planned[2], planned[3] if moving else planned[2]
+        functions (or the anchors and bodies at each time).
+
+        After a step taken in sub-steps the call goes on from a later step: the steps left
+        are the end of ``planned``'s, whose rows from that step on are theirs, bit for bit
+        (the same stage times), so they are sliced, not evaluated again (in a crowd, where
+        any chain's fast joint sub-steps the step, evaluating them in Python cost more than
+        the compiled steps of a late tick)."""
+        if planned is not None:
+            k0, n_planned, A, B = planned
+            skip = self._n_steps - k0
+            if 0 <= skip and skip + n_steps == n_planned:
+                if skip:
+                    A, B = _table_rows(A, 2 * skip), _table_rows(B, 2 * skip)
+                return A, B if moving else A
         times = self._stage_times(n_steps)
         A = self._table(anchor_table(times) if anchor_table else
                         stack_anchors([anchor_at(t) for t in times]))
@@ -1015,6 +1026,12 @@ def _body_kinematics(head):
 
 def _c(a):
     return np.ascontiguousarray(a, dtype=float)
+
+
+def _table_rows(table, row):
+    """A compiled ``AnchorTable``'s rows from ``row`` on (views: a slice of rows of a
+    C-contiguous array is C-contiguous, the type the compiled step already has)."""
+    return compiled.AnchorTable(*(a[row:] for a in table))
 
 
 def _anchor_tuple(S, C):
