@@ -291,6 +291,52 @@ def test_limit_kernels_match_the_oracle(seed):
     assert limits.project_limits(m, got, anchor.orientation, 1e-9) is None
 
 
+
+@pytest.mark.parametrize('name', ['sphere and limits', 'floor, friction'])
+def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
+    """``solve_one_row_into`` (a call of one row: most steps of a ponytail on its skull) gives
+    the impulse and the velocities of ``solve_rows`` (its response, W, the 1×1 LCP or the
+    friction step, the change added to the velocities) bit for bit: every candidate row of
+    recorded states (contacts; limits, which also move the parent), as a normal row and as
+    a friction row, with closing and separating rates."""
+    from ponytail_ros.core import contact_kernels as K
+    make_scene, make_motion, seconds = SCENES[name]
+    sim, calls = _recorded_calls(make_scene(), make_motion(), 0.5 * seconds)
+    m, uni = sim.model, sim.unilateral
+    n = m.n
+    rng = np.random.default_rng(0)
+    sc = K.solve_scratch(1, 1, n, m.n_chains)
+    compared = pushed = parents = 0
+    for args, anchor, pose, project, dt, _, _, q_rest in calls[::7]:
+        m.q_rest[:] = q_rest
+        uni.dt = dt
+        rows = uni.rows(*args, anchor, pose)
+        if rows is None:
+            continue
+        R, I = collision._rows_arrays(rows)
+        h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
+        C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
+        assert K.factor_chain(np.ascontiguousarray(args[1]), uni.model_args, h, inv_I, C, Lo)
+        v0, w0 = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+        for r in range(R.shape[0]):
+            for friction in (False, True):
+                b = np.array([rng.normal() * 0.1])
+                bound = np.array([abs(rng.normal()) * 0.01]) if friction else np.zeros(0)
+                dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
+                lam = K.solve_rows(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
+                                   uni.model_args, dv, dw)
+                v, w = v0.copy(), w0.copy()
+                one = K.solve_one_row_into(R[r:r + 1], I[r:r + 1], b[0],
+                                           bound[0] if friction else 0.0, friction, h, inv_I,
+                                           C, Lo, uni.model_args, sc, v, w)
+                assert one == lam[0] or (np.isnan(one) and np.isnan(lam[0]))
+                assert np.array_equal(v, v0 + dv) and np.array_equal(w, w0 + dw)
+                compared += 1
+                pushed += lam[0] > 0.0
+                parents += I[r, 1] >= 0
+    assert compared > 50 and pushed > 10
+    assert parents > 0 or not m.has_limits
+
 @pytest.mark.parametrize('k, seed', [(2, 0), (5, 1), (9, 2), (14, 3)])
 def test_small_lcp_is_exact_and_matches_the_oracle(k, seed):
     """The compiled LCP on random positive definite W (some rows pulling, some pushing):

@@ -1616,6 +1616,97 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
                             members, start, n_groups, kg_max, nc_max, sc[SC_MOBILE])
 
 
+@njit(cache=True, inline='always')
+def one_row_fits(ws, I, model):
+    """Whether a call of the rows ``I`` takes ``solve_one_row_into``: one row, and the solve
+    scratch holds a response of its chain (as ``solve_rows_into`` requires)."""
+    if I.shape[0] != 1:
+        return False
+    c = model[CHAIN_OF][I[0, SEG]]
+    resp = ws[WS_SOLVE][SC_RESP]
+    return resp.shape[1] >= 1 and resp.shape[2] >= model[CHAIN_END][c] - model[CHAIN_START][c]
+
+
+@njit(cache=True, inline='always')
+def add_row_impulses(R, I, b, bound, h, inv_I, C, Lo, model, v, w, lam, ws):
+    """``solve_rows_into``'s impulses (into ``lam``) of the rows ``R``, ``I`` and the velocity
+    change they cause, added to ``v``, ``w`` (one row: ``solve_one_row_into``). ``ws``'s
+    vectors 2 and 3 are its scratch (not ``v``, ``w``)."""
+    if one_row_fits(ws, I, model):
+        friction = bound.shape[0] > 0
+        lam[0] = solve_one_row_into(R, I, b[0], bound[0] if friction else 0.0, friction, h,
+                                    inv_I, C, Lo, model, ws[WS_SOLVE], v, w)
+        return
+    n = v.shape[0]
+    dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
+    dv[:] = 0.0
+    dw[:] = 0.0
+    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv, dw, lam, ws[WS_SOLVE])
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
+
+
+@njit(cache=True, _nrt=False)
+def solve_one_row_into(R, I, b0, bound0, friction, h, inv_I, C, Lo, model, sc, dv, dw):
+    """``solve_rows_into`` for a call of one row, its velocity change added to ``dv``, ``dw``
+    ``(n, 3)`` everywhere (+0.0 where it is zero, as ``dv += Δv`` after zeroing gives it);
+    returns its impulse λ. The same operations in the same order, so the same bits: the
+    response (``row_response``), W and the mobility (``delassus``), the 1×1 symmetrised
+    LCP (``lcp_into``) or friction step (``friction_step_into``, ``bound0``, if
+    ``friction``).
+
+    Why: a ponytail resting on its skull has one touching row in most steps (then one
+    friction row), and for one row the general path's grouping, scratch views, dense
+    problems and the zeroed buffer added afterwards cost more than the row's response."""
+    chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
+    inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
+    inv_I_max = model[INV_I_MAX]
+    g, p = I[0, SEG], I[0, PAR]
+    c = chain_of[g]
+    s, e = chain_start[c], chain_end[c]
+    nc = e - s
+    resp = sc[SC_RESP]
+    rv, rw = resp[0][0, :nc], resp[1][0, :nc]
+    row_response(R, I, 0, h, inv_I, C[s:e], Lo[s:e], is_first[s:e], inv_mass, has_child, s, e,
+                 rv, rw, sc[SC_CDOT][:nc])
+    # W and mobility as ``delassus`` forms them.
+    lin, ang, ap = col3(R, 0, LIN), col3(R, 0, ANG), col3(R, 0, APAR)
+    W = dot(lin, v3(rv, g - s)) + dot(ang, v3(rw, g - s))
+    if p >= 0:
+        W += dot(ap, v3(rw, p - s))
+    free = dot(lin, lin) * inv_mass[g] + dot(ang, ang) * inv_I_max[g]
+    if p >= 0:
+        free += dot(ap, ap) * inv_I_max[p]
+    la = 0.0
+    if W > MOBILITY * free:
+        Wc = 0.5 * (W + W)              # ``chain_impulses``' symmetrised W
+        if friction:
+            # ``friction_step_into`` for k = 1: the regularised 1×1 solve, the clip, the
+            # energy line search (its sums start at 0.0, as its loops').
+            la = b0 / (Wc + REG * (0.0 + Wc) / 1)
+            la = min(max(la, 0.0), bound0)
+            work = 0.0 + la * b0
+            quad = 0.0 + (0.0 + la * Wc) * la
+            if work <= 0.0 or quad <= 0.0:
+                la = 0.0
+            else:
+                la *= min(1.0, work / quad)
+        elif b0 < 0.0:
+            la = max(-b0 / Wc, 0.0)     # ``lcp_into``'s k = 1 case
+    for i in range(dv.shape[0]):
+        for d in range(3):
+            ddv = 0.0
+            ddw = 0.0
+            if la != 0.0 and s <= i < e:
+                ddv += la * rv[i - s, d]
+                ddw += la * rw[i - s, d]
+            dv[i, d] += ddv
+            dw[i, d] += ddw
+    return la
+
+
 @njit(cache=True, _nrt=True)
 def _solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam):
     """``solve_rows_into`` with all its scratch allocated here (returns no array)."""
@@ -1695,18 +1786,10 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
     then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:
     the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
-    n = v.shape[0]
     k = R.shape[0]
-    dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
-    dv[:] = 0.0
-    dw[:] = 0.0
     lam = ws[WS_ROWVEC][R_LAM][:k]
-    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam,
-                    ws[WS_SOLVE])
-    for i in range(n):
-        for a in range(3):
-            v[i, a] += dv[i, a]
-            w[i, a] += dw[i, a]
+    add_row_impulses(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, v, w, lam,
+                     ws)
     # Friction rows: minus the sliding direction at each pushing contact that slides.
     Rf, If = ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC]     # as long as the rows' table
     speed, bound = ws[WS_ROWVEC][R_SPEED], ws[WS_ROWVEC][R_BOUND]
@@ -1736,15 +1819,9 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
         kf += 1
     if kf == 0:
         return
-    dv[:] = 0.0
-    dw[:] = 0.0
     # The normal impulses are spent: their buffer takes the friction impulses.
-    solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
-                    lam[:kf], ws[WS_SOLVE])
-    for i in range(n):
-        for a in range(3):
-            v[i, a] += dv[i, a]
-            w[i, a] += dw[i, a]
+    add_row_impulses(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, v, w,
+                     lam[:kf], ws)
 
 
 # -- the pass after a step ------------------------------------------------------------------------
@@ -1864,8 +1941,12 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         dx, dth = vec(ws, V_N2, x.shape[0]), vec(ws, V_N3, x.shape[0])
         dx[:] = 0.0
         dth[:] = 0.0
-        solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
-                        ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
+        if one_row_fits(ws, Is, model):
+            solve_one_row_into(Rs, Is, b[0], 0.0, False, h, inv_I, C, Lo, model, ws[WS_SOLVE],
+                               dx, dth)
+        else:
+            solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx,
+                            dth, ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
