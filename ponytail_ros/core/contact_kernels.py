@@ -770,16 +770,19 @@ def contact_frame(xg, hg, s, t, aj, dj, nj, radius, is_round):
 def test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius):
     """``near_pairs``' test of the pair (chain slot c at anchor ``p``, collider j), unless
     decided already: kept (state 1) when the collider's surface is within ``reach``, a round
-    collider's box tested first (``outside_box`` with the bounds of ``box``)."""
+    collider's box tested first (``outside_box`` with the bounds of ``box``). Returns whether
+    it was kept now."""
     if state[c, j] != 0:
-        return
+        return False
     if j < n_round and (p[0] < box[j, 0] - reach or p[0] > box[j, 3] + reach
                         or p[1] < box[j, 1] - reach or p[1] > box[j, 4] + reach
                         or p[2] < box[j, 2] - reach or p[2] > box[j, 5] + reach):
-        return
+        return False
     if anchor_distance(p, v3(a0, j), v3(d2, j), v3(normal, j), j < n_round,
                        col_radius[j]) < reach:
         state[c, j] = 1
+        return True
+    return False
 
 
 @njit(cache=True, _nrt=False)
@@ -880,6 +883,7 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
         first_seg[c] = min(first_seg[c], i)
         end_seg[c] = i + 1
     state[:] = 0            # 0: left out, 1: kept in this pass, 2: detected
+    count[:nd] = 0
     speed = surface_speed(v, w, det, sw[SW_FASTEST])
     deepest = 0.0
     skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
@@ -890,36 +894,47 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     while skin > tested:
         tested = skin
         for c in range(nd):
+            # The pairs kept in this pass are appended to the chain's list (not marked in a
+            # table scanned over every collider: a crowd's chain is near one collider of
+            # hundreds), then detected in collider order, as a scan would.
+            kept = count[c]
             reach = (chain_reach[c] + skin + 2.0 * SPECULATIVE_STEPS * dt * speed
                      + PAIR_MARGIN)
             p = v3(anchor_position, det_chains[c])
             if not sweep:
                 for j in range(K):
-                    test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius)
-                continue
-            # Only the round colliders whose box can be within reach along the axis ``ax``
-            # (boxes sorted by their lower bound there, none wider than ``wmax``), with a
-            # margin far above rounding: every pair left out fails the box test.
-            margin = SWEEP_MARGIN * (1.0 + abs(p[ax]) + reach + wmax + bound)
-            left = p[ax] - reach - wmax - margin
-            right = p[ax] + reach + margin
-            lo, hi = 0, order.shape[0]
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if box[order[mid], 6] < left:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            while lo < order.shape[0] and box[order[lo], 6] <= right:
-                test_pair(state, c, order[lo], p, reach, box, a0, d2, normal, n_round,
-                          col_radius)
-                lo += 1
-            for j in range(order.shape[0], K):
-                test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius)
-        for c in range(nd):
-            for j in range(K):
-                if state[c, j] != 1:
-                    continue
+                    if test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round,
+                                 col_radius):
+                        pair_list[c, count[c]] = j
+                        count[c] += 1
+            else:
+                # Only the round colliders whose box can be within reach along the axis
+                # ``ax`` (boxes sorted by their lower bound there, none wider than ``wmax``),
+                # with a margin far above rounding: every pair left out fails the box test.
+                margin = SWEEP_MARGIN * (1.0 + abs(p[ax]) + reach + wmax + bound)
+                left = p[ax] - reach - wmax - margin
+                right = p[ax] + reach + margin
+                lo, hi = 0, order.shape[0]
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if box[order[mid], 6] < left:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                while lo < order.shape[0] and box[order[lo], 6] <= right:
+                    if test_pair(state, c, order[lo], p, reach, box, a0, d2, normal, n_round,
+                                 col_radius):
+                        pair_list[c, count[c]] = order[lo]
+                        count[c] += 1
+                    lo += 1
+                for j in range(order.shape[0], K):
+                    if test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round,
+                                 col_radius):
+                        pair_list[c, count[c]] = j
+                        count[c] += 1
+            sort_ints(pair_list[c, kept:count[c]])
+            for jj in range(kept, count[c]):
+                j = pair_list[c, jj]
                 state[c, j] = 2
                 detect_segments(x, h, anchor_position, pose, det, False, first_seg[c],
                                 end_seg[c], j, depth, s, t, own)
@@ -927,12 +942,20 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
                     deepest = max(deepest, depth[i, j])
         skin = max(POSITION_SKIN + 4.0 * deepest, VELOCITY_SKIN)
     for c in range(nd):
-        count[c] = 0
-        for j in range(K):
-            if state[c, j] == 2:
-                pair_list[c, count[c]] = j
-                count[c] += 1
+        sort_ints(pair_list[c, :count[c]])
     return skin
+
+
+@njit(cache=True, inline='always')
+def sort_ints(a):
+    """``a`` sorted in place, ascending (insertion sort: a chain keeps a few pairs)."""
+    for i in range(1, a.shape[0]):
+        key = a[i]
+        k = i
+        while k > 0 and a[k - 1] > key:
+            a[k] = a[k - 1]
+            k -= 1
+        a[k] = key
 
 
 @njit(cache=True, inline='always')
