@@ -677,25 +677,51 @@ def advance_lanes(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
 @_inline
 def crowd_records(M, n, in_lanes):
     """One block's record, anchor rows and stiffness scratch, ``(m, _NF, LANES)`` (m
-    segments per chain of the ``n``), ``(3, _NE, LANES)`` and ``stiffness_scratch(m)``, for
-    ``step_blocks`` (empty unless ``in_lanes``). Inline: the caller that allocates them is the
-    one whose loops use them (see ``advance_lanes``)."""
+    segments per chain of the ``n``), ``(3, _NE, LANES)`` and ``stiffness_scratch(m)``, and
+    every block's model fields (``_model_blocks``), for ``step_blocks`` (empty unless
+    ``in_lanes``). Inline: the caller that allocates them is the one whose loops use them
+    (see ``advance_lanes``)."""
     m = n // _n_chains(M) if in_lanes else 0
-    return np.zeros((m, _NF, LANES)), np.empty((3, _NE, LANES)), stiffness_scratch(m)
+    R = np.zeros((m, _NF, LANES))
+    return R, np.empty((3, _NE, LANES)), stiffness_scratch(m), _model_blocks(M, m, R)
 
 
 @_inline
-def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E, S):
+def _model_blocks(M, m, R):
+    """The model fields of the record (``_HALF`` on, its last) of every block,
+    ``(blocks, m, _NF - _HALF, LANES)``, loaded once for the steps of a call (``R``: a record
+    to load them in): ``step_blocks`` copies a block's instead of loading it from the
+    ``StepModel``'s arrays at every step."""
+    if m == 0:
+        return np.empty((0, 0, _NF - _HALF, LANES))
+    n_chains = _n_chains(M)
+    n_blocks = (n_chains + LANES - 1) // LANES
+    MB = np.empty((n_blocks, m, _NF - _HALF, LANES))
+    for b in range(n_blocks):
+        _load_model(M, b, n_chains, m, R)
+        for i in range(m):
+            for f in range(_NF - _HALF):
+                for l in range(LANES):
+                    MB[b, i, f, l] = R[i, _HALF + f, l]
+    return MB
+
+
+@_inline
+def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E, S, MB):
     """Step ``k`` of the table ``A`` for every chain, block by block, in one block's record
     ``R``, anchor rows ``E`` and stiffness scratch ``S`` (``crowd_records``): each
-    block's model, anchors of the step and state are loaded, the step taken and the state
-    scattered back, since the caller changes it between steps (contacts). A record kept per
-    block across the steps was measured slower: the records of a crowd outgrow the cache the
-    contact stage needs between two steps. The same bits as ``step.advance``'s step ``k``."""
+    block's model (a copy of its ``MB``), anchors of the step and state are loaded, the step
+    taken and the state scattered back, since the caller changes it between steps
+    (contacts). A record kept per block across the steps was measured slower: the records of
+    a crowd outgrow the cache the contact stage needs between two steps. The same bits as
+    ``step.advance``'s step ``k``."""
     m = R.shape[0]
     n_chains = x.shape[0] // m          # (every chain has m segments: ``crowd_layout``)
     for b in range((n_chains + LANES - 1) // LANES):
-        _load_model(M, b, n_chains, m, R)
+        for i in range(m):
+            for f in range(_NF - _HALF):
+                for l in range(LANES):
+                    R[i, _HALF + f, l] = MB[b, i, f, l]
         if M.external_on:
             _gather(ext_F, b, n_chains, m, R, _EXTF)
             _gather(ext_T, b, n_chains, m, R, _EXTT)

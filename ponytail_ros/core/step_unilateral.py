@@ -55,7 +55,7 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
     # The lanes' record, allocated here, where their loops are inlined (``lanes``).
-    RL, EL, SL = lanes.crowd_records(M, x.shape[0], in_lanes)
+    RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
     # The step's positions before the contact stage, for all the steps.
     x0, q0 = np.empty_like(x), np.empty_like(q)
     # The moving colliders' pose, posed into these arrays at every step.
@@ -71,7 +71,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             break
         t0 = _cycles()
         if in_lanes:
-            status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL)
+            status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
+                                       ML)
         else:
             status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
                                    starts, ends)
