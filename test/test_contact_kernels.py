@@ -294,11 +294,12 @@ def test_limit_kernels_match_the_oracle(seed):
 
 @pytest.mark.parametrize('name', ['sphere and limits', 'floor, friction'])
 def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
-    """``solve_one_row_into`` (a call of one row: most steps of a ponytail on its skull) gives
-    the impulse and the velocities of ``solve_rows`` (its response, W, the 1×1 LCP or the
-    friction step, the change added to the velocities) bit for bit: every candidate row of
+    """``solve_rows_into`` with its workspace's scratch takes a call of one row (most steps
+    of a ponytail on its skull) without the general path's grouping and dense problems
+    (``_solve_one_row``); it gives the impulse and the velocity change of the general path
+    (``solve_rows``, whose empty scratch always takes it) bit for bit: every candidate row of
     recorded states (contacts; limits, which also move the parent), as a normal row and as
-    a friction row, with closing and separating rates."""
+    a friction row, with closing and separating rates, added onto non-zero velocities."""
     from ponytail_ros.core import contact_kernels as K
     make_scene, make_motion, seconds = SCENES[name]
     sim, calls = _recorded_calls(make_scene(), make_motion(), 0.5 * seconds)
@@ -322,20 +323,20 @@ def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
             for friction in (False, True):
                 b = np.array([rng.normal() * 0.1])
                 bound = np.array([abs(rng.normal()) * 0.01]) if friction else np.zeros(0)
-                dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
+                dv, dw = v0.copy(), w0.copy()
                 lam = K.solve_rows(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
                                    uni.model_args, dv, dw)
-                v, w = v0.copy(), w0.copy()
-                one = K.solve_one_row_into(R[r:r + 1], I[r:r + 1], b[0],
-                                           bound[0] if friction else 0.0, friction, h, inv_I,
-                                           C, Lo, uni.model_args, sc, v, w)
-                assert one == lam[0] or (np.isnan(one) and np.isnan(lam[0]))
-                assert np.array_equal(v, v0 + dv) and np.array_equal(w, w0 + dw)
+                v, w, one = v0.copy(), w0.copy(), np.full(1, np.nan)
+                K.solve_rows_into(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
+                                  uni.model_args, v, w, one, sc)
+                assert np.array_equal(one, lam)
+                assert np.array_equal(v, dv) and np.array_equal(w, dw)
                 compared += 1
                 pushed += lam[0] > 0.0
                 parents += I[r, 1] >= 0
     assert compared > 50 and pushed > 10
     assert parents > 0 or not m.has_limits
+
 
 @pytest.mark.parametrize('k, seed', [(2, 0), (5, 1), (9, 2), (14, 3)])
 def test_small_lcp_is_exact_and_matches_the_oracle(k, seed):

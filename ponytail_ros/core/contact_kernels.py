@@ -767,22 +767,23 @@ def contact_frame(xg, hg, s, t, aj, dj, nj, radius, is_round):
 
 
 @njit(cache=True, inline='always')
-def test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius):
+def test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius, pair_list,
+              count):
     """``near_pairs``' test of the pair (chain slot c at anchor ``p``, collider j), unless
-    decided already: kept (state 1) when the collider's surface is within ``reach``, a round
-    collider's box tested first (``outside_box`` with the bounds of ``box``). Returns whether
-    it was kept now."""
+    decided already: kept (state 1, appended to ``pair_list[c]``, ``count[c]`` of them) when
+    the collider's surface is within ``reach``, a round collider's box tested first
+    (``outside_box`` with the bounds of ``box``)."""
     if state[c, j] != 0:
-        return False
+        return
     if j < n_round and (p[0] < box[j, 0] - reach or p[0] > box[j, 3] + reach
                         or p[1] < box[j, 1] - reach or p[1] > box[j, 4] + reach
                         or p[2] < box[j, 2] - reach or p[2] > box[j, 5] + reach):
-        return False
+        return
     if anchor_distance(p, v3(a0, j), v3(d2, j), v3(normal, j), j < n_round,
                        col_radius[j]) < reach:
         state[c, j] = 1
-        return True
-    return False
+        pair_list[c, count[c]] = j
+        count[c] += 1
 
 
 @njit(cache=True, _nrt=False)
@@ -903,10 +904,8 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
             p = v3(anchor_position, det_chains[c])
             if not sweep:
                 for j in range(K):
-                    if test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round,
-                                 col_radius):
-                        pair_list[c, count[c]] = j
-                        count[c] += 1
+                    test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius,
+                              pair_list, count)
             else:
                 # Only the round colliders whose box can be within reach along the axis
                 # ``ax`` (boxes sorted by their lower bound there, none wider than ``wmax``),
@@ -922,16 +921,12 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
                     else:
                         hi = mid
                 while lo < order.shape[0] and box[order[lo], 6] <= right:
-                    if test_pair(state, c, order[lo], p, reach, box, a0, d2, normal, n_round,
-                                 col_radius):
-                        pair_list[c, count[c]] = order[lo]
-                        count[c] += 1
+                    test_pair(state, c, order[lo], p, reach, box, a0, d2, normal, n_round,
+                              col_radius, pair_list, count)
                     lo += 1
                 for j in range(order.shape[0], K):
-                    if test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round,
-                                 col_radius):
-                        pair_list[c, count[c]] = j
-                        count[c] += 1
+                    test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius,
+                              pair_list, count)
             sort_ints(pair_list[c, kept:count[c]])
             for jj in range(kept, count[c]):
                 j = pair_list[c, jj]
@@ -1618,6 +1613,12 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
     k = R.shape[0]
     if k == 0:
         return
+    resp = sc[SC_RESP]
+    c0 = chain_of[I[0, SEG]]
+    if k == 1 and resp.shape[1] >= 1 and resp.shape[2] >= chain_end[c0] - chain_start[c0]:
+        # One row (most calls of a ponytail on its skull): no grouping, no dense problems.
+        lam[0] = _solve_one_row(R, I, b, bound, h, inv_I, C, Lo, model, sc, dv_out, dw_out)
+        return
     n_chains = chain_start.shape[0]
     ib = sc[SC_INT]
     if ib.shape[0] < 4 * k + 1 + n_chains or sc[SC_MOBILE].shape[0] < k:
@@ -1629,7 +1630,6 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
                                                start, ib[2 * k + 1:4 * k + 1],
                                                ib[4 * k + 1:4 * k + 1 + n_chains])
     # Per group: the responses rv, rw (kg, nc, 3), the joint scratch, W, the group's λ.
-    resp = sc[SC_RESP]
     if resp.shape[1] >= kg_max and resp.shape[2] >= nc_max:
         _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, members,
                       start, n_groups, sc[SC_MOBILE], resp[0], resp[1], sc[SC_CDOT], sc[SC_W],
@@ -1640,49 +1640,16 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
 
 
 @njit(cache=True, inline='always')
-def one_row_fits(ws, I, model):
-    """Whether a call of the rows ``I`` takes ``solve_one_row_into``: one row, and the solve
-    scratch holds a response of its chain (as ``solve_rows_into`` requires)."""
-    if I.shape[0] != 1:
-        return False
-    c = model[CHAIN_OF][I[0, SEG]]
-    resp = ws[WS_SOLVE][SC_RESP]
-    return resp.shape[1] >= 1 and resp.shape[2] >= model[CHAIN_END][c] - model[CHAIN_START][c]
-
-
-@njit(cache=True, inline='always')
-def add_row_impulses(R, I, b, bound, h, inv_I, C, Lo, model, v, w, lam, ws):
-    """``solve_rows_into``'s impulses (into ``lam``) of the rows ``R``, ``I`` and the velocity
-    change they cause, added to ``v``, ``w`` (one row: ``solve_one_row_into``). ``ws``'s
-    vectors 2 and 3 are its scratch (not ``v``, ``w``)."""
-    if one_row_fits(ws, I, model):
-        friction = bound.shape[0] > 0
-        lam[0] = solve_one_row_into(R, I, b[0], bound[0] if friction else 0.0, friction, h,
-                                    inv_I, C, Lo, model, ws[WS_SOLVE], v, w)
-        return
-    n = v.shape[0]
-    dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
-    dv[:] = 0.0
-    dw[:] = 0.0
-    solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv, dw, lam, ws[WS_SOLVE])
-    for i in range(n):
-        for a in range(3):
-            v[i, a] += dv[i, a]
-            w[i, a] += dw[i, a]
-
-
-@njit(cache=True, _nrt=False)
-def solve_one_row_into(R, I, b0, bound0, friction, h, inv_I, C, Lo, model, sc, dv, dw):
-    """``solve_rows_into`` for a call of one row, its velocity change added to ``dv``, ``dw``
-    ``(n, 3)`` everywhere (+0.0 where it is zero, as ``dv += Δv`` after zeroing gives it);
-    returns its impulse λ. The same operations in the same order, so the same bits: the
-    response (``row_response``), W and the mobility (``delassus``), the 1×1 symmetrised
-    LCP (``lcp_into``) or friction step (``friction_step_into``, ``bound0``, if
-    ``friction``).
+def _solve_one_row(R, I, b, bound, h, inv_I, C, Lo, model, sc, dv_out, dw_out):
+    """``solve_rows_into`` for one row (``sc``'s response scratch holding its chain): its
+    impulse λ, returned, and the velocity change added to ``dv_out``, ``dw_out``. The
+    operations of the general path in their order, so the same bits: the response
+    (``row_response``), W and the mobility (``delassus``), the 1×1 symmetrised LCP
+    (``lcp_into``) or friction step (``friction_step_into``, when ``bound`` is not empty).
 
     Why: a ponytail resting on its skull has one touching row in most steps (then one
-    friction row), and for one row the general path's grouping, scratch views, dense
-    problems and the zeroed buffer added afterwards cost more than the row's response."""
+    friction row), and for one row the general path's grouping, scratch views and dense
+    problems cost more than the row's O(n) response."""
     chain_of, chain_start, chain_end = model[CHAIN_OF], model[CHAIN_START], model[CHAIN_END]
     inv_mass, is_first, has_child = model[INV_MASS], model[IS_FIRST], model[HAS_CHILD]
     inv_I_max = model[INV_I_MAX]
@@ -1703,13 +1670,14 @@ def solve_one_row_into(R, I, b0, bound0, friction, h, inv_I, C, Lo, model, sc, d
     if p >= 0:
         free += dot(ap, ap) * inv_I_max[p]
     la = 0.0
+    b0 = b[0]
     if W > MOBILITY * free:
         Wc = 0.5 * (W + W)              # ``chain_impulses``' symmetrised W
-        if friction:
+        if bound.shape[0] > 0:
             # ``friction_step_into`` for k = 1: the regularised 1×1 solve, the clip, the
             # energy line search (its sums start at 0.0, as its loops').
             la = b0 / (Wc + REG * (0.0 + Wc) / 1)
-            la = min(max(la, 0.0), bound0)
+            la = min(max(la, 0.0), bound[0])
             work = 0.0 + la * b0
             quad = 0.0 + (0.0 + la * Wc) * la
             if work <= 0.0 or quad <= 0.0:
@@ -1718,15 +1686,11 @@ def solve_one_row_into(R, I, b0, bound0, friction, h, inv_I, C, Lo, model, sc, d
                 la *= min(1.0, work / quad)
         elif b0 < 0.0:
             la = max(-b0 / Wc, 0.0)     # ``lcp_into``'s k = 1 case
-    for i in range(dv.shape[0]):
-        for d in range(3):
-            ddv = 0.0
-            ddw = 0.0
-            if la != 0.0 and s <= i < e:
-                ddv += la * rv[i - s, d]
-                ddw += la * rw[i - s, d]
-            dv[i, d] += ddv
-            dw[i, d] += ddw
+    if la != 0.0:                       # (``_solve_groups``' accumulation)
+        for i in range(nc):
+            for d in range(3):
+                dv_out[s + i, d] += la * rv[i, d]
+                dw_out[s + i, d] += la * rw[i, d]
     return la
 
 
@@ -1809,10 +1773,18 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
     then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:
     the workspace (its vectors 2 and 3, impulses, friction rows, slip speeds and bounds)."""
+    n = v.shape[0]
     k = R.shape[0]
+    dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
+    dv[:] = 0.0
+    dw[:] = 0.0
     lam = ws[WS_ROWVEC][R_LAM][:k]
-    add_row_impulses(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, v, w, lam,
-                     ws)
+    solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam,
+                    ws[WS_SOLVE])
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
     # Friction rows: minus the sliding direction at each pushing contact that slides.
     Rf, If = ws[WS_TABLES][T_FRIC], ws[WS_IDS][T_FRIC]     # as long as the rows' table
     speed, bound = ws[WS_ROWVEC][R_SPEED], ws[WS_ROWVEC][R_BOUND]
@@ -1842,9 +1814,15 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
         kf += 1
     if kf == 0:
         return
+    dv[:] = 0.0
+    dw[:] = 0.0
     # The normal impulses are spent: their buffer takes the friction impulses.
-    add_row_impulses(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, v, w,
-                     lam[:kf], ws)
+    solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
+                    lam[:kf], ws[WS_SOLVE])
+    for i in range(n):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            w[i, a] += dw[i, a]
 
 
 # -- the pass after a step ------------------------------------------------------------------------
@@ -1964,12 +1942,8 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
         dx, dth = vec(ws, V_N2, x.shape[0]), vec(ws, V_N3, x.shape[0])
         dx[:] = 0.0
         dth[:] = 0.0
-        if one_row_fits(ws, Is, model):
-            solve_one_row_into(Rs, Is, b[0], 0.0, False, h, inv_I, C, Lo, model, ws[WS_SOLVE],
-                               dx, dth)
-        else:
-            solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx,
-                            dth, ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
+        solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
+                        ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
         small = rotate_segments(q, dth, length)
         stats[2] = passes + 1
         moved = True
