@@ -291,8 +291,7 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, d
         for a in range(3):
             c_dot[i, a] = d[a]
     _chain_solve(C, Lo, is_first, c_dot)
-    dv[:] = 0.0
-    dw[:] = 0.0
+    zero_pair(dv, dw)
     apply_joint_impulses(c_dot, h, inv_I, model[INV_MASS], model[HAS_CHILD], 0, n, dv, dw)
     for i in range(n):
         for a in range(3):
@@ -589,6 +588,16 @@ SC_INT, SC_MOBILE, SC_RESP, SC_CDOT, SC_W, SC_LC, SC_DS = range(7)
 # The workspace is sized for the largest chain (``resolve_workspace``) and a call resolves one
 # chain: its per-segment arrays are taken at that chain's length (leading-axis views, the same
 # C-contiguous types), so that no loop over an array's length reads another chain's leftovers.
+@njit(cache=True, inline='always')
+def zero_pair(a, b):
+    """``a[:] = 0; b[:] = 0`` for two ``(n, 3)`` arrays, as plain loops (a slice assignment
+    of a 2-D view costs more than its few stores, and these are zeroed at every step)."""
+    for i in range(a.shape[0]):
+        for k in range(3):
+            a[i, k] = 0.0
+            b[i, k] = 0.0
+
+
 @njit(cache=True, inline='always')
 def vec(ws, i, n):
     """The workspace's vector ``i`` (``V_*``), ``(n, 3)``."""
@@ -1776,8 +1785,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     n = v.shape[0]
     k = R.shape[0]
     dv, dw = vec(ws, V_N2, n), vec(ws, V_N3, n)
-    dv[:] = 0.0
-    dw[:] = 0.0
+    zero_pair(dv, dw)
     lam = ws[WS_ROWVEC][R_LAM][:k]
     solve_rows_into(R, I, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dv, dw, lam,
                     ws[WS_SOLVE])
@@ -1814,8 +1822,7 @@ def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
         kf += 1
     if kf == 0:
         return
-    dv[:] = 0.0
-    dw[:] = 0.0
+    zero_pair(dv, dw)
     # The normal impulses are spent: their buffer takes the friction impulses.
     solve_rows_into(Rf[:kf], If[:kf], speed[:kf], bound[:kf], h, inv_I, C, Lo, model, dv, dw,
                     lam[:kf], ws[WS_SOLVE])
@@ -1940,8 +1947,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
             b[r] = -Rs[r, DEPTH]
         # The displacements (centres unused: positions are rebuilt from the rotations).
         dx, dth = vec(ws, V_N2, x.shape[0]), vec(ws, V_N3, x.shape[0])
-        dx[:] = 0.0
-        dth[:] = 0.0
+        zero_pair(dx, dth)
         solve_rows_into(Rs, Is, b, ws[WS_ROWVEC][R_BOUND][:0], h, inv_I, C, Lo, model, dx, dth,
                         ws[WS_ROWVEC][R_LAM][:ks], ws[WS_SOLVE])
         small = rotate_segments(q, dth, length)
