@@ -5,8 +5,10 @@ params file as two processes in a private ROS domain, as a user would, lets the 
 (compile or load the step, first poses), then reads the node process's CPU time (user +
 system, ``/proc/<pid>/stat``) over ``--seconds`` of wall time: the share of one core it takes.
 Also reads the node's ``/diagnostics`` over that time: the tick's wall time, p99 and largest, the
-ticks per second and the simulated time dropped, per 1 s window. Prints one line per run;
-``--json`` writes them.
+ticks per second and the simulated time dropped, per 1 s window, and the compiled step's
+share of a core (its calls' mean wall time a tick times the ticks per s). Prints one line per
+run; ``--json`` writes them. With ``--floor``, rclpy's floor plus the compiled step is the
+bound no saving in the node's Python can beat.
 
 ``--characters N``: each params file's character copied N times into one node
 (``app/crowd.py``), the head demo publishing the other characters' heads in one ``PoseArray``
@@ -36,7 +38,9 @@ def on_diagnostics(msg):
         kv = {v.key: v.value for v in status.values}
         if 'tick time p99 (ms)' in kv:
             print(json.dumps([float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)']),
-                              float(kv['ticks per s']), float(kv['dropped time (s)'])]),
+                              float(kv['ticks per s']), float(kv['dropped time (s)']),
+                              float(kv['integrate time mean (ms)'])
+                              + float(kv['contact time mean (ms)'])]),
                   flush=True)
 node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
 try:
@@ -97,6 +101,13 @@ def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=F
                 p.kill()
 
 
+def _step_share(windows):
+    """The compiled step's share of a core in the median /diagnostics window (its calls' mean
+    wall time a tick, ms, times the window's ticks per s)."""
+    shares = [w[4] * 1e-3 * w[2] for w in windows]
+    return float(np.median(shares)) if shares else float('nan')
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.node_cpu',
                                 description=__doc__.split('\n\n')[0])
@@ -126,8 +137,10 @@ def main(argv=None):
                     f.write(params_file_text(crowd_values(values_from_params_file(params), n),
                                              n, params))
                 runs.append((path, n))
+    floor = None
     if args.floor:
         share, _ = measure(None, args.seconds, args.warmup, floor=True)
+        floor = share
         rows.append(dict(params='rclpy_floor', cpu_share=share, seconds=args.seconds))
         print(f'rclpy_floor (no simulation): {100 * share:.1f} % of one core (same measurement)')
     for params, characters in runs:
@@ -137,7 +150,8 @@ def main(argv=None):
                          seconds=args.seconds, tick_p99_ms=p99,
                          tick_max_ms=[w[1] for w in windows],
                          ticks_per_s=[w[2] for w in windows],
-                         dropped_time_s=[w[3] for w in windows]))
+                         dropped_time_s=[w[3] for w in windows],
+                         step_share=_step_share(windows)))
         print(f'{params}: {100 * share:.1f} % of one core (CPU time over {args.seconds:g} s '
               f'after {args.warmup:g} s of start-up, beside ponytail_head_demo at 120 Hz'
               f'{f", {characters} characters" if characters > 1 else ""})')
@@ -148,6 +162,11 @@ def main(argv=None):
             rates = [w[2] for w in windows]
             print(f'  ticks per s per window: median {np.median(rates):.1f}, lowest '
                   f'{min(rates):.1f}; simulated time dropped by the end: {windows[-1][3]:.3f} s')
+            step = _step_share(windows)
+            print(f'  the compiled step: {100 * step:.1f} % of one core (its calls\' mean wall '
+                  f'time a tick x ticks per s, median window)'
+                  + (f'; with rclpy\'s floor: {100 * (floor + step):.1f} %, the least this node '
+                     f'could cost with no Python of its own' if floor is not None else ''))
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)
