@@ -433,9 +433,22 @@ def median_interval(ts, n):
 @njit(cache=True)
 def _slerp(q0, q1, s):
     """Spherical linear interpolation of unit quaternions (``rotations.quat_slerp``)."""
+    return _slerp_at(q0, _slerp_arc(q0, q1), s)
+
+
+@njit(cache=True, inline='always')
+def _slerp_arc(q0, q1):
+    """``_slerp``'s rotation vector from ``q0`` to ``q1`` (the nearer of ``±q1``): what does
+    not depend on the fraction, computed once per pair of ends (its log map is half of a
+    slerp's transcendental functions)."""
     if dot((q0[0], q0[1], q0[2]), (q1[0], q1[1], q1[2])) + q0[3] * q1[3] < 0.0:
         q1 = (-q1[0], -q1[1], -q1[2], -q1[3])
-    phi = qto_rotvec(qmul(q1, qconj(q0)))
+    return qto_rotvec(qmul(q1, qconj(q0)))
+
+
+@njit(cache=True, inline='always')
+def _slerp_at(q0, phi, s):
+    """``_slerp`` at fraction ``s`` from its arc ``phi`` (``_slerp_arc``)."""
     return qmul(qfrom_rotvec(scale(s, phi)), q0)
 
 
@@ -453,6 +466,13 @@ def track_table(times, t0, h, end_p, end_v, end_a, q_ends, w_ends,
     """
     C = end_p.shape[1]
     coef = np.empty((6, C, 3))
+    # Each anchor's slerp arc, once for all rows (bit for bit ``_slerp`` at each row).
+    arc = np.empty((C, 3))
+    for c in range(C):
+        phi = _slerp_arc((q_ends[0, c, 0], q_ends[0, c, 1], q_ends[0, c, 2], q_ends[0, c, 3]),
+                         (q_ends[1, c, 0], q_ends[1, c, 1], q_ends[1, c, 2], q_ends[1, c, 3]))
+        for a in range(3):
+            arc[c, a] = phi[a]
     for c in range(C):
         for a in range(3):
             p0, p1 = end_p[0, c, a], end_p[1, c, a]
@@ -487,8 +507,8 @@ def track_table(times, t0, h, end_p, end_v, end_a, q_ends, w_ends,
                     position[r, c, a] = p + tau * (v + 0.5 * tau * acc)
                     velocity[r, c, a] = v + tau * acc
                     acceleration[r, c, a] = acc
-            q = _slerp((q_ends[0, c, 0], q_ends[0, c, 1], q_ends[0, c, 2], q_ends[0, c, 3]),
-                       (q_ends[1, c, 0], q_ends[1, c, 1], q_ends[1, c, 2], q_ends[1, c, 3]), sc)
+            q = _slerp_at((q_ends[0, c, 0], q_ends[0, c, 1], q_ends[0, c, 2], q_ends[0, c, 3]),
+                          (arc[c, 0], arc[c, 1], arc[c, 2]), sc)
             for a in range(4):
                 orientation[r, c, a] = q[a]
             for a in range(3):
