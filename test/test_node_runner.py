@@ -359,3 +359,38 @@ def test_a_live_n_segments_past_the_colliding_range_is_refused_and_the_chain_run
     assert core.values['ponytail.n_segments'] == 12
     core.check_change({'ponytail.n_segments': MAX_COLLIDING_SEGMENTS})
     core.check_change({'ponytail.n_segments': 4096, 'ponytail.collide': False})
+
+
+def test_diagnostics_say_when_the_ticks_fall_behind_the_rate():
+    """A node whose tick calls come at the rate reports that rate and no overload; one whose
+    calls come at half the rate (each tick longer than its period) is ``WARN``ed as
+    overloaded, naming both rates; a window before any head pose (ticks called, nothing
+    published) is not."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from ponytail_ros.app.node_core import OVERLOADED, NodeCore, time_msg
+    from ponytail_ros.resources import config_path
+    from ponytail_ros.testing import load_config
+    core = NodeCore(load_config(config_path('ponytail.yaml')).values)
+    period = int(round(1e9 / 120.0))
+    t = 1_000_000_000
+
+    def run(seconds, every, with_head=True):
+        nonlocal t
+        for _ in range(int(round(seconds * 120 / every))):
+            t += every * period
+            if with_head:
+                core.push_head(time_msg(t), t, (0.0, 0.0, 1.6), (0.0, 0.0, 0.0, 1.0), 'world')
+            core.tick(t)
+        status = core.diagnostic_status(t, seconds, 'ponytail')
+        return status, {kv.key: kv.value for kv in status.values}
+
+    status, kv = run(1.0, 1, with_head=False)
+    assert OVERLOADED not in status.message and float(kv['tick rate (Hz)']) == pytest.approx(120)
+    status, kv = run(1.5, 1)
+    assert status.level == DiagnosticStatus.OK, status.message
+    assert float(kv['tick rate (Hz)']) == pytest.approx(120.0, rel=1e-6)
+    status, kv = run(1.5, 2)
+    assert status.level == DiagnosticStatus.WARN
+    assert f'{OVERLOADED}: ticking at 60.0 Hz of rate 120 Hz' in status.message
+    status, kv = run(0.25, 1)                   # too short a window to say
+    assert kv['tick rate (Hz)'] == 'n/a' and OVERLOADED not in status.message

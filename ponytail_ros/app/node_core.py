@@ -22,7 +22,8 @@ from .parameters import (build_runner_settings, chain_param_name, check_names, c
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
 
-__all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'time_msg']
+__all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'OVERLOAD_FRACTION', 'OVERLOADED',
+           'tick_rate', 'time_msg']
 
 #: ``RunnerSettings`` fields that follow their parameters live.
 LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
@@ -34,6 +35,25 @@ TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time me
                'contact time mean (ms)', 'contact rows time mean (ms)',
                'contact positions time mean (ms)', 'contact velocities time mean (ms)',
                'tick time p99 (ms)', 'tick time max (ms)', 'timer lateness max (ms)')
+
+
+#: A window whose tick calls came at less than this fraction of ``rate`` (on the node's clock)
+#: says the node is overloaded: each tick takes longer than its period, so the timer falls
+#: behind (each late tick then takes the steps of the time elapsed, and later still).
+OVERLOAD_FRACTION = 0.9
+#: The start of that warning's text (the node says it on its terminal too, with the fix).
+OVERLOADED = 'overloaded'
+#: Tick calls spanning less than this (s) say nothing about the rate (a window's first ticks).
+_MIN_RATE_SPAN = 0.5
+
+
+def tick_rate(win: '_Window') -> Optional[float]:
+    """The rate (Hz, node clock) of a window's tick calls, None over less than
+    ``_MIN_RATE_SPAN`` s of them."""
+    span = (win.last_call_ns - win.first_call_ns) * 1e-9
+    if win.calls < 2 or span < _MIN_RATE_SPAN:
+        return None
+    return (win.calls - 1) / span
 
 
 def time_msg(t_ns: int) -> Time:
@@ -71,6 +91,11 @@ class _Window:
 
     t0_ns: int = 0
     ticks: int = 0
+    #: Tick calls (published or not) and the node-clock times of the first and last: the rate
+    #: the node's timer achieved (``OVERLOAD_FRACTION``).
+    calls: int = 0
+    first_call_ns: int = 0
+    last_call_ns: int = 0
     max_gap: float = 0.0
     steps: int = 0
     accepted: int = 0
@@ -156,6 +181,11 @@ class NodeCore:
         no pose yet of a frame the scene uses)."""
         if t_ns == 0:                    # sim time before the first /clock
             return None
+        win = self.window
+        if win.calls == 0:
+            win.first_call_ns = t_ns
+        win.last_call_ns = t_ns
+        win.calls += 1
         out = self.runner.tick(t_ns * 1e-9)
         if out is None:
             return None
@@ -328,6 +358,11 @@ class NodeCore:
             flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
         if win.guard_resets:
             flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
+        achieved = tick_rate(win)
+        rate = float(self.values['rate'])
+        if achieved is not None and achieved < OVERLOAD_FRACTION * rate:
+            flag(DiagnosticStatus.WARN, f'{OVERLOADED}: ticking at {achieved:.1f} Hz of rate '
+                                        f'{rate:g} Hz')
         timing = timing or {k: 'n/a (replay)' for k in TIMING_KEYS}
         kv = [
             ('head', head),
@@ -340,6 +375,7 @@ class NodeCore:
             kv += [(key, state), (f'{key} poses accepted', str(n))]
         kv += [
             ('ticks per s', f'{win.ticks / span:.1f}'),
+            ('tick rate (Hz)', 'n/a' if achieved is None else f'{achieved:.1f}'),
         ]
         kv += [(k, timing[k]) for k in TIMING_KEYS]
         kv += [

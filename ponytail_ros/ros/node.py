@@ -73,7 +73,7 @@ from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.step import CONTACT_STAGES
 from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
                                        tf_cdr)
-from ponytail_ros.app.node_core import NodeCore, NodeTick
+from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
                                          FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
@@ -651,6 +651,16 @@ class PonytailNode(Node):
                 f'clock (another clock: a simulator, another machine, use_sim_time on one side '
                 f'only): the motion is estimated wrongly. Fix: stamp_source:=receive (time poses '
                 f'by their arrival), or run both on the same clock (use_sim_time)')
+        if OVERLOADED in msg.status[0].message:
+            # A node that cannot keep its rate falls further behind: say so, with the fix.
+            rate = next((kv.value for kv in msg.status[0].values
+                         if kv.key == 'tick rate (Hz)'), '?')
+            self._log_throttled(
+                'overload', 30.0, 'warning',
+                f'Ticking at {rate} Hz, below rate {self.core.values["rate"]:g} Hz: each tick '
+                f'takes longer than its period, so this node falls behind. Run one node per '
+                f'group of characters (each in its own namespace: -r __ns:=/group1), or lower '
+                f'rate, or raise solver.dt')
 
     def destroy_node(self):
         """Finalise the recording (if any), then destroy the node."""
