@@ -22,6 +22,7 @@ failure: ...'), speeds below ``guard_max_speed``, no joint turning more than
 ``guard_max_step_angle / GYROSCOPIC_REACH_RATIO``), joint gaps below ``guard_max_gap``; a
 blow-up resets the chains to rest at the current head pose and is reported, never propagated.
 """
+import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
@@ -500,7 +501,7 @@ class Simulator:
 
     def _steps_to(self, t_target):
         """Internal steps from the current one to the last at or before ``t_target``."""
-        return int(np.floor((t_target - self._t_base) / self.dt + 1e-9)) - self._n_steps
+        return math.floor((t_target - self._t_base) / self.dt + 1e-9) - self._n_steps
 
     def _stage_times(self, n_steps):
         """Times ``(2 n_steps + 1,)`` of the anchor table of the next ``n_steps`` steps: row
@@ -824,7 +825,7 @@ class Simulator:
         colliders or limits)."""
         if self.unilateral is None:
             return 1
-        return min(MAX_SUBSTEPS, max(1, int(np.ceil(rate * self.dt / SUBSTEP_ANGLE))))
+        return min(MAX_SUBSTEPS, max(1, math.ceil(rate * self.dt / SUBSTEP_ANGLE)))
 
     def _measures(self, anchor):
         """``state_kernels.guard_measures`` of the state with ``anchor`` (its ``MEASURES``)."""
