@@ -641,26 +641,25 @@ class PonytailNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self._sinks.on_diagnostics(msg, self.get_clock().now().nanoseconds)
-        if 'clocks differ' in msg.status[0].message:
-            # Said on the terminal too, with the fix, not only inside /diagnostics.
-            age = next((kv.value for kv in msg.status[0].values
-                        if kv.key == 'head input age (s)'), '?')
+        # Said on the terminal too, with the fix, not only inside /diagnostics (throttled).
+        status = msg.status[0]
+        values = {kv.key: kv.value for kv in status.values}
+        if 'clocks differ' in status.message:
             self._log_throttled(
                 'clock', 30.0, 'warning',
-                f'Head pose stamps on {self._input_topics["head"]} are {age} s off this node\'s '
-                f'clock (another clock: a simulator, another machine, use_sim_time on one side '
-                f'only): the motion is estimated wrongly. Fix: stamp_source:=receive (time poses '
-                f'by their arrival), or run both on the same clock (use_sim_time)')
-        if OVERLOADED in msg.status[0].message:
-            # A node that cannot keep its rate falls further behind: say so, with the fix.
-            rate = next((kv.value for kv in msg.status[0].values
-                         if kv.key == 'tick rate (Hz)'), '?')
+                f'Head pose stamps on {self._input_topics["head"]} are '
+                f'{values.get("head input age (s)", "?")} s off this node\'s clock (another '
+                f'clock: a simulator, another machine, use_sim_time on one side only): the '
+                f'motion is estimated wrongly. Fix: stamp_source:=receive (time poses by their '
+                f'arrival), or run both on the same clock (use_sim_time)')
+        if OVERLOADED in status.message:
+            # A node that cannot keep its rate falls further behind.
             self._log_throttled(
                 'overload', 30.0, 'warning',
-                f'Ticking at {rate} Hz, below rate {self.core.values["rate"]:g} Hz: each tick '
-                f'takes longer than its period, so this node falls behind. Run one node per '
-                f'group of characters (each in its own namespace: -r __ns:=/group1), or lower '
-                f'rate, or raise solver.dt')
+                f'Ticking at {values.get("tick rate (Hz)", "?")} Hz, below rate '
+                f'{self.core.values["rate"]:g} Hz: each tick takes longer than its period, so '
+                f'this node falls behind. Run one node per group of characters (each in its '
+                f'own namespace: -r __ns:=/group1), or lower rate, or raise solver.dt')
 
     def destroy_node(self):
         """Finalise the recording (if any), then destroy the node."""
