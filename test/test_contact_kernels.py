@@ -291,7 +291,6 @@ def test_limit_kernels_match_the_oracle(seed):
     assert limits.project_limits(m, got, anchor.orientation, 1e-9) is None
 
 
-
 @pytest.mark.parametrize('name', ['sphere and limits', 'floor, friction'])
 def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
     """``solve_rows_into`` with its workspace's scratch takes a call of one row (most steps

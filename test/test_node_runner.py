@@ -365,7 +365,8 @@ def test_diagnostics_say_when_the_ticks_fall_behind_the_rate():
     """A node whose tick calls come at the rate reports that rate and no overload; one whose
     calls come at half the rate (each tick longer than its period) is ``WARN``ed as
     overloaded, naming both rates; a window before any head pose (ticks called, nothing
-    published) is not."""
+    published) is not; a short window (a short ``diagnostics_period``) still reports the rate
+    once its calls span ``MIN_RATE_PERIODS`` periods, and nothing below that."""
     from diagnostic_msgs.msg import DiagnosticStatus
     from ponytail_ros.app.node_core import OVERLOADED, NodeCore, time_msg
     from ponytail_ros.resources import config_path
@@ -392,5 +393,7 @@ def test_diagnostics_say_when_the_ticks_fall_behind_the_rate():
     status, kv = run(1.5, 2)
     assert status.level == DiagnosticStatus.WARN
     assert f'{OVERLOADED}: ticking at 60.0 Hz of rate 120 Hz' in status.message
-    status, kv = run(0.25, 1)                   # too short a window to say
+    status, kv = run(0.1, 1)                    # 12 ticks: 11 periods, enough to say
+    assert float(kv['tick rate (Hz)']) == pytest.approx(120.0, rel=1e-6)
+    status, kv = run(8 / 120, 2)                # 4 ticks, 6 periods: too few to say
     assert kv['tick rate (Hz)'] == 'n/a' and OVERLOADED not in status.message

@@ -22,8 +22,8 @@ from .parameters import (build_runner_settings, chain_param_name, check_names, c
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
 
-__all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'OVERLOAD_FRACTION', 'OVERLOADED',
-           'tick_rate', 'time_msg']
+__all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'MIN_RATE_PERIODS', 'OVERLOAD_FRACTION',
+           'OVERLOADED', 'tick_rate', 'time_msg']
 
 #: ``RunnerSettings`` fields that follow their parameters live.
 LIVE_SETTINGS = ('interpolation_delay', 'interpolation_delay_periods', 'latency_compensation',
@@ -43,15 +43,16 @@ TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time me
 OVERLOAD_FRACTION = 0.9
 #: The start of that warning's text (the node says it on its terminal too, with the fix).
 OVERLOADED = 'overloaded'
-#: Tick calls spanning less than this (s) say nothing about the rate (a window's first ticks).
-_MIN_RATE_SPAN = 0.5
+#: Tick calls spanning fewer nominal periods than this say nothing about the rate (one late
+#: timer callback among a few would read as a fall).
+MIN_RATE_PERIODS = 10
 
 
-def tick_rate(win: '_Window') -> Optional[float]:
+def tick_rate(win: '_Window', rate: float) -> Optional[float]:
     """The rate (Hz, node clock) of a window's tick calls, None over less than
-    ``_MIN_RATE_SPAN`` s of them."""
+    ``MIN_RATE_PERIODS`` periods of the nominal ``rate`` (Hz)."""
     span = (win.last_call_ns - win.first_call_ns) * 1e-9
-    if win.calls < 2 or span < _MIN_RATE_SPAN:
+    if win.calls < 2 or span * rate < MIN_RATE_PERIODS:
         return None
     return (win.calls - 1) / span
 
@@ -358,8 +359,8 @@ class NodeCore:
             flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
         if win.guard_resets:
             flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
-        achieved = tick_rate(win)
         rate = float(self.values['rate'])
+        achieved = tick_rate(win, rate)
         if achieved is not None and achieved < OVERLOAD_FRACTION * rate:
             flag(DiagnosticStatus.WARN, f'{OVERLOADED}: ticking at {achieved:.1f} Hz of rate '
                                         f'{rate:g} Hz')

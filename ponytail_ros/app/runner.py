@@ -715,11 +715,7 @@ class ChainRunner:
             # moved onto the attachment point of the head estimated at t.
             m = self.sim.model
             now = self.sim.anchors(head if t_head == t else self.bodies_at(t))
-            if m.n_chains == 1:
-                # (the same differences and sums, without the two gathers)
-                origins += now.position[0] - origins[0]
-            else:
-                origins += (now.position - origins[m.chain_start])[m.chain_of]
+            origins += (now.position - origins[m.chain_start])[m.chain_of]
         return TickOutput(
             t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
             orientations=quats, report=report, reset_reason=reset_reason,

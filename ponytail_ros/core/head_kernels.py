@@ -430,17 +430,12 @@ def median_interval(ts, n):
     return np.median(ts[1:n] - ts[:n - 1])
 
 
-@njit(cache=True)
-def _slerp(q0, q1, s):
-    """Spherical linear interpolation of unit quaternions (``rotations.quat_slerp``)."""
-    return _slerp_at(q0, _slerp_arc(q0, q1), s)
-
-
+# Spherical linear interpolation of unit quaternions (``rotations.quat_slerp``) in two parts:
+# the arc, which does not depend on the fraction (a track computes it once per pair of ends:
+# its log map is half of a slerp's transcendental functions), and the rotation at a fraction.
 @njit(cache=True, inline='always')
 def _slerp_arc(q0, q1):
-    """``_slerp``'s rotation vector from ``q0`` to ``q1`` (the nearer of ``±q1``): what does
-    not depend on the fraction, computed once per pair of ends (its log map is half of a
-    slerp's transcendental functions)."""
+    """The slerp's rotation vector from ``q0`` to ``q1`` (the nearer of ``±q1``)."""
     if dot((q0[0], q0[1], q0[2]), (q1[0], q1[1], q1[2])) + q0[3] * q1[3] < 0.0:
         q1 = (-q1[0], -q1[1], -q1[2], -q1[3])
     return qto_rotvec(qmul(q1, qconj(q0)))
@@ -448,7 +443,7 @@ def _slerp_arc(q0, q1):
 
 @njit(cache=True, inline='always')
 def _slerp_at(q0, phi, s):
-    """``_slerp`` at fraction ``s`` from its arc ``phi`` (``_slerp_arc``)."""
+    """The slerp from ``q0`` at fraction ``s`` of its arc ``phi`` (``_slerp_arc``)."""
     return qmul(qfrom_rotvec(scale(s, phi)), q0)
 
 
@@ -466,7 +461,7 @@ def track_table(times, t0, h, end_p, end_v, end_a, q_ends, w_ends,
     """
     C = end_p.shape[1]
     coef = np.empty((6, C, 3))
-    # Each anchor's slerp arc, once for all rows (bit for bit ``_slerp`` at each row).
+    # Each anchor's slerp arc, once for all rows.
     arc = np.empty((C, 3))
     for c in range(C):
         phi = _slerp_arc((q_ends[0, c, 0], q_ends[0, c, 1], q_ends[0, c, 2], q_ends[0, c, 3]),
