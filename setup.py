@@ -4,10 +4,12 @@ Installs the same way under `colcon build` (dependencies from package.xml) and w
 plain virtual environment (dependencies from the extras below: the ROS 2 Kilted PyPI wheels).
 """
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 package_name = 'ponytail_ros'
+HERE = Path(__file__).resolve().parent
 
 # The ROS 2 Kilted wheels on PyPI. rclpy needs an RMW implementation and does not pull one.
 ROS_WHEELS = [
@@ -19,6 +21,10 @@ ROS_WHEELS = [
     'ros-rosgraph-msgs',
     'ros-diagnostic-msgs',
 ]
+# tf2_msgs (for /tf) is not among the wheels: interfaces/tf2_msgs builds it with the rosidl
+# generators from PyPI, CMake and a C++ compiler (its build_backend.py); without a compiler the
+# set-up still completes and `import tf2_msgs` fails cleanly (live TF off).
+TF2_MSGS = 'ros-tf2-msgs @ ' + (HERE / 'interfaces' / 'tf2_msgs').as_uri()
 # numba compiles the internal step (ponytail_ros.core.step); nopython, cache=True, no fastmath.
 CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60']
 
@@ -36,7 +42,7 @@ setup(
     install_requires=['setuptools'],
     extras_require={
         # tqdm: ponytail_replay's progress bar (a plain text line without it)
-        'pypi': ROS_WHEELS + CORE + ['tqdm'],
+        'pypi': ROS_WHEELS + [TF2_MSGS] + CORE + ['tqdm'],
         'plot': ['matplotlib'],
         'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib', 'ruff', 'mypy'],
         'bench': ['mujoco'],
