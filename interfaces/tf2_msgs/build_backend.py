@@ -8,6 +8,10 @@ wheel named ``ros-tf2-msgs`` (the PyPI wheels' naming): the Python package into 
 the libraries, headers and ament index under the environment's prefix (``lib/``, ``include/``,
 ``share/``), where the wheels' own ``lib/`` is on the library path.
 
+A set-up run again (pip rebuilds a local directory each time) does not build again: when the
+environment already holds a built ``ros-tf2-msgs`` from the same sources (``SOURCE_HASH`` in its
+dist-info), the wheel is packed from the installed files.
+
 It never fails the set-up: when the build cannot run (no C/C++ compiler, a failed step) or
 when a sourced ROS 2 installation already provides tf2_msgs, the wheel holds no files but its
 metadata, ``import tf2_msgs`` stays a clean ``ModuleNotFoundError``, and the reason is the
@@ -37,6 +41,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 DIST = 'ros-tf2-msgs'
 SKIPPED = 'BUILD_SKIPPED'
+SOURCE_HASH = 'SOURCE_HASH'
+SOURCES = ['package.xml', 'CMakeLists.txt', 'msg/TFMessage.msg', 'msg/TF2Error.msg']
 # What `rosidl_generate_interfaces` needs and the PyPI wheels do not declare (their runtime
 # requirements leave out the build tools), plus the messages and headers it builds against.
 BUILD_REQUIRES = [
@@ -99,13 +105,50 @@ def _skip_reason() -> str | None:
     return None
 
 
+def _source_hash() -> str:
+    digest = hashlib.sha256()
+    for name in SOURCES:
+        digest.update(name.encode() + b'\0' + (HERE / name).read_bytes() + b'\0')
+    return digest.hexdigest()
+
+
+def _target_paths() -> list[str]:
+    return sorted({sysconfig.get_path('purelib'), sysconfig.get_path('platlib')})
+
+
+def _installed_files() -> dict[str, Path] | None:
+    """The files of a ``ros-tf2-msgs`` built from these sources and installed in the target
+    environment, as wheel paths, or None when there is none (or it was skipped, or is stale)."""
+    from importlib import metadata
+    for dist in metadata.distributions(path=_target_paths()):
+        if re.sub(r'[-_.]+', '-', dist.metadata['Name'] or '').lower() != DIST:
+            continue
+        if dist.read_text(SKIPPED) is not None or dist.read_text(SOURCE_HASH) != _source_hash():
+            return None
+        site = Path(sysconfig.get_path('platlib')).resolve()
+        prefix = Path(sys.prefix).resolve()
+        data = f'{DIST.replace("-", "_")}-{_version()}.data/data'
+        files = {}
+        for record in dist.files or []:
+            path = Path(dist.locate_file(record)).resolve()
+            if '__pycache__' in path.parts or path.parent.name.endswith('.dist-info'):
+                continue
+            if not path.is_file():
+                return None
+            if path.is_relative_to(site):
+                files[path.relative_to(site).as_posix()] = path
+            elif path.is_relative_to(prefix):
+                files[f'{data}/{path.relative_to(prefix).as_posix()}'] = path
+        return files or None
+    return None
+
+
 def _target_versions() -> dict[str, str]:
     """Versions installed in the environment being installed into (not the isolated build
     environment: its site-packages are sysconfig's, which pip's isolation leaves alone)."""
     from importlib import metadata
-    paths = {sysconfig.get_path('purelib'), sysconfig.get_path('platlib')}
     found = {}
-    for dist in metadata.distributions(path=sorted(paths)):
+    for dist in metadata.distributions(path=_target_paths()):
         name = re.sub(r'[-_.]+', '-', dist.metadata['Name'] or '').lower()
         if name in PINNED_FROM_TARGET:
             found[name] = dist.version
@@ -115,7 +158,7 @@ def _target_versions() -> dict[str, str]:
 # -- PEP 517 hooks --------------------------------------------------------------------------
 
 def get_requires_for_build_wheel(config_settings=None):
-    if _skip_reason():
+    if _skip_reason() or _installed_files():
         return []
     pins = _target_versions()
     requires = [f'{r}=={pins[r]}' if r in pins else r for r in BUILD_REQUIRES]
@@ -138,6 +181,10 @@ def prepare_metadata_for_build_wheel(metadata_directory, config_settings=None):
 
 def build_wheel(wheel_directory, config_settings=None, metadata_directory=None):
     reason = _skip_reason()
+    installed = None if reason else _installed_files()
+    if installed:
+        sys.stderr.write('tf2_msgs: already built from these sources, packed as installed\n')
+        return _write_wheel(Path(wheel_directory), installed, None)
     with tempfile.TemporaryDirectory(prefix='tf2_msgs-build-') as tmp:
         staging = Path(tmp, 'install')
         if reason is None:
@@ -262,6 +309,8 @@ def _write_wheel(directory: Path, files: dict[str, Path], reason: str | None) ->
     if reason:
         sys.stderr.write(f'tf2_msgs: not built ({reason}); live TF stays off\n')
         meta[f'{info}/{SKIPPED}'] = (reason + '\n').encode()
+    else:
+        meta[f'{info}/{SOURCE_HASH}'] = _source_hash().encode()
     record = []
     directory.mkdir(parents=True, exist_ok=True)
     with zipfile.ZipFile(directory / name, 'w', zipfile.ZIP_DEFLATED) as whl:
