@@ -74,11 +74,18 @@ def _provided_by_ament_prefix() -> str | None:
     return None
 
 
-def _compiler() -> str | None:
-    for name in (os.environ.get('CXX'), 'c++', 'g++', 'clang++'):
+def _found(*names: str | None) -> str | None:
+    for name in names:
         if name and shutil.which(name.split()[0]):
             return name
     return None
+
+
+def _compiler() -> str | None:
+    """The C++ compiler, when a C compiler is there too (rosidl builds both)."""
+    if _found(os.environ.get('CC'), 'cc', 'gcc', 'clang') is None:
+        return None
+    return _found(os.environ.get('CXX'), 'c++', 'g++', 'clang++')
 
 
 def _cmake_ok() -> bool:
@@ -101,7 +108,8 @@ def _skip_reason() -> str | None:
     if prefix:
         return f'tf2_msgs is already provided by the sourced ROS 2 installation {prefix}'
     if _compiler() is None:
-        return 'no C++ compiler found (c++, g++ or clang++ on PATH, or $CXX)'
+        return ('no C and C++ compiler found (cc, gcc or clang and c++, g++ or clang++ on PATH, '
+                'or $CC and $CXX)')
     return None
 
 
