@@ -4,6 +4,11 @@ Starts the built-in animation publisher (``ponytail_head_demo``: idle sway, nod,
 run with bob, a sharp stop) and the ponytail node in one process, talking over ROS 2 topics, and
 listens to what the node publishes as a user's RViz would. Afterwards it prints a summary
 (ticks, joint gaps, how far and fast the tip went in each phase) and writes a picture.
+
+With ``--tf`` the head goes over TF instead, as from a character rig: the head demo publishes
+its head as the tree world -> base_link -> neck -> head (``output: tf``) and the node reads it
+with ``head_frame: head``, ``fixed_frame: world`` (both need ``tf2_msgs``, which the set-up
+builds).
 """
 import argparse
 import sys
@@ -17,12 +22,19 @@ from ponytail_ros.resources import config_path
 __all__ = ['main', 'run_demo']
 
 
-def run_demo(duration, config, domain_id=None):
-    """Run head demo + ponytail node for ``duration`` s of wall time; return the recorded data."""
+#: The node's parameters with ``--tf``: the head from the head demo's TF tree.
+TF_NODE_PARAMS = {'head_frame': 'head', 'fixed_frame': 'world'}
+
+
+def run_demo(duration, config, domain_id=None, tf=False):
+    """Run head demo + ponytail node for ``duration`` s of wall time; return the recorded data.
+    ``tf``: the head over TF (the head demo's ``output: tf``, the node's ``TF_NODE_PARAMS``)
+    instead of the ``head_pose`` topic."""
     import rclpy
     from geometry_msgs.msg import PoseArray, PoseStamped
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
     from rclpy.qos import qos_profile_sensor_data
 
     from ponytail_ros.ros.head_demo import HeadDemoNode
@@ -33,8 +45,10 @@ def run_demo(duration, config, domain_id=None):
     rclpy.init(args=['--ros-args', '--params-file', str(config)], context=ctx, **init_kw)
     poses, heads = [], []
     try:
-        head = HeadDemoNode(context=ctx)
-        node = PonytailNode(context=ctx)
+        head_params = [Parameter('output', value='tf')] if tf else []
+        node_params = [Parameter(k, value=v) for k, v in TF_NODE_PARAMS.items()] if tf else []
+        head = HeadDemoNode(context=ctx, parameter_overrides=head_params)
+        node = PonytailNode(context=ctx, parameter_overrides=node_params)
         viewer = rclpy.create_node('demo_viewer', context=ctx)
         viewer.create_subscription(
             PoseArray, 'segment_poses',
@@ -140,11 +154,29 @@ def plot(data, path):
     plt.close(fig)
 
 
+def _check_args(args, config):
+    """What is wrong with the command line (one line naming the option), or None."""
+    if not 0.0 < args.duration <= 86400.0:
+        return f'--duration {args.duration:g}: must be > 0 and <= 86400 s'
+    if not config.is_file():
+        return f'--config {config}: no such file'
+    if args.tf:
+        try:
+            import tf2_msgs.msg  # noqa: F401
+        except ImportError as err:
+            return (f'--tf needs tf2_msgs, which is not importable ({err}); the set-up '
+                    f'(pip install -e .[pypi]) builds it when a C++ compiler is there')
+    return None
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--duration', type=float, default=20.0, help='wall seconds (default 20)')
     parser.add_argument('--config', default=None, help='parameters file (default ponytail.yaml)')
     parser.add_argument('--out', default='out', help='output folder (default out/)')
+    parser.add_argument('--tf', action='store_true',
+                        help='the head over TF (world -> base_link -> neck -> head) instead of '
+                             'the head_pose topic; needs tf2_msgs')
     parser.epilog = ('Exit status: 0 done, 1 no segment poses received, 2 bad input (one line '
                      'naming it).')
     args = parser.parse_args(argv)
@@ -152,18 +184,17 @@ def main(argv=None):
     def error(text):
         print(f'ponytail_demo: error: {text}', file=sys.stderr)
         return 2
-    if not 0.0 < args.duration <= 86400.0:
-        return error(f'--duration {args.duration:g}: must be > 0 and <= 86400 s')
     config = Path(args.config) if args.config else config_path('ponytail.yaml')
-    if not config.is_file():
-        return error(f'--config {config}: no such file')
-    print(f'Running the head demo and ponytail_node for {args.duration:g} s ({config}) ...',
-          flush=True)
+    problem = _check_args(args, config)
+    if problem:
+        return error(problem)
+    print(f'Running the head demo and ponytail_node for {args.duration:g} s ({config})'
+          f'{", the head over TF" if args.tf else ""} ...', flush=True)
     from rclpy.exceptions import ParameterException
     from ponytail_ros.app.parameters import ParameterError
     from ponytail_ros.ros.spin import describe_error
     try:
-        data = run_demo(args.duration, config)
+        data = run_demo(args.duration, config, tf=args.tf)
     except (ParameterError, ParameterException) as err:
         return error(f'invalid parameters in {config}: {describe_error(err)}')
     except KeyboardInterrupt:
