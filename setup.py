@@ -36,6 +36,10 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        # Viewing and launching (RViz, Foxglove; `ros2 launch` in a ROS 2 install)
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('share/' + package_name + '/rviz', glob('rviz/*.rviz')),
+        ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
     ],
     # Under colcon the dependencies come from package.xml (rosdep); install_requires stays minimal
     # so that a sourced workspace does not try to pull PyPI wheels over the system ROS install.
