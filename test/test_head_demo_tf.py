@@ -124,3 +124,29 @@ def test_tf_output_without_tf2_msgs_is_refused_naming_output(monkeypatch):
     monkeypatch.setitem(sys.modules, 'tf2_msgs.msg', None)     # import fails
     with pytest.raises(ValueError, match=r'^output needs tf2_msgs.*output:=pose'):
         head_demo._tf_types()
+
+
+def test_demo_tf_without_tf2_msgs_exits_2_naming_the_option(monkeypatch, capsys):
+    from ponytail_ros import demo
+    monkeypatch.setitem(sys.modules, 'tf2_msgs.msg', None)
+    assert demo.main(['--tf', '--duration', '1']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('ponytail_demo: error: --tf needs tf2_msgs') and err.count('\n') == 1
+
+
+@pytest.mark.ros
+def test_demo_tf_the_node_swings_from_the_head_it_reads_from_tf():
+    """End to end: the head demo's tree (output: tf, no head_pose) -> the node with
+    head_frame: head -> segment poses whose root follows the head. Needs the node's TF input
+    (``head_frame``); skipped where the node lacks it."""
+    from ponytail_ros.app.parameters import GLOBAL_PARAMS
+    from ponytail_ros.demo import TF_NODE_PARAMS, run_demo, summarize
+    from ponytail_ros.resources import config_path
+    if not set(TF_NODE_PARAMS) <= {p.name for p in GLOBAL_PARAMS}:
+        pytest.skip('this node has no head_frame / fixed_frame parameters (TF input)')
+    from conftest import TEST_DOMAIN_ID
+    data = run_demo(8.0, config_path('ponytail.yaml'), domain_id=TEST_DOMAIN_ID, tf=True)
+    assert len(data['t']) > 100          # segments came, so the head came over TF
+    assert len(data['head_t']) == 0      # and not over head_pose (output: tf)
+    _, gap = summarize(data)
+    assert gap < 1e-9
