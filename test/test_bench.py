@@ -7,6 +7,8 @@ import csv
 import json
 import math
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -225,7 +227,8 @@ def test_perf_map_names_each_compiled_kernel_at_its_address(tmp_path):
     address, and names the kernels a tick runs (here: the contact step loop and the
     published segment poses, run once) by module and function, at the addresses their
     dispatchers call."""
-    from ponytail_ros.bench import perf_map
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
+    import perf_map   # benchmarks/: an investigation script, not installed
     from ponytail_ros.bench.tick_cost import crowd_runner
     from ponytail_ros.core import state_kernels, step_unilateral
 
