@@ -73,7 +73,8 @@ def test_readme_code_blocks_are_parts_of_the_examples_ci_runs():
         assert body in examples, f'README block not verbatim in examples/:\n{body}'
 
 
-SCRIPTS = {'ponytail_node': 'ponytail_ros.node', 'ponytail_head_demo': 'ponytail_ros.ros.head_demo',
+SCRIPTS = {'ponytail_node': 'ponytail_ros.node',
+           'ponytail_head_demo': 'ponytail_ros.ros.head_demo',
            'ponytail_replay': 'ponytail_ros.recording.cli', 'ponytail_demo': 'ponytail_ros.demo',
            'ponytail_bench': 'ponytail_ros.bench.cli'}
 

@@ -106,6 +106,17 @@ def _compile(data: Any) -> Rows:
     return rows
 
 
+def _pose(data: Any) -> Rows:
+    rows = []
+    for r in data['rows']:
+        pairwise = r['rate_hz'] == 'pairwise'
+        rows.append([r['mode'].replace('_', '-'),
+                     'largest difference between two rates' if pairwise else f'{r["rate_hz"]:g}',
+                     '' if pairwise else f'1/{1 / r["dt"]:.0f}',
+                     f'{r["tip_rms_m"]:.2g}', f'{r["tip_max_m"]:.2g}'])
+    return rows
+
+
 #: data file -> (title, command, column headers, rows from the file's JSON, note).
 BENCHMARKS: Dict[str, tuple] = {
     'node_cpu.json': (
@@ -148,6 +159,13 @@ BENCHMARKS: Dict[str, tuple] = {
         'ponytail_bench mujoco',
         ['engine', 'segments', 'dt s', 'CPU µs per step', 'CPU ms per simulated s',
          'tip RMS mm', 'stable'], _mujoco, ''),
+    'pose/pose_reference.json': (
+        'Driven by head poses: the reference\'s moving head as a PoseStamped bag, replayed onto '
+        'its 10-segment scene; tip against the reference over 3 s',
+        'python -m ponytail_ros.bench.pose_bench --reference',
+        ['mode', 'input Hz', 'RK4 step s', 'tip RMS m', 'tip max m'], _pose,
+        '`look-ahead`: `ponytail_replay --look-ahead`; `live`: the node\'s defaults with '
+        '`output_stamp: simulated`.'),
     'compile_cost.json': (
         'The cold compile of every kernel (an empty `NUMBA_CACHE_DIR` each run)',
         'ponytail_bench compile',
@@ -155,8 +173,8 @@ BENCHMARKS: Dict[str, tuple] = {
 }
 
 
-def _section(bench: Path, name: str, label: str, files: List[str]) -> List[str]:
-    out = ['', f'## Machine {name}', '', label]
+def _section(bench: Path, heading: str, label: str, files: List[str]) -> List[str]:
+    out = ['', f'## {heading}', '', label]
     for f in files:
         title, command, header, rows_of, note = BENCHMARKS[f]
         rows = rows_of(json.loads((bench / f).read_text()))
@@ -185,7 +203,8 @@ def page(bench: Path = Path('docs/bench')) -> str:
         '`test/test_pose_accuracy.py`).',
     ]
     for m in machines:
-        out += _section(bench, m['name'], m['label'], m['files'])
+        out += _section(bench, m.get('heading') or f'Machine {m["name"]}', m['label'],
+                        m['files'])
     return '\n'.join(out) + '\n'
 
 
