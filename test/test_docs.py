@@ -86,18 +86,45 @@ def _options(words):
     return [w.split('=')[0] for w in words if w.startswith('-')]
 
 
-@pytest.mark.parametrize('command', _indented_commands(README))
-def test_readme_shell_commands_are_ci_commands_or_accepted_options(command):
-    ci = (ROOT / '.ci' / 'run').read_text(encoding='utf-8')
-    if command in ci.splitlines():
+def _extras():
+    setup = (ROOT / 'setup.py').read_text(encoding='utf-8')
+    return set(re.findall(r"^\s+'(\w+)': ", setup, re.M))
+
+
+def _check_install(part):
+    """``python3 -m venv .venv`` or ``.venv/bin/pip install -q -e '.[extras]'`` with extras that
+    ``setup.py`` defines."""
+    if part == 'python3 -m venv .venv':
         return
-    words = shlex.split(command)
-    assert words[0] in SCRIPTS, f'{command!r}: not a command of this package nor of .ci/run'
+    words = shlex.split(part)
+    assert words[:2] == ['.venv/bin/pip', 'install'], part
+    extras = re.search(r'\[([\w,]+)\]', words[-1]).group(1).split(',')
+    assert set(extras) <= _extras(), f'{part}: extras {extras} not all in setup.py'
+
+
+def _check_program(part):
     import subprocess
     import sys
+    words = shlex.split(part)
+    program = words[0].removeprefix('.venv/bin/')
+    assert program in SCRIPTS, f'{part!r}: not a command of this package nor of .ci/run'
     sub = [w for w in words[1:2] if w in ('compare', 'repair')]
-    done = subprocess.run([sys.executable, '-m', SCRIPTS[words[0]], *sub, '--help'],
+    done = subprocess.run([sys.executable, '-m', SCRIPTS[program], *sub, '--help'],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     for option in _options(words[1:]):
-        assert option in done.stdout, f'{command!r}: {option} is not in {words[0]} --help'
+        assert option in done.stdout, f'{part!r}: {option} is not in {program} --help'
+
+
+@pytest.mark.parametrize('command', _indented_commands(README))
+def test_readme_shell_commands_are_ci_commands_or_accepted_options(command):
+    """Each README command is a line of ``.ci/run``, or installs with extras ``setup.py`` has
+    and then calls a command of this package with options its ``--help`` lists."""
+    ci = (ROOT / '.ci' / 'run').read_text(encoding='utf-8')
+    if command in ci.splitlines():
+        return
+    for part in (p.strip() for p in command.split('&&')):
+        if part.startswith(('python3 -m venv', '.venv/bin/pip')):
+            _check_install(part)
+        else:
+            _check_program(part)
