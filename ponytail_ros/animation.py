@@ -34,8 +34,9 @@ class RecordedRun:
     """What the animation draws: head poses and each chain's joint points over time.
 
     ``head_t`` (s, from the first head pose), ``head_p`` (m) and ``head_q`` (x, y, z, w);
-    ``chains``: chain name -> (stamps in s on the same clock, joint points (ticks, n + 1, 3) in
-    m: each segment's origin, then the last segment's far end); ``head_radius`` in m.
+    ``chains``: chain name -> (stamps in s on the same clock, one ``(n + 1, 3)`` array of joint
+    points per tick in m: each segment's origin, then the last segment's far end);
+    ``head_radius`` in m.
     """
 
     head_t: np.ndarray
@@ -94,10 +95,12 @@ def load_run(path) -> RecordedRun:
         if not rows:
             continue
         t = np.array([r[0] for r in rows]) - t0
-        s = np.array([r[1] for r in rows])                       # (ticks, n, 7)
-        lengths = _chain_lengths(values, c, s.shape[1])
-        tip = s[:, -1, :3] + lengths[-1] * quat_axis_x(s[:, -1, 3:])
-        out[c] = (t, np.concatenate([s[..., :3], tip[:, None]], axis=1))
+        points = []
+        for _, poses in rows:             # the segment count may change live (a rebuild)
+            s = np.array(poses)           # (n, 7)
+            tip = s[-1, :3] + _chain_lengths(values, c, len(s))[-1] * quat_axis_x(s[-1, 3:])
+            points.append(np.vstack([s[:, :3], tip]))
+        out[c] = (t, points)
     return RecordedRun(h[:, 0] - t0, h[:, 1:4], h[:, 4:8], out, _head_radius(values))
 
 

@@ -3,7 +3,8 @@
 Starts the built-in animation publisher (``ponytail_head_demo``: idle sway, nod, shake, turn, a
 run with bob, a sharp stop) and the ponytail node in one process, talking over ROS 2 topics, and
 listens to what the node publishes as a user's RViz would. Afterwards it prints a summary
-(ticks, joint gaps, how far and fast the tip went in each phase) and writes a picture.
+(ticks, joint gaps, how far and fast the tip went in each phase) and writes a picture and, from
+the node's own recording of the run (``demo_run.mcap``), an animation (``animation.py``).
 """
 import argparse
 import sys

@@ -8,6 +8,7 @@ Regenerate the page after changing a parameter::
 (``test/test_docs.py`` fails while the page differs from what this prints.)
 """
 import sys
+import textwrap
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Tuple
 
@@ -142,7 +143,8 @@ def help_text() -> str:
                 facts.append(unit)
             facts.append(changes)
             lines.append(f'  {name} ({"; ".join(facts)})')
-            lines.append(f'      {meaning}')
+            lines.append(textwrap.fill(meaning, width=99, initial_indent=' ' * 6,
+                                       subsequent_indent=' ' * 6))
         lines.append('')
     return '\n'.join(lines).rstrip('\n')
 
