@@ -125,8 +125,8 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] 
         raise ValueError(f'no frames between {start:g} s and {end:g} s')
     sx, sy, sz = _sphere(run.head_radius)
     fig = plt.figure(figsize=(size, size), dpi=dpi)
-    ax = fig.add_subplot(projection='3d')
-    half = 0.35
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection='3d')
+    half = 0.3
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     writer = PillowWriter(fps=fps)
@@ -143,13 +143,11 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] 
                 j = min(np.searchsorted(ct, t), ct.size - 1)
                 ax.plot(*pts[j].T, '-o', color=('#5a3216', '#b88a3c')[k % 2], lw=3, ms=2.5)
             ax.set(xlim=(p[0] - half, p[0] + half), ylim=(p[1] - half, p[1] + half),
-                   zlim=(p[2] - 1.4 * half, p[2] + 0.6 * half))
-            ax.set_box_aspect((1, 1, 1))
-            ax.set_xticklabels([])
-            ax.set_yticklabels([])
-            ax.set_zticklabels([])
+                   zlim=(p[2] - 1.5 * half, p[2] + 0.5 * half))
+            ax.set_box_aspect((1, 1, 1), zoom=1.35)
+            ax.set_axis_off()
             ax.view_init(elev=12, azim=-60)
-            ax.set_title(f't = {t:4.1f} s', fontsize=8)
+            ax.text2D(0.04, 0.94, f't = {t:4.1f} s', transform=ax.transAxes, fontsize=8)
             writer.grab_frame()
     plt.close(fig)
     return path

@@ -203,7 +203,7 @@ def _fresh(path):
 def render_animation(run_file, gif):
     """The recorded run as a GIF of the head and its ponytail (``animation.py``)."""
     from ponytail_ros.animation import load_run, render
-    return render(load_run(run_file), gif, start=4.0, seconds=8.0)
+    return render(load_run(run_file), gif, start=6.0, seconds=8.0)
 
 
 if __name__ == '__main__':
