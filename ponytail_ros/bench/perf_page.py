@@ -117,6 +117,21 @@ def _pose(data: Any) -> Rows:
     return rows
 
 
+def _refcheck(data: Any) -> Rows:
+    rows = []
+    for r in data['rows']:
+        rms = r.get('rms_mm')
+        rows.append([r['scene'], str(r['n_segments']), r['against'], r['dt_ref'],
+                     f'{r["max_mm"]:.2g}', '' if rms is None else f'{rms:.2g}',
+                     f'{r["window_s"]:.2f}'])
+    return rows
+
+
+def _terms(data: Any) -> Rows:
+    return [[r['configuration'], f'{r["cpu_ms_per_sim_s"]:.1f}', f'{r["vs_gravity"]:.2f}',
+             f'{r["rows_per_step"]:.2f}'] for r in data['rows']]
+
+
 #: data file -> (title, command, column headers, rows from the file's JSON, note).
 BENCHMARKS: Dict[str, tuple] = {
     'node_cpu.json': (
@@ -166,6 +181,18 @@ BENCHMARKS: Dict[str, tuple] = {
         ['mode', 'input Hz', 'RK4 step s', 'tip RMS m', 'tip max m'], _pose,
         '`look-ahead`: `ponytail_replay --look-ahead`; `live`: the node\'s defaults with '
         '`output_stamp: simulated`.'),
+    'full/refcheck.json': (
+        'The core\'s RK4 against the independent reduced-coordinate reference '
+        '(`../shared/reference/`) and against itself at twice the step',
+        'ponytail_bench refcheck --full',
+        ['scene', 'segments', 'against', 'RK4 step s', 'max mm (window)', 'tip RMS mm',
+         'window s'], _refcheck, ''),
+    'terms.json': (
+        'What each term, collider and limit costs: a 20-segment ponytail on the moving head, '
+        'RK4 1/240 s, each configuration adding one thing',
+        'ponytail_bench terms',
+        ['configuration', 'CPU ms per simulated s', 'against gravity alone',
+         'contact/limit rows per step'], _terms, ''),
     'compile_cost.json': (
         'The cold compile of every kernel (an empty `NUMBA_CACHE_DIR` each run)',
         'ponytail_bench compile',
