@@ -128,3 +128,12 @@ def test_readme_shell_commands_are_ci_commands_or_accepted_options(command):
             _check_install(part)
         else:
             _check_program(part)
+
+
+def test_readme_and_docs_prose_carry_no_dates():
+    """History belongs in CHANGELOG.md, figures in docs/performance.md (generated)."""
+    pages = [ROOT / 'README.md'] + [ROOT / 'docs' / f'{n}.md'
+                                    for n in ('method', 'limits', 'testing', 'parameters')]
+    for page in pages:
+        text = page.read_text(encoding='utf-8')
+        assert not re.search(r'\b20\d\d-\d\d-\d\d\b', text), page.name

@@ -54,6 +54,8 @@ _TYPES = {'double': 'double', 'int': 'integer', 'bool': 'bool', 'string': 'strin
 
 
 def _default(p: ParamDef) -> str:
+    if p.name == 'color':
+        return 'a colour per chain, cycled'
     if p.kind == 'string':
         return repr(p.default) if p.default == '' else str(p.default)
     if isinstance(p.default, bool):
