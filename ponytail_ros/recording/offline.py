@@ -74,12 +74,24 @@ class ReplayResult:
     tick_mode: str = ''
     parameters_from: str = ''
     truncated: bool = False
+    #: The signal that stopped the replay early ("SIGINT", "SIGTERM"), else None: the output
+    #: is finalised and its metadata says it is partial.
+    interrupted: Optional[str] = None
 
     @property
     def sim_seconds(self) -> float:
         if self.first_tick_ns is None:
             return 0.0
         return (self.last_tick_ns - self.first_tick_ns) * 1e-9
+
+    def interrupted_line(self, input_path) -> str:
+        """The one terminal line of an interrupted replay."""
+        upto = (f'up to t = {self.sim_seconds:.2f} s of its run ({self.ticks} ticks, last at '
+                f'log time {self.last_tick_ns} ns)' if self.last_tick_ns is not None
+                else 'with no tick')
+        return (f'{input_path}: interrupted by {self.interrupted}: {self.output} is partial, '
+                f'simulated {upto} (its metadata says so); rerun with --overwrite to replace '
+                f'it')
 
     def summary(self, input_path) -> str:
         speed = self.sim_seconds / self.wall_seconds if self.wall_seconds > 0 else float('inf')
@@ -156,7 +168,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: Optional[str] = None) -> ReplayResult:
+           tf_prefix: Optional[str] = None, stop: Any = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -173,6 +185,13 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             (head stamps on another clock than the log times need ``'receive'``).
         tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
             ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
+        stop: checked between input messages (``interrupt.StopRequest``): once true (its
+            ``name`` the signal's), the replay ends there, its output finalised and marked
+            partial (``ReplayResult.interrupted``).
+
+    Head stamps on another clock than the log times are refused (``foreign_clock``) unless
+    header stamps were asked for explicitly (``stamp_source='header'``, or ``stamp_source``
+    in the params file or in the node's recorded parameters): then only warned.
 
     Raises:
         ReplayError: bad input or options (one-line message naming the file and topic), a
@@ -187,6 +206,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     stamps = head_stamps(inp)
     clock_note = foreign_clock(inp, stamps, values['stamp_source'])
     if clock_note:
+        if not _header_stamps_asked(inp, params_file, stamp_source):
+            raise ReplayError(clock_note)
         warn(clock_note)
     mode, tick_topic = _tick_mode(inp, ticks, values)
     result.tick_mode = mode
@@ -207,21 +228,39 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         _use_spline_estimators(node.runner)
     loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
                         events_topic=events_topic, frame_topics=frame_topics,
-                        frame_types=frame_types, look_ahead=look_ahead, progress=progress)
+                        frame_types=frame_types, look_ahead=look_ahead, progress=progress,
+                        stop=stop)
     try:
         loop.run()
+        if loop.interrupted:
+            result.interrupted = getattr(stop, 'name', '') or 'a stop request'
+            recorder.mark_partial(f'interrupted by {result.interrupted}', result.last_tick_ns)
     except BagError as exc:
         recorder.close()
         output_path.unlink(missing_ok=True)
         raise ReplayError(str(exc)) from None
     finally:
         recorder.close()
-    _finish(inp, node, recorder, result, output_path, clock_note, warn)
+    if result.interrupted:
+        if recorder.error is not None:
+            raise ReplayError(f'writing {output_path} failed: {recorder.error}')
+    else:
+        _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
     if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
         progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
     return result
+
+
+def _header_stamps_asked(inp: ReplayInput, params_file, stamp_source) -> bool:
+    """The user chose header stamps: ``--stamp-source header``, ``stamp_source`` in the
+    ``--params`` file, or (no ``--params``) the node's own recorded choice."""
+    if stamp_source is not None:
+        return stamp_source == 'header'
+    if params_file is not None:
+        return 'stamp_source' in _given_values(inp, params_file)
+    return inp.layout is not None and 'stamp_source' in (inp.recorded_parameters or {})
 
 
 def _use_spline_estimators(runner) -> None:
@@ -253,6 +292,8 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
         raise ReplayError(f'{output_path}: the output would overwrite the input')
     if inp.note:
         warn(inp.note)
+    for note in inp.notes:
+        warn(note)
     if inp.truncated:
         warn(inp.truncated_warning())
     return inp, output_path
@@ -379,8 +420,20 @@ def _open_output(inp: ReplayInput, output_path: Path, values, frames, frame_topi
     except BagError as exc:
         text = str(exc)
         if 'already exists' in text:
-            text = f'{output_path} already exists (use --overwrite to replace it)'
+            partial = _partial_output(output_path)
+            text = (f'{output_path} already exists{f" ({partial})" if partial else ""} (use '
+                    f'--overwrite to replace it)')
         raise ReplayError(text) from None
+
+
+def _partial_output(path: Path) -> Optional[str]:
+    """How an existing output is partial (an interrupted replay's), or None."""
+    from .bag import BagReader
+    from .inputs import partial_note
+    try:
+        return partial_note(path, BagReader(path).metadata())
+    except BagError:
+        return None
 
 
 class _OfflineLoop:
@@ -393,8 +446,11 @@ class _OfflineLoop:
     def __init__(self, inp: ReplayInput, node: ReplayNode, result: ReplayResult, values, *,
                  mode: str, tick_topic: Optional[str], events_topic: Optional[str],
                  frame_topics, frame_types, look_ahead: bool,
-                 progress: Optional[Callable[..., None]]):
+                 progress: Optional[Callable[..., None]], stop: Any = None):
         self.inp, self.node, self.result = inp, node, result
+        self.stop = stop
+        #: The loop ended early on ``stop``.
+        self.interrupted = False
         self.mode, self.events_topic = mode, events_topic
         self.look_ahead, self.progress = look_ahead, progress
         span = inp.span_ns() if progress is not None else None
@@ -444,12 +500,14 @@ class _OfflineLoop:
 
     def run(self) -> None:
         decode = self._decoders()
+        stop = self.stop
         for topic, _, data, log_ns in self.inp.messages(self.wanted, raw=True):
+            if stop:
+                self.interrupted = True
+                break
             msg = decode[topic](data)
-            if self.mode == 'nominal' and self.next_tick is not None:
-                while self.next_tick < log_ns:
-                    self._schedule_tick(self.next_tick)
-                    self.next_tick += self.period_ns
+            if self.mode == 'nominal':
+                self._nominal_ticks_before(log_ns)
             if topic == self.inp.head_topic:
                 self._head(msg, log_ns)
             elif topic in self.frame_index:
@@ -466,6 +524,13 @@ class _OfflineLoop:
         self._run_due(flush=True)
         if self.result.last_tick_ns is not None:
             self.node.final_diagnostics(self.result.last_tick_ns)
+
+    def _nominal_ticks_before(self, log_ns: int) -> None:
+        """The nominal ticks due before an input logged at ``log_ns``."""
+        if self.next_tick is not None:
+            while self.next_tick < log_ns:
+                self._schedule_tick(self.next_tick)
+                self.next_tick += self.period_ns
 
     # -- the messages ----------------------------------------------------------------------
     def _head(self, msg, log_ns: int) -> None:
