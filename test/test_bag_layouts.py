@@ -219,4 +219,4 @@ def test_two_bags_of_one_name_are_refused_before_anything_runs(layouts, tmp_path
     code, _, err = run([layouts['bag folder'], other, '-o', tmp_path / 'out', '--params',
                         params], capsys)
     assert code == 2 and len(err) == 1 and 'single.mcap' in err[0]
-    assert not any((tmp_path / 'out').iterdir())
+    assert not (tmp_path / 'out').exists()
