@@ -14,7 +14,7 @@ from typing import Any, Dict, Optional
 __all__ = ['StopRequest', 'EXIT_CODES', 'signal_name']
 
 #: Exit status of a run stopped by a signal: 128 + its number (the shell's convention).
-EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+EXIT_CODES: Dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
 def signal_name(signum: int) -> str:

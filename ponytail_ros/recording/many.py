@@ -127,11 +127,12 @@ def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: Dict[str
     called with each bag's outcome as it ends (in the parent). ``options``: keyword arguments
     of ``offline.replay``. Bags not started when ``stop`` becomes true get status
     ``'not started'``."""
-    ctx = multiprocessing.get_context(
+    ctx: Any = multiprocessing.get_context(
         'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn')
     pending = list(zip(bags, outputs))
     running: Dict[Any, Tuple[Any, Path]] = {}       # connection -> (process, bag)
     outcomes: List[BagOutcome] = []
+    outcome: BagOutcome
     forwarded = False
     try:
         while pending or running:
@@ -154,7 +155,8 @@ def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: Dict[str
                 pending.clear()
             if not running:
                 break
-            for conn in wait(list(running), timeout=0.2):
+            ready: List[Any] = wait(list(running), timeout=0.2)
+            for conn in ready:
                 process, bag = running.pop(conn)
                 try:
                     outcome = conn.recv()

@@ -70,7 +70,7 @@ def zstd_module():
         from compression import zstd  # type: ignore[import-not-found]
     except ImportError:
         try:
-            from backports import zstd  # type: ignore[import-not-found,no-redef]
+            from backports import zstd
         except ImportError:
             raise BagError('reading zstd-compressed bags needs backports.zstd, which comes with '
                            'rosbags (pip install rosbags)') from None
@@ -200,10 +200,8 @@ def resolve_bag(path: Union[str, os.PathLike]) -> BagLayout:
                        f'file in it')
     if path.name == _METADATA:
         return _from_metadata(path.parent, path)
-    storage = _storage_of(path)
-    if storage is None:
-        # (an MCAP file by another name is still read; the MCAP reader checks its magic)
-        storage = 'mcap'
+    # (an MCAP file by another name is still read; the MCAP reader checks its magic)
+    storage = _storage_of(path) or 'mcap'
     layout = BagLayout(path=path, name=path.stem, files=[path], storage=storage,
                        compression_mode='file' if path.suffix == '.zstd' else '')
     _note_part_of_split(layout)

@@ -409,7 +409,10 @@ class BagReader:
         from mcap.reader import make_reader
         try:
             with self.files[0].path.open('rb') as f:
-                stats = make_reader(f).get_summary().statistics
+                summary = make_reader(f).get_summary()
+            stats = summary.statistics if summary is not None else None
+            if stats is None:
+                return None
             return stats.message_start_time, stats.message_end_time
         except Exception:  # noqa: BLE001 - only a progress bar needs it
             return None

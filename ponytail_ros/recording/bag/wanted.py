@@ -1,7 +1,7 @@
 """Which topics a ``messages`` call reads: the request checked against what was recorded."""
 from __future__ import annotations
 
-from typing import Dict, Mapping, Optional, Set
+from typing import Any, Dict, Mapping, Set
 
 from .errors import BagError
 from .msgdefs import _message_class, _type_string
@@ -30,7 +30,7 @@ def wanted_topics(label, recorded: Dict[str, str], topics, raw: bool) -> Set[str
                 except BagError:
                     wanted.discard(name)
         return wanted
-    expected: Dict[str, Optional[object]] = (
+    expected: Dict[str, Any] = (
         dict(topics) if isinstance(topics, Mapping)
         else dict.fromkeys([topics] if isinstance(topics, str) else topics))
     missing = sorted(set(expected) - set(recorded))
