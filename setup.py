@@ -35,8 +35,9 @@ setup(
     # so that a sourced workspace does not try to pull PyPI wheels over the system ROS install.
     install_requires=['setuptools'],
     extras_require={
-        # tqdm: ponytail_replay's progress bar (a plain text line without it)
-        'pypi': ROS_WHEELS + CORE + ['tqdm'],
+        # tqdm: ponytail_replay's progress bar (a plain text line without it); rosbags: its
+        # .db3 storage and zstd (bag folders as rosbag2 writes them)
+        'pypi': ROS_WHEELS + CORE + ['tqdm', 'rosbags'],
         'plot': ['matplotlib'],
         'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib', 'ruff', 'mypy'],
         'bench': ['mujoco'],
