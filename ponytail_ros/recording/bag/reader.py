@@ -306,7 +306,7 @@ class BagReader:
         cut = [(f, f.truncation) for f in self.files if f.truncation]
         if not cut:
             return None
-        if len(self.files) == 1:
+        if len(self.files) == 1 and not self.layout.is_folder:
             return cut[0][1]
         return '; '.join(f'cut short in {f.label.name} ({text})' for f, text in cut)
 
