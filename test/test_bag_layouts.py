@@ -220,3 +220,24 @@ def test_two_bags_of_one_name_are_refused_before_anything_runs(layouts, tmp_path
                         params], capsys)
     assert code == 2 and len(err) == 1 and 'single.mcap' in err[0]
     assert not (tmp_path / 'out').exists()
+
+
+def test_a_killed_recorders_folder_replays_what_was_written_and_says_so(tmp_path, params,
+                                                                        capsys):
+    """What a SIGKILLed ``ros2 bag record`` leaves: ``<bag>/<bag>_0.mcap`` cut short, no
+    ``metadata.yaml``. Replayed up to the cut, with the missing metadata and the cut said."""
+    from ponytail_ros.bench.replay_bench import make_head_recording
+    whole = make_head_recording(tmp_path / 'whole.mcap', 10.0)   # 100 Hz, many chunks
+    folder = tmp_path / 'killed'
+    folder.mkdir()
+    raw = whole.read_bytes()
+    (folder / 'killed_0.mcap').write_bytes(raw[:int(len(raw) * 0.6)])
+    code, _, err = run([folder, '-o', tmp_path / 'o.mcap', '--params', params], capsys)
+    assert code == 0
+    assert any('no metadata.yaml' in e and 'ros2 bag reindex' in e for e in err), err
+    assert any('cut short in killed_0.mcap' in e and 'truncated at byte' in e for e in err), err
+    assert any('all that could be read' in e for e in err), err
+    poses = segment_poses(tmp_path / 'o.mcap')
+    assert 300 < len(poses) < 700
+    code, _, err = run(['repair', folder, tmp_path / 'fixed.mcap'], capsys)
+    assert code == 2 and len(err) == 1 and 'killed_0.mcap' in err[0]
