@@ -4,10 +4,13 @@ included). With two free cores the second takes about half the first's wall time
 
 The bags are the demo head script at 100 Hz (``replay_bench.make_head_recording``, as ``ros2
 bag record`` stores it), ``--bags`` of ``--seconds`` s each; the scene a params file (default
-``config/ponytail.yaml``). Prints each wall time and their ratio.
+``config/ponytail.yaml``). Prints each wall time, the CPU time of the command's processes
+over it (how many cores it kept busy: ~1 at ``-j 1``, up to ``-j`` when that many cores are
+free), the machine's load average before each run, and the wall times' ratio.
 """
 import argparse
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -17,14 +20,19 @@ from pathlib import Path
 from .replay_bench import make_head_recording
 
 
-def timed(bags: Path, out: Path, params: str, jobs: int) -> float:
-    """Wall time of ``ponytail_replay BAGS -o OUT -j JOBS --params PARAMS --quiet`` in a new
-    process, s."""
-    t0 = time.perf_counter()
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def timed(bags: Path, out: Path, params: str, jobs: int):
+    """``(wall, cpu)`` s of ``ponytail_replay BAGS -o OUT -j JOBS --params PARAMS --quiet`` in
+    a new process (cpu: its processes', workers included)."""
+    cpu0, t0 = _children_cpu(), time.perf_counter()
     subprocess.run([sys.executable, '-m', 'ponytail_ros.recording.cli', str(bags), '-o',
                     str(out), '-j', str(jobs), '--params', params, '--quiet', '--overwrite'],
                    check=True)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, _children_cpu() - cpu0
 
 
 def main(argv=None):
@@ -43,10 +51,12 @@ def main(argv=None):
         timed(bags, Path(tmp) / 'warm', args.params, max(args.jobs))  # the kernel cache warm
         walls = {}
         for jobs in args.jobs:
-            walls[jobs] = timed(bags, Path(tmp) / f'out_j{jobs}', args.params, jobs)
+            load = os.getloadavg()[0]
+            walls[jobs], cpu = timed(bags, Path(tmp) / f'out_j{jobs}', args.params, jobs)
             print(f'{args.bags} bags x {args.seconds:g} s, -j {jobs}: {walls[jobs]:.1f} s wall '
-                  f'({args.bags * args.seconds / walls[jobs]:.1f}x real time overall)',
-                  flush=True)
+                  f'({args.bags * args.seconds / walls[jobs]:.1f}x real time overall), '
+                  f'{cpu:.1f} s CPU = {cpu / walls[jobs]:.2f} cores busy (load average '
+                  f'{load:.1f} before)', flush=True)
     first = walls[args.jobs[0]]
     for jobs in args.jobs[1:]:
         print(f'-j {jobs} / -j {args.jobs[0]}: {walls[jobs] / first:.2f} of the wall time '
