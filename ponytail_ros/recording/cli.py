@@ -307,7 +307,7 @@ def _main_replay(args, warn, error, parser) -> int:
     output = Path(args.output)
     if len(bags) > 1 or len(args.inputs) > 1:
         return _main_replay_many(args, bags, output, error)
-    if output.is_dir():
+    if output.is_dir() or args.output.endswith(('/', os.sep)):
         from .many import bag_name
         output = output / f'{bag_name(bags[0])}.mcap'
     progress = Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
@@ -353,7 +353,7 @@ def _main_replay_many(args, bags, out_dir: Path, error) -> int:
 
 def _bag_line(outcome, quiet: bool, error) -> int:
     """The line (and warnings) of one bag of many; its exit code."""
-    if outcome.status in ('ok', 'interrupted') and not quiet:
+    if not quiet:
         for text in outcome.warnings:
             print(f'ponytail_replay: warning: {text}', file=sys.stderr)
     if outcome.status == 'ok':
