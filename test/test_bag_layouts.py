@@ -241,3 +241,34 @@ def test_a_killed_recorders_folder_replays_what_was_written_and_says_so(tmp_path
     assert 300 < len(poses) < 700
     code, _, err = run(['repair', folder, tmp_path / 'fixed.mcap'], capsys)
     assert code == 2 and len(err) == 1 and 'killed_0.mcap' in err[0]
+
+
+def test_an_mcap_file_of_another_profile_is_read_as_rosbags_would_refuse_it(tmp_path):
+    """rosbags refuses an MCAP file whose profile is not ``ros2``; the same messages with
+    another profile read here as with it."""
+    from mcap.writer import Writer as McapWriter
+    from ponytail_ros.recording.bag import message_definition
+    samples = head_samples(50)
+    paths = {}
+    for profile in ('ros2', ''):
+        paths[profile] = tmp_path / f'profile_{profile or "none"}.mcap'
+        with open(paths[profile], 'wb') as f:
+            w = McapWriter(f)
+            w.start(profile=profile, library='test')
+            sid = w.register_schema('geometry_msgs/msg/PoseStamped', 'ros2msg',
+                                    message_definition('geometry_msgs/msg/PoseStamped').encode())
+            cid = w.register_channel(HEAD, 'cdr', sid)
+            for k, (log_ns, data) in enumerate(samples):
+                w.add_message(cid, log_ns, data, log_ns, k)
+            w.finish()
+    with pytest.raises(Exception, match='Profile is not ros2'):
+        with rosbag2_reader(paths['']):
+            pass
+    read = {p: [(t, bytes(d)) for _, _, d, t in BagReader(path).messages(raw=True)]
+            for p, path in paths.items()}
+    assert read[''] == read['ros2'] == [(t, bytes(d)) for t, d in samples]
+
+
+def rosbag2_reader(path):
+    from rosbags.rosbag2 import Reader
+    return Reader(path)
