@@ -45,7 +45,11 @@ class Db3FileReader:
 
     @contextmanager
     def _open(self) -> Iterator[Any]:
-        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+        try:
+            from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+        except ImportError:
+            raise BagError(f'{self.label}: reading sqlite3 (.db3) bags needs rosbags (pip '
+                           f'install rosbags; ROS: python3-rosbags)') from None
         reader = Sqlite3Reader(self.path)
         try:
             reader.open()
