@@ -20,7 +20,8 @@ ROS_WHEELS = [
     'ros-diagnostic-msgs',
 ]
 # numba compiles the internal step (ponytail_ros.core.step); nopython, cache=True, no fastmath.
-CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60']
+CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60',
+        'rosbags']  # rosbags: rosbag2's .db3 storage and zstd compression (bag folders)
 
 setup(
     name=package_name,
@@ -35,9 +36,8 @@ setup(
     # so that a sourced workspace does not try to pull PyPI wheels over the system ROS install.
     install_requires=['setuptools'],
     extras_require={
-        # tqdm: ponytail_replay's progress bar (a plain text line without it); rosbags: its
-        # .db3 storage and zstd (bag folders as rosbag2 writes them)
-        'pypi': ROS_WHEELS + CORE + ['tqdm', 'rosbags'],
+        # tqdm: ponytail_replay's progress bar (a plain text line without it)
+        'pypi': ROS_WHEELS + CORE + ['tqdm'],
         'plot': ['matplotlib'],
         'test': ['pytest', 'pytest-xdist', 'hypothesis', 'rosbags', 'matplotlib', 'ruff', 'mypy'],
         'bench': ['mujoco'],
