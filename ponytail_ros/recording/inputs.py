@@ -62,6 +62,9 @@ class ReplayInput:
         self.notes = list(self.reader.notes) + [
             n for n in (partial_note(self.path, self.metadata),) if n]
         self.note = None
+        #: Checked between messages (:meth:`messages`); :attr:`stopped`: it ended a read.
+        self.stop: Any = None
+        self.stopped = False
         if head_topic is None:
             head_topic = self.layout.head_topic if self.layout else '/head_pose'
             if head_topic not in self.topics:
@@ -85,8 +88,13 @@ class ReplayInput:
 
     def messages(self, topics, raw=False):
         """``BagReader.messages`` in this input's order (:attr:`order`); ``raw``: as CDR
-        bytes."""
-        return self.reader.messages(topics, order=self.order, raw=raw)
+        bytes. Ends early, setting :attr:`stopped`, once :attr:`stop` is true (an
+        ``interrupt.StopRequest``: SIGINT or SIGTERM arrived)."""
+        for item in self.reader.messages(topics, order=self.order, raw=raw):
+            if self.stop:
+                self.stopped = True
+                return
+            yield item
 
     def truncated_warning(self) -> str:
         return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '

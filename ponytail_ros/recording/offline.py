@@ -200,6 +200,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     warn = warn or (lambda text: None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     inp, output_path = _open_input(input_path, output_path, head_topic, ticks, warn)
+    inp.stop = stop
     result = ReplayResult(output=output_path, truncated=inp.truncated)
     values, result.parameters_from = _resolve_parameters(inp, params_file, stamp_source,
                                                          look_ahead, warn)
@@ -228,11 +229,10 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         _use_spline_estimators(node.runner)
     loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
                         events_topic=events_topic, frame_topics=frame_topics,
-                        frame_types=frame_types, look_ahead=look_ahead, progress=progress,
-                        stop=stop)
+                        frame_types=frame_types, look_ahead=look_ahead, progress=progress)
     try:
         loop.run()
-        if loop.interrupted:
+        if inp.stopped:
             result.interrupted = getattr(stop, 'name', '') or 'a stop request'
             recorder.mark_partial(f'interrupted by {result.interrupted}', result.last_tick_ns)
     except BagError as exc:
@@ -241,11 +241,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         raise ReplayError(str(exc)) from None
     finally:
         recorder.close()
-    if result.interrupted:
-        if recorder.error is not None:
-            raise ReplayError(f'writing {output_path} failed: {recorder.error}')
-    else:
-        _finish(inp, node, recorder, result, output_path, clock_note, warn)
+    _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
     if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
@@ -446,11 +442,8 @@ class _OfflineLoop:
     def __init__(self, inp: ReplayInput, node: ReplayNode, result: ReplayResult, values, *,
                  mode: str, tick_topic: Optional[str], events_topic: Optional[str],
                  frame_topics, frame_types, look_ahead: bool,
-                 progress: Optional[Callable[..., None]], stop: Any = None):
+                 progress: Optional[Callable[..., None]]):
         self.inp, self.node, self.result = inp, node, result
-        self.stop = stop
-        #: The loop ended early on ``stop``.
-        self.interrupted = False
         self.mode, self.events_topic = mode, events_topic
         self.look_ahead, self.progress = look_ahead, progress
         span = inp.span_ns() if progress is not None else None
@@ -500,14 +493,12 @@ class _OfflineLoop:
 
     def run(self) -> None:
         decode = self._decoders()
-        stop = self.stop
         for topic, _, data, log_ns in self.inp.messages(self.wanted, raw=True):
-            if stop:
-                self.interrupted = True
-                break
             msg = decode[topic](data)
-            if self.mode == 'nominal':
-                self._nominal_ticks_before(log_ns)
+            if self.mode == 'nominal' and self.next_tick is not None:
+                while self.next_tick < log_ns:
+                    self._schedule_tick(self.next_tick)
+                    self.next_tick += self.period_ns
             if topic == self.inp.head_topic:
                 self._head(msg, log_ns)
             elif topic in self.frame_index:
@@ -524,13 +515,6 @@ class _OfflineLoop:
         self._run_due(flush=True)
         if self.result.last_tick_ns is not None:
             self.node.final_diagnostics(self.result.last_tick_ns)
-
-    def _nominal_ticks_before(self, log_ns: int) -> None:
-        """The nominal ticks due before an input logged at ``log_ns``."""
-        if self.next_tick is not None:
-            while self.next_tick < log_ns:
-                self._schedule_tick(self.next_tick)
-                self.next_tick += self.period_ns
 
     # -- the messages ----------------------------------------------------------------------
     def _head(self, msg, log_ns: int) -> None:
@@ -607,9 +591,12 @@ class _OfflineLoop:
 
 def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,
             output_path: Path, clock_note: Optional[str], warn) -> None:
-    """What was simulated checked (nothing: an error, the output removed) and said."""
+    """What was simulated checked (nothing: an error, the output removed) and said; an
+    interrupted replay's output is kept as it is (marked partial)."""
     if recorder.error is not None:
         raise ReplayError(f'writing {output_path} failed: {recorder.error}')
+    if result.interrupted:
+        return
     if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
         output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')
