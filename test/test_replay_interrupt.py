@@ -3,6 +3,7 @@ rosbags opens it as it is, its metadata names the signal and the log time up to 
 the run, one line on the terminal says so, the exit status is 130 / 143, and a rerun needs
 ``--overwrite`` (and says the existing output is partial)."""
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -36,16 +37,18 @@ def long_bag(tmp_path_factory):
     return folder
 
 
-def _interrupted(bag, out, params, signum):
+def _interrupted(bag, out, params, signum, *more, outputs=None):
+    """Run ``ponytail_replay BAG... -o OUT``, signal it once every output holds a few chunks
+    of ticks (the loop is running); ``(exit status, stdout, stderr lines)``."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [PACKAGE_ROOT] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
-    proc = subprocess.Popen([sys.executable, '-m', 'ponytail_ros.recording.cli', str(bag), '-o',
-                             str(out), '--params', str(params)], env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    outputs = outputs or [out]
+    proc = subprocess.Popen([sys.executable, '-m', 'ponytail_ros.recording.cli', str(bag),
+                             *map(str, more), '-o', str(out), '--params', str(params)],
+                            env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        # Signalled once the output holds a few chunks of ticks (the loop is running).
         deadline = time.monotonic() + 300
-        while not (out.exists() and out.stat().st_size > 300_000):
+        while not all(o.exists() and o.stat().st_size > 300_000 for o in outputs):
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, 'the replay wrote nothing'
             time.sleep(0.05)
@@ -87,3 +90,22 @@ def test_an_interrupted_replay_is_finalised_marked_partial_and_said(long_bag, tm
     # Replaying the partial output says it is partial.
     code3, _, err3 = run([out, '-o', tmp_path / 'again.mcap'], capsys)
     assert code3 == 0 and any(f'{out} is partial: interrupted by {name}' in e for e in err3)
+
+
+def test_an_interrupted_run_of_many_bags_finalises_every_running_one(long_bag, tmp_path,
+                                                                     params):
+    """SIGTERM to ``ponytail_replay A B -o DIR -j 2``: both running replays end, each output
+    finalised and marked partial, one line each, exit 143."""
+    other = tmp_path / 'other'
+    shutil.copytree(long_bag, other)
+    out = tmp_path / 'out'
+    outputs = [out / 'long.mcap', out / 'other.mcap']
+    status, _, err = _interrupted(long_bag, out, params, signal.SIGTERM, other, '-j', '2',
+                                  outputs=outputs)
+    assert status == 143, err
+    said = [e for e in err if 'interrupted by SIGTERM' in e]
+    assert len(said) == 2 and all(any(str(o) in e for e in said) for o in outputs)
+    for o in outputs:
+        with rosbag2.Reader(o) as reader:
+            assert reader.message_count > 100
+        assert BagReader(o).metadata()['ponytail_ros/recording']['partial'] == 'true'
