@@ -26,7 +26,8 @@ ROS_WHEELS = [
 # set-up still completes and `import tf2_msgs` fails cleanly (live TF off).
 TF2_MSGS = 'ros-tf2-msgs @ ' + (HERE / 'interfaces' / 'tf2_msgs').as_uri()
 # numba compiles the internal step (ponytail_ros.core.step); nopython, cache=True, no fastmath.
-CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60']
+CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60',
+        'rosbags']  # rosbags: rosbag2's .db3 storage and zstd compression (bag folders)
 
 setup(
     name=package_name,

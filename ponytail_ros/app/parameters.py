@@ -55,6 +55,7 @@ from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DA
 from .runner import OUTPUT_STAMPS, RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',
+           'NODE_PARAMS',
            'ParameterError', 'chain_param_name', 'check_values', 'build_scene',
            'build_runner_settings', 'check_names', 'collider_names', 'frame_names',
            'frame_topic', 'frame_topics', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
@@ -319,6 +320,16 @@ FRAME_PARAMS = (
     ParamDef('topic', '', 'string', 'The frame\'s pose topic (geometry_msgs/PoseStamped, '
              'sensor-data QoS, header.frame_id that of the head poses); "" = <frame>_pose. '
              'Relative names are in the node\'s namespace.', live=False),
+)
+
+#: The ROS front end's own parameters (``ros/node.py`` declares them; they do not change the
+#: simulation, and ``ponytail_replay`` records ``/tf`` regardless).
+NODE_PARAMS = (
+    ParamDef('tf.publish', True, 'bool', 'Publish every segment as a TF frame on /tf (needs '
+             'tf2_msgs: a sourced ROS 2 workspace; recordings hold /tf regardless).',
+             live=False),
+    ParamDef('tf.prefix', '', 'string', 'TF frames of the segments are <tf.prefix><chain>/<i> '
+             '(i from 0 at the root), children of the head pose\'s frame.', live=False),
 )
 
 _GLOBAL = {p.name: p for p in GLOBAL_PARAMS}

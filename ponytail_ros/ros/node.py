@@ -670,7 +670,8 @@ class PonytailNode(Node):
 
 
 def node_help() -> str:
-    """``ponytail_node --help``: usage, topics and the global parameters with their meaning."""
+    """``ponytail_node --help``: usage, topics and every parameter (``app/param_docs.py``)."""
+    from ponytail_ros.app.param_docs import help_text
     lines = [
         'usage: ponytail_node [-h] [--ros-args --params-file config/ponytail.yaml '
         '-p name:=value -r __ns:=/alice]',
@@ -680,17 +681,10 @@ def node_help() -> str:
         'segment_markers, /diagnostics and, with tf2_msgs installed, /tf. record_path:=run.mcap '
         'records the run for ponytail_replay.',
         '',
-        'Parameters (ros2 param describe /ponytail <name> for ranges; per chain: '
-        '<chain>.n_segments, <chain>.length, <chain>.damping, ...):',
-    ]
-    for pdef in GLOBAL_PARAMS:
-        lines.append(f'  {pdef.name} (default {pdef.default!r}): '
-                     f'{" ".join(str(pdef.description).split())}')
-    lines += ['  tf.publish (default True), tf.prefix (default \'\'): segments as TF frames '
-              '<tf.prefix><chain>/<i>',
-              '',
-              'Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the '
-              'parameter and the allowed values).']
+        help_text(),
+        '',
+        'Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the '
+        'parameter and the allowed values).']
     return '\n'.join(lines)
 
 
