@@ -50,7 +50,9 @@ def run_demo(duration, config, domain_id=None, record_path=None, tf=False):
     rclpy.init(args=ros_args, context=ctx, **init_kw)
     poses, heads = [], []
     try:
-        head_params = [Parameter('output', value='tf')] if tf else []
+        # (an empty frame_id, as config/ponytail.yaml gives the head demo, is no TF frame)
+        head_params = ([Parameter('output', value='tf'),
+                        Parameter('frame_id', value=TF_NODE_PARAMS['fixed_frame'])] if tf else [])
         node_params = [Parameter(k, value=v) for k, v in TF_NODE_PARAMS.items()] if tf else []
         head = HeadDemoNode(context=ctx, parameter_overrides=head_params)
         node = PonytailNode(context=ctx, parameter_overrides=node_params)
@@ -72,7 +74,9 @@ def run_demo(duration, config, domain_id=None, record_path=None, tf=False):
         end = time.monotonic() + duration
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
-        lengths = node.runner.sim.model.length.copy()
+        # (no simulation when no head pose ever came: main says so)
+        sim = node.runner.sim
+        lengths = sim.model.length.copy() if sim is not None else np.zeros(0)
         diagnostics = {'resets': {k: v for k, v in node.runner.resets.items() if v},
                        'dropped': dict(node.runner.dropped),
                        'dropped_time': node.runner.dropped_time_total}

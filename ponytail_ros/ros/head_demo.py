@@ -20,10 +20,11 @@ Parameters:
         ``frames_topic: frame_poses`` (``python -m ponytail_ros.app.crowd`` writes its params
         file).
     output: 'pose' (default: ``head_pose``), 'tf' (the head as a TF tree instead) or 'both'.
-        The tree (``app/head_tree.py``) is ``<frame_id> -> <tf.prefix>base_link`` (below the
-        head on the ground, turned with its yaw) and ``<tf.prefix>neck -> <tf.prefix>head`` on
-        ``/tf`` every period, ``<tf.prefix>base_link -> <tf.prefix>neck`` (``neck_height`` m
-        up) once on ``/tf_static`` (transient local): composed, ``<frame_id> -> head`` is the
+        The tree (``app/head_tree.py``): ``<frame_id> -> <tf.prefix>base_link`` (below the
+        head on the ground, turned with its yaw; ``world`` for an empty ``frame_id``) and
+        ``<tf.prefix>neck -> <tf.prefix>head`` on ``/tf`` every period;
+        ``<tf.prefix>base_link -> <tf.prefix>neck`` (``neck_height`` m up) once on
+        ``/tf_static`` (transient local). Composed, ``<frame_id> -> head`` is the
         ``head_pose`` pose, same stamp. Needs ``tf2_msgs`` (the set-up builds it). Only the
         first character's head is a tree (``frame_poses`` stays a topic).
     tf.prefix (default: the namespace, e.g. 'alice/' under /alice, '' at the root): prepended
@@ -162,7 +163,8 @@ class HeadDemoNode(Node):
         self._msg.header.frame_id = self._frame
         self.create_timer(1.0 / rate, self._on_timer)
         where = ([self._pub.topic_name] if self._pub else []) + (
-            [f'/tf ({" -> ".join([self._frame] + self._tree_frames)})'] if self._tf_pub else [])
+            [f'/tf ({" -> ".join([self._tf_parent] + self._tree_frames)})'] if self._tf_pub
+            else [])
         self.get_logger().info(f'Publishing {kind} head motion on {" and ".join(where)} at '
                                f'{rate:g} Hz in frame {self._frame!r}')
 
@@ -174,6 +176,9 @@ class HeadDemoNode(Node):
         tf_message, transform_stamped = _tf_types()
         self._tf_types = tf_message, transform_stamped
         self._tree_frames = [self._prefix + f for f in TREE_FRAMES]
+        # An empty frame_id is no TF frame: the tree hangs from 'world' then, the frame the
+        # ponytail node takes empty head frames for (its fixed_frame default).
+        self._tf_parent = self._frame or 'world'
         self._neck_height = float(neck_height)
         static_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -189,7 +194,7 @@ class HeadDemoNode(Node):
         tf_message, transform_stamped = self._tf_types
         tree = head_tree(p, q, self._neck_height)
         base, neck, head = self._tree_frames
-        edges = [_transform_msg(transform_stamped, self._frame, base, tree.base),
+        edges = [_transform_msg(transform_stamped, self._tf_parent, base, tree.base),
                  _transform_msg(transform_stamped, neck, head, tree.head)]
         for edge in edges:
             edge.header.stamp = stamp
