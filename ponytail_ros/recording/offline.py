@@ -221,6 +221,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         raise ReplayError(str(exc)) from None
     finally:
         recorder.close()
+    if tf_head:
+        _tf_finish(inp, node, result, output_path, warn)
     _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
@@ -584,6 +586,28 @@ class _OfflineLoop:
                                      <= self.newest_head)):
             _, fn, args = pending.pop(0)
             fn(*args)
+
+
+def _tf_finish(inp: ReplayInput, node: ReplayNode, result: ReplayResult, output_path: Path,
+               warn) -> None:
+    """The head from TF: none at all is an error naming the frames; transforms held past
+    their samples, late stamps and bad messages are warned."""
+    tf_in = node.core.tf
+    if tf_in is None:
+        return
+    for source, src in tf_in.sources.items():
+        what = f'{tf_in.name(source)} pose from TF ({tf_in.fixed_frame} -> {src.frame})'
+        if src.last_ns is None:
+            output_path.unlink(missing_ok=True)
+            raise ReplayError(f'{inp.path}: no {what}: '
+                              f'{src.error or "no moving transform on the way between them"}')
+        if src.extrapolated:
+            held = ', '.join(f'{edge} {n} times' for edge, n in sorted(src.extrapolated.items()))
+            stale = sum(src.stale.values())
+            warn(f'{inp.path}: the {what} held transforms past their samples: {held}'
+                 + (f' ({stale} by more than stale_timeout)' if stale else ''))
+    if tf_in.bad_messages:
+        warn(f'{inp.path}: {tf_in.bad_messages} TF messages ignored ({tf_in.last_bad})')
 
 
 def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,
