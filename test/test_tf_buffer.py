@@ -189,3 +189,42 @@ def test_tf_message_fields_reads_what_rosbags_serialises():
         (5, 6, 'neck_x', 'hé', (0.25, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8))]
     with pytest.raises(ValueError):
         tf_message_fields(data[:-9])
+
+
+def test_tf_input_gives_head_poses_and_says_what_is_missing_or_held():
+    """``TFInput``: poses as PoseStamped heads in fixed_frame; a frame that never appears is
+    said (after the tree had its chance to come in) and flagged in diagnostics; a stopped
+    transform is said held, then stale, naming it."""
+    from ponytail_ros.app.tf_input import FAILING_SAID, TFInput
+    values = {'head_frame': 'head', 'fixed_frame': 'world', 'stale_timeout': 0.25,
+              'frames': []}
+    tf = TFInput(values)
+
+    def msg(stamp, parent, child, x):
+        return [(stamp // 10**9, stamp % 10**9, parent, child, (x, 0.0, 0.0), (0, 0, 0, 1))]
+    for i in range(FAILING_SAID):
+        assert tf.add(msg(EPOCH + i * 10**7, 'world', 'base', 0.1 * i), False) == []
+        said = tf.news()
+        assert not said if i < FAILING_SAID - 1 else [k for k, _ in said] == ['tf:missing:head']
+    assert "frame 'head' has not appeared" in said[0][1]
+    problems, kv = tf.diagnostics()
+    assert problems == [f"TF head: {tf.sources['head'].error}"]
+    assert dict(kv)['tf head lookups failed'] == str(FAILING_SAID)
+    tf.add(msg(0, 'base', 'neck', 0.0), True)
+    out = tf.add(msg(EPOCH + 9 * 10**7, 'neck', 'head', 1.0), False)
+    assert [(s, p.stamp, p.frame_id, p.position) for s, p in out] == [
+        ('head', (1_700_000_000, 213_456_789), 'world', (0.9 + 1.0, 0.0, 0.0))]
+    assert tf.diagnostics()[0] == [] and tf.news() == []
+    for i in range(10, 40):                       # neck -> head stopped at 0.09 s
+        out = tf.add(msg(EPOCH + i * 10**7, 'world', 'base', 0.1 * i), False)
+    said = dict(tf.news())                        # held 0.05 s at 0.39 - 0.25 s
+    assert 'holds neck -> head (0.050 s past its samples): no newer' in said['tf:held:head']
+    assert tf.diagnostics()[0] == []
+    for i in range(40, 80):
+        out = tf.add(msg(EPOCH + i * 10**7, 'world', 'base', 0.1 * i), False)
+    said = dict(tf.news())                        # held 0.45 s: stale
+    assert 'holds neck -> head (0.450 s past its samples): stale,' in said['tf:held:head']
+    problems, kv = tf.diagnostics()
+    assert problems == ['TF head: stale transform neck -> head']
+    assert int(dict(kv)['tf head extrapolated: neck -> head']) > 0
+    assert int(dict(kv)['tf head stale: neck -> head']) > 0

@@ -127,7 +127,8 @@ class NodeCore:
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         #: The head (and frames) from TF (``head_frame`` set), else None.
-        self.tf: Optional[TFInput] = TFInput(self.values) if self.values['head_frame'] else None
+        self.tf: Optional[TFInput] = (TFInput(self.values) if self.values.get('head_frame')
+                                      else None)
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._color_names = [chain_param_name(c, 'color') for c in self.chains]
         self._slices_model: Any = None
@@ -203,7 +204,7 @@ class NodeCore:
         # No frame set and no head pose frame (an empty header.frame_id, or chains hanging
         # from the world only): fixed_frame.
         values = self.values
-        frame = values['frame_id'] or out.frame_id or values['fixed_frame']
+        frame = values['frame_id'] or out.frame_id or values.get('fixed_frame', 'world')
         stamp_ns = self.stamp_ns(t_ns, out)
         slices = self._chain_slices()
         origins, orientations = out.origins, out.orientations

@@ -336,6 +336,8 @@ class TFPoseSource:
         self._unplaced: Dict[str, List[int]] = {}
         self.last_ns: Optional[int] = None
         self.missing = 0
+        #: polls in a row that could not find the path (0 once it is found)
+        self.failing = 0
         self.error: Optional[str] = None
         self.late = 0
         #: edge name -> poses given with that edge held past its newest (or before its oldest)
@@ -388,11 +390,13 @@ class TFPoseSource:
         self._refresh()
         if self._path is None:
             self.missing += 1
+            self.failing += 1
             # (keep what arrived, bounded: a frame that never appears must not grow memory)
             for stamps in self._unplaced.values():
                 if len(stamps) > 10_000:
                     del stamps[:-10_000]
             return []
+        self.failing = 0
         due = self._due()
         if not due:
             return []

@@ -20,6 +20,9 @@ __all__ = ['TFInput', 'TF_TOPIC', 'TF_STATIC_TOPIC', 'tf_frames']
 #: The static transforms' topic (``/tf``'s is ``messages.TF_TOPIC``).
 TF_STATIC_TOPIC = '/tf_static'
 
+#: Look-ups failing this many TF messages in a row are said (fewer: the tree coming in).
+FAILING_SAID = 10
+
 #: A source: 'head' or the index of an extra frame in ``frames``.
 Source = Union[str, int]
 
@@ -127,7 +130,9 @@ class TFInput:
         out = []
         for source, src in self.sources.items():
             name = self.name(source)
-            if src.error is not None and self._changed(f'missing:{source}', src.missing):
+            # (not while the first messages bring the tree in: a few polls in a row)
+            if src.error is not None and src.failing >= FAILING_SAID \
+                    and self._changed(f'missing:{source}', src.missing):
                 out.append((f'tf:missing:{source}',
                             f'No {name} pose from TF ({self.fixed_frame} -> {src.frame}): '
                             f'{src.error}'))
