@@ -254,7 +254,8 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
     itself says about it warned)."""
     if ticks not in ('auto', 'recorded', 'nominal'):
         raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
-    inp = ReplayInput(input_path, head_topic)
+    # (the head topic is checked once the parameters say whether the head comes from TF)
+    inp = ReplayInput(input_path, head_topic, head_required=False)
     output_path = Path(output_path)
     if output_path.exists() and output_path.resolve() == inp.path.resolve():
         raise ReplayError(f'{output_path}: the output would overwrite the input')
