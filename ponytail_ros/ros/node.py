@@ -328,10 +328,12 @@ class PonytailNode(Node):
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
                                  for f, sub in zip(self._frames, self._frame_subs)}}
+        tf_frames = set()
         if tf_in is not None:
             for source in tf_in.sources:
                 name = 'head' if source == 'head' else self._frames[source]
                 self._input_topics[name] = tf_in.describe(source)
+                tf_frames.add(name)
         if self._frame_subs:
             self._input_topics['frames'] = self._frame_subs[0].topic_name
         #: /tf live (tf2_msgs importable and tf.publish), else None.
@@ -366,7 +368,10 @@ class PonytailNode(Node):
                     tf_prefix=self._tf_prefix)
         self._sinks = Sinks([s for s in (self._recorder, self._publisher_sink) if s is not None])
         scene = self.core.scene
-        inputs = ', '.join(['head_pose'] + list(dict.fromkeys(self.core.frame_topics)))
+        inputs = ', '.join([tf_in.describe('head') if tf_in is not None else 'head_pose']
+                           + list(dict.fromkeys(self._input_topics[f] if f in tf_frames else t
+                                                for f, t in zip(self._frames,
+                                                                self.core.frame_topics))))
         #: Set (and logged once) when another node with this node's name is in the graph.
         self.duplicate_name_warning = None
         self._name_checks = 0
