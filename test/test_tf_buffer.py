@@ -228,3 +228,12 @@ def test_tf_input_gives_head_poses_and_says_what_is_missing_or_held():
     assert problems == ['TF head: stale transform neck -> head']
     assert int(dict(kv)['tf head extrapolated: neck -> head']) > 0
     assert int(dict(kv)['tf head stale: neck -> head']) > 0
+
+
+def test_tf_input_skips_the_nodes_own_segments():
+    from ponytail_ros.app.tf_input import TFInput
+    tf = TFInput({'head_frame': 'head', 'fixed_frame': 'world', 'stale_timeout': 0.25})
+    tf.ignore_prefixes = ('alice/ponytail/',)
+    tf.add([(0, 0, 'world', 'alice/ponytail/0', (0, 0, 0), (0, 0, 0, 1)),
+            (0, 0, 'world', 'head', (0, 0, 0), (0, 0, 0, 1))], False)
+    assert tf.buffer.frames() == {'world', 'head'}

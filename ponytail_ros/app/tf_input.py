@@ -60,6 +60,9 @@ class TFInput:
         #: ``/tf`` messages that could not be read or held an invalid transform
         self.bad_messages = 0
         self.last_bad: Optional[str] = None
+        #: Child frames starting with these are skipped: the node's own segments, which it
+        #: hears back on ``/tf`` (set by the node: ``<tf.prefix><chain>/``).
+        self.ignore_prefixes: Tuple[str, ...] = ()
         self._said: Dict[str, Any] = {}
 
     def describe(self, source: Source) -> str:
@@ -70,6 +73,8 @@ class TFInput:
             static: bool) -> List[Tuple[Source, ReceivedPose]]:
         """One ``TFMessage``'s transforms (``wire.tf_message_fields``) into the buffer; the poses
         now due, as ``(source, ReceivedPose)`` in stamp order per source."""
+        if self.ignore_prefixes:
+            transforms = [t for t in transforms if not t[3].startswith(self.ignore_prefixes)]
         try:
             added = self.buffer.add_transforms(transforms, static)
         except ValueError as err:

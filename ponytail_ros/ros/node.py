@@ -290,6 +290,8 @@ class PonytailNode(Node):
         #: Warnings said at start-up about the parameters given (unknown names; tf).
         self.startup_warnings = []
         self._declare_tf_parameters()
+        if self.core.tf is not None:      # (its own segments come back on /tf: not inputs)
+            self.core.tf.ignore_prefixes = tuple(f'{self._tf_prefix}{c}/' for c in self._chains)
         self._warn_unknown_overrides()
 
         if len(self._chains) == 1:
