@@ -254,8 +254,11 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
     itself says about it warned)."""
     if ticks not in ('auto', 'recorded', 'nominal'):
         raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
-    # (the head topic is checked once the parameters say whether the head comes from TF)
+    # (the head topic is checked once the parameters say whether the head comes from TF,
+    # when it can: the input has /tf)
     inp = ReplayInput(input_path, head_topic, head_required=False)
+    if TF_TOPIC not in inp.topics:
+        inp.require_head()
     output_path = Path(output_path)
     if output_path.exists() and output_path.resolve() == inp.path.resolve():
         raise ReplayError(f'{output_path}: the output would overwrite the input')
