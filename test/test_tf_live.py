@@ -29,6 +29,7 @@ from ros_helpers import TIMEOUT_SCALE, attach_point, check_geometry  # noqa: E40
 from ponytail_ros.app.param_values import values_from_params_file  # noqa: E402
 from ponytail_ros.app.wire import tf_message_fields  # noqa: E402
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -160,3 +161,7 @@ def test_head_from_tf_and_segments_on_tf_between_processes(ros_context, processe
     # the head it composed is recorded on its head_pose (replayed from there)
     heads = [m for _, _, m, _ in BagReader(record).messages('/alice/head_pose')]
     assert len(heads) >= 60 and heads[-1].header.frame_id == 'world'
+    # ... and ponytail_replay replays the recording from them, not from its /tf (the node's
+    # own segments)
+    result = replay(record, tmp_path / 'again.mcap')
+    assert result.head_samples == len(heads) and result.ticks >= 60
