@@ -237,3 +237,26 @@ def test_tf_input_skips_the_nodes_own_segments():
     tf.add([(0, 0, 'world', 'alice/ponytail/0', (0, 0, 0), (0, 0, 0, 1)),
             (0, 0, 'world', 'head', (0, 0, 0), (0, 0, 0, 1))], False)
     assert tf.buffer.frames() == {'world', 'head'}
+
+
+@pytest.mark.parametrize('changes, names, words', [
+    ({'fixed_frame': ''}, ('fixed_frame',), 'inertial'),
+    ({'fixed_frame': 'my world'}, ('fixed_frame',), 'no spaces'),
+    ({'head_frame': 'world'}, ('head_frame',), 'other than fixed_frame'),
+    ({'head_frame': 'a head'}, ('head_frame',), 'no spaces'),
+    ({'frames': ['arm'], 'arm.tf_frame': 'hand'}, ('arm.tf_frame', 'head_frame'),
+     'set head_frame'),
+    ({'frames': ['arm'], 'arm.tf_frame': 'hand', 'head_frame': 'head', 'frames_topic': 'fp'},
+     ('arm.tf_frame', 'frames_topic'), 'not allowed with frames_topic'),
+])
+def test_tf_parameters_are_refused_naming_them(changes, names, words):
+    from ponytail_ros.app.parameters import (CHAIN_PARAMS, FRAME_PARAMS, GLOBAL_PARAMS,
+                                             ParameterError, check_values)
+    values = {p.name: p.default for p in GLOBAL_PARAMS}
+    values.update({f'ponytail.{p.name}': p.default for p in CHAIN_PARAMS})
+    values.update({f'arm.{p.name}': p.default for p in FRAME_PARAMS})
+    check_values(values, ['ponytail'])                  # the defaults: the head on head_pose
+    values.update(changes)
+    with pytest.raises(ParameterError, match=words) as err:
+        check_values(values, ['ponytail'])
+    assert err.value.names == names
