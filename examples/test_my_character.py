@@ -1,7 +1,7 @@
 """Tests of my character's ponytail, with plain pytest and the installed ponytail_ros only:
 
-    pip install ponytail_ros            # brings the pytest plugin (fixtures ponytail, ...)
-    pytest examples/
+    pip install '.[pypi]'               # from a clone (README: Install); brings the pytest
+    pytest examples/                    #   plugin (fixtures ponytail, ponytail_offline)
 
 ``ponytail`` runs the real ponytail node in-process on an isolated ROS context, driven by sim
 time; ``ponytail_offline`` runs the same node logic without ROS (faster, for tuning checks).

@@ -3,7 +3,8 @@
 Starts the built-in animation publisher (``ponytail_head_demo``: idle sway, nod, shake, turn, a
 run with bob, a sharp stop) and the ponytail node in one process, talking over ROS 2 topics, and
 listens to what the node publishes as a user's RViz would. Afterwards it prints a summary
-(ticks, joint gaps, how far and fast the tip went in each phase) and writes a picture.
+(ticks, joint gaps, how far and fast the tip went in each phase) and writes a picture and, from
+the node's own recording of the run (``demo_run.mcap``), an animation (``animation.py``).
 """
 import argparse
 import sys
@@ -17,8 +18,9 @@ from ponytail_ros.resources import config_path
 __all__ = ['main', 'run_demo']
 
 
-def run_demo(duration, config, domain_id=None):
-    """Run head demo + ponytail node for ``duration`` s of wall time; return the recorded data."""
+def run_demo(duration, config, domain_id=None, record_path=None):
+    """Run head demo + ponytail node for ``duration`` s of wall time; return the recorded data.
+    ``record_path``: the node also records its run there (MCAP; the animation reads it)."""
     import rclpy
     from geometry_msgs.msg import PoseArray, PoseStamped
     from rclpy.context import Context
@@ -30,7 +32,10 @@ def run_demo(duration, config, domain_id=None):
 
     ctx = Context()
     init_kw = {} if domain_id is None else {'domain_id': domain_id}
-    rclpy.init(args=['--ros-args', '--params-file', str(config)], context=ctx, **init_kw)
+    ros_args = ['--ros-args', '--params-file', str(config)]
+    if record_path is not None:
+        ros_args += ['-p', f'record_path:={record_path}']
+    rclpy.init(args=ros_args, context=ctx, **init_kw)
     poses, heads = [], []
     try:
         head = HeadDemoNode(context=ctx)
@@ -162,8 +167,9 @@ def main(argv=None):
     from rclpy.exceptions import ParameterException
     from ponytail_ros.app.parameters import ParameterError
     from ponytail_ros.ros.spin import describe_error
+    run_file = _fresh(Path(args.out) / 'demo_run.mcap')
     try:
-        data = run_demo(args.duration, config)
+        data = run_demo(args.duration, config, record_path=run_file)
     except (ParameterError, ParameterException) as err:
         return error(f'invalid parameters in {config}: {describe_error(err)}')
     except KeyboardInterrupt:
@@ -181,9 +187,23 @@ def main(argv=None):
     try:
         plot(data, picture)
         print(f'picture: {picture}')
+        print(f'animation: {render_animation(run_file, Path(args.out) / "demo.gif")}')
     except ImportError:
         print('matplotlib is not installed (pip install .[plot]); no picture written')
     return 0
+
+
+def _fresh(path):
+    """``path``, emptied for a new recording (the recorder never overwrites a file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.unlink(missing_ok=True)
+    return path
+
+
+def render_animation(run_file, gif):
+    """The recorded run as a GIF of the head and its ponytail (``animation.py``)."""
+    from ponytail_ros.animation import load_run, render
+    return render(load_run(run_file), gif, start=6.0, seconds=8.0)
 
 
 if __name__ == '__main__':

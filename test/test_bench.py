@@ -7,6 +7,8 @@ import csv
 import json
 import math
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -225,7 +227,8 @@ def test_perf_map_names_each_compiled_kernel_at_its_address(tmp_path):
     address, and names the kernels a tick runs (here: the contact step loop and the
     published segment poses, run once) by module and function, at the addresses their
     dispatchers call."""
-    from ponytail_ros.bench import perf_map
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
+    import perf_map   # benchmarks/: an investigation script, not installed
     from ponytail_ros.bench.tick_cost import crowd_runner
     from ponytail_ros.core import state_kernels, step_unilateral
 
@@ -242,3 +245,18 @@ def test_perf_map_names_each_compiled_kernel_at_its_address(tmp_path):
         for cres in kernel.overloads.values():
             entry = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
             assert entry in addresses
+
+
+def test_the_product_measurements_are_ponytail_bench_commands(capsys):
+    """``ponytail_bench --help`` lists every measurement; ``ponytail_bench crowds`` runs
+    ``tick_cost`` with its crowd sizes, the user's options after them (here: one character)."""
+    with pytest.raises(SystemExit):
+        cli.main(['--help'])
+    listing = capsys.readouterr().out
+    for name in cli.TOOLS:
+        assert f'    {name} ' in listing
+    from ponytail_ros.resources import config_path
+    assert cli.main(['crowds', '--params', str(config_path('ponytail.yaml')),
+                     '--characters', '1', '--ticks', '3']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [ln.split()[0] for ln in lines] == ['1']

@@ -12,7 +12,7 @@ from ponytail_ros.core import step_unilateral
 
 def test_a_warm_cache_is_told_apart_from_a_cold_one(tmp_path, monkeypatch):
     """``_cached`` reads numba's cache index: False before a kernel's first compile, True
-    after it (and for the session's compiled contact step: a warm start starts no child)."""
+    after it (and for the compiled contact step of this test run: a warm start starts no child)."""
     (tmp_path / 'cold_kernel.py').write_text(
         'import numba\n\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n')
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -24,7 +24,7 @@ def test_a_warm_cache_is_told_apart_from_a_cold_one(tmp_path, monkeypatch):
 
 
 def test_the_child_compile_entry_runs_and_reports_its_misses():
-    """The child's command, as a cold start runs it: with the session's cache warm it loads
+    """The child's command, as a cold start runs it: with this test run's cache warm it loads
     the contact step and prints 0 compiled kernels."""
     out = subprocess.run([sys.executable, '-c', kernels_compile._CHILD], capture_output=True,
                          text=True, timeout=300, check=True)

@@ -13,7 +13,7 @@ from ponytail_ros.core.reference import default_reference_dir, load_reference, r
 
 REF_DIR = default_reference_dir()
 FILES = sorted(REF_DIR.glob('ponytail_N*.json')) if REF_DIR.is_dir() else []
-# The undamped horizontal releases of 5 and 10 segments are chaotic (see the README): an error
+# The undamped horizontal releases of 5 and 10 segments are chaotic (see docs/limits.md): an error
 # made early grows ~×10 every 0.2 s late in the window.
 CHAOTIC = {'ponytail_N5_still_horizontal', 'ponytail_N10_still_horizontal'}
 
@@ -33,7 +33,7 @@ def test_matches_reference_within_10_micrometres_at_rk4_1_8000(path):
 
 @pytest.mark.parametrize('path', [f for f in FILES if f.stem in CHAOTIC], ids=lambda p: p.stem)
 def test_chaotic_release_at_rk4_1_8000(path):
-    """Within 1e-5 m until the chaos takes over; see the README's known limits.
+    """Within 1e-5 m until the chaos takes over; see docs/limits.md.
 
     Our maximal-coordinate RK4 has a larger error constant than the reference's reduced
     coordinates on the whip-like end of this release (tip ω > 100 rad/s), and the chaos

@@ -1,4 +1,4 @@
-"""Driven by head poses as accurately as by the head's formulas (issue 13).
+"""Driven by head poses as accurately as by the head's formulas.
 
 The moving head of ``../shared/reference/`` (sway 5 cm at 1.5 Hz, yaw 0.6 rad at 0.8 Hz) is
 written as ``geometry_msgs/PoseStamped`` bags by a third-party writer (``rosbags``) at several
@@ -9,7 +9,7 @@ rest relative to the head (moving with it), as the reference does.
 
 Internal step RK4 at 1/2000 s in look-ahead mode (the core's own error on this file is then
 below the bounds asserted; a finer step only moves the figures towards the estimation error),
-1/1000 s in live mode: see the README (Driven by head poses) for the figures and commands.
+1/1000 s in live mode: ``docs/performance.md`` has the figures and the command.
 """
 from pathlib import Path
 
@@ -27,8 +27,8 @@ T0_NS = 100_000_000_000
 DT = 1.0 / 2000
 RATES = (30, 60, 120, 1000)
 TICK_RATE = 100.0           # the reference's sample period: outputs at its times
-#: Largest RMS tip distance between live replays of 30/60/120/1000 Hz bags, m: the bound
-#: stated in the README (measured 6.1e-2 m by ``pose_bench --reference``).
+#: Largest RMS tip distance between live replays of 30/60/120/1000 Hz bags, m
+#: (``pose_bench --reference`` prints it).
 LIVE_PAIRWISE_RMS = 0.08
 
 
@@ -167,7 +167,7 @@ def test_look_ahead_replay_is_frame_rate_independent(replays):
 
 def test_live_replay_frame_rate_dependence_is_bounded(replays):
     """The live estimate (causal, delayed, smoothed) depends on the input rate: bounded by
-    the figure measured and stated in the README."""
+    ``LIVE_PAIRWISE_RMS``."""
     rms, _ = _pairwise(replays, 'live')
     assert rms <= LIVE_PAIRWISE_RMS
 

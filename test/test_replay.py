@@ -22,7 +22,7 @@ from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from ros_helpers import TIMEOUT_SCALE, TYPES, poses_by_stamp, topic_messages  # noqa: E402
-from ponytail_ros.bench import replay_bench  # noqa: E402
+from ponytail_ros.bench import head_bag  # noqa: E402
 from ponytail_ros.core.rotations import quat_rotate  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter  # noqa: E402
 from ponytail_ros.app.param_values import (  # noqa: E402
@@ -222,7 +222,7 @@ def test_truncated_input_replays_what_can_be_read(live_run, tmp_path, capsys):
 # -- live replay into a graph ------------------------------------------------------------------
 
 def test_live_replay_publishes_the_head_poses_and_clock_at_recorded_pace(ros_context, tmp_path):
-    src = replay_bench.make_head_recording(tmp_path / 'head.mcap', seconds=0.4)
+    src = head_bag.make_head_recording(tmp_path / 'head.mcap', seconds=0.4)
     recorded = topic_messages(src, '/head_pose')
     node = rclpy.create_node('viewer', context=ros_context)
     heads, clock = [], []
@@ -249,9 +249,3 @@ def test_live_replay_publishes_the_head_poses_and_clock_at_recorded_pace(ros_con
     assert clock and clock == sorted(clock)                         # never backwards
     assert clock[0] >= log_times[0] and clock[-1] == log_times[-1]
     assert len(clock) >= len(recorded)                              # before each pose at least
-
-
-def test_replay_benchmark_runs(capsys):
-    rows = replay_bench.main(['--seconds', '0.25'])
-    assert [n for n, _ in rows] == [1, 4]
-    assert 'sim s/wall s' in capsys.readouterr().out

@@ -695,13 +695,9 @@ def test_one_hour_at_120_hz_on_the_moving_head():
     energy bounded, no time drift, nothing dropped, and blow-ups rare, each caught and reported,
     and recovered from.
 
-    Measured (core 6b1e79b+, RK4 1/240): one guard reset in the hour, at t = 2097.9 s: a whip
-    (segment ω 100 -> 390 rad/s and a 219 N joint force within 60 ms: link mode ω ≈ 1300 rad/s,
-    dt·ω ≈ 5, known limit 2), caught as 'non-finite state'. Measured again at core 9c9f5ae (RK4
-    bit-identical to d692b06; the guard has changed since 6b1e79b): one reset, at
-    t = 2761.45 s, caught as 'speed 3.61e+05 m/s > guard_max_speed 200' (max gap 4.6e-16 m,
-    kinetic energy median 0.18 J, 99.9th percentile 0.70 J). Wall time ~10 min of CPU (24 min
-    on a loaded 2-core machine). ``PONYTAIL_SOAK_SECONDS`` shortens it."""
+    A whip can outrun the step (a link mode with dt·ω beyond RK4's limit): the guard catches
+    it ('speed ... > guard_max_speed' or 'non-finite state') and the chain recovers. Minutes of
+    CPU; ``PONYTAIL_SOAK_SECONDS`` shortens it."""
     motion = reference_motion()
     sim = make_sim(ponytail(damping=2e-5), motion, max_steps_per_call=240)
     t0 = time.perf_counter()

@@ -59,6 +59,7 @@ from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DA
 from .runner import OUTPUT_STAMPS, RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',
+           'NODE_PARAMS',
            'ParameterError', 'chain_param_name', 'check_values', 'build_scene',
            'build_runner_settings', 'check_names', 'collider_names', 'frame_names',
            'frame_topic', 'frame_topics', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
@@ -341,6 +342,20 @@ FRAME_PARAMS = (
     ParamDef('tf_frame', '', 'string', 'The frame from TF: its pose is fixed_frame -> '
              'tf_frame composed along the TF tree, as the head\'s with head_frame (which must '
              'be set too); its topic is then not read. "" = from its topic.', live=False),
+)
+
+#: The ROS front end's own parameters (``ros/node.py`` declares them; they do not change the
+#: simulation, and ``ponytail_replay`` records ``/tf`` regardless).
+NODE_PARAMS = (
+    ParamDef('tf.publish', True, 'bool', 'Publish every segment as a TF frame on /tf (needs '
+             'tf2_msgs: a sourced ROS 2 workspace, or built into the environment; without it '
+             'the node says once that live TF is off; recordings hold /tf regardless).',
+             live=False),
+    ParamDef('tf.prefix', '', 'string', 'TF frames of the segments are <tf.prefix><chain>/<i> '
+             '(i from 0 at the root), children of the outputs\' frame (fixed_frame with the head '
+             'from TF). Default: the node\'s namespace (/alice -> alice/, so alice/ponytail/3; '
+             'the root namespace: none), so characters never share a frame; "" = none.',
+             live=False),
 )
 
 _GLOBAL = {p.name: p for p in GLOBAL_PARAMS}

@@ -31,7 +31,7 @@ Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input p
 the input period is the median interval of the stored head samples (the longest of the head's
 and those of the frames the scene uses, when there are frames): a delay of a period or two
 puts samples on both sides of the evaluation time, which is what makes the velocity and
-acceleration estimates smooth (``ponytail_ros/bench/node_bench.py``, trade part, measures the
+acceleration estimates smooth (``benchmarks/node_bench.py``, trade part, measures the
 trade); the default, 2 periods, is 2 ms at 1 kHz, 17 ms at 120 Hz, 67 ms at 30 Hz.
 
 Decisions (documented for the node):

@@ -26,6 +26,17 @@ Subcommands (default ``all``):
 ``report``   ``results.md``: all tables of the JSON files in the output directory, as markdown
              (also written at the end of ``all``).
 
+Measurements of the product as it runs (each its own options; ``ponytail_bench <name> --help``):
+
+``step``     the compiled step per RK4 step against MuJoCo's ``mj_step``, same run
+``tick``     one tick of the core at 12 to 4096 segments (``--idle``: after sleeping)
+``crowds``   N characters in one scene, one tick (``--runner``: as a node runs them)
+``node``     ``ponytail_node``'s CPU share beside the head demo (``--floor``: rclpy's own floor;
+             ``--characters``: a crowd in one node)
+``replay``   ``ponytail_replay`` of a 300 s head bag, and where its time goes
+``compile``  the cold compile of every kernel, on two cores and one
+``head``     the head pose fit's accuracy and cost
+
 Profiles: ``--quick`` (the default; ~2–3 min on one core), ``--full`` (all of it; ~30–40 min),
 ``--tiny`` (seconds; for the tests). Timings are CPU seconds (``time.process_time``) with BLAS
 pinned to one thread, median of repeats.
@@ -63,7 +74,7 @@ from .profiles import PROFILES
 from .scenes import EXTRA_SCENES, SCENES
 from .tables import jsonable, make_meta
 
-__all__ = ['ALL', 'COMMANDS', 'PROFILES', 'build_parser', 'main']
+__all__ = ['ALL', 'COMMANDS', 'PROFILES', 'TOOLS', 'build_parser', 'main', 'run_tool']
 
 # -- the subcommands, in --help order: name -> module of ``commands/`` (defines ``HELP`` and
 # ``run``). A new command: its module, one line in the import above and one line here.
@@ -77,6 +88,18 @@ COMMANDS: dict[str, ModuleType] = {
     'refcheck': refcheck,
     'pose': pose,
     'report': report,
+}
+#: Measurements run as their own commands: name -> (module of ``bench/``, help, arguments
+#: put before the user's).
+TOOLS: dict[str, tuple[str, str, tuple[str, ...]]] = {
+    'step': ('step_cost', 'the compiled step against MuJoCo mj_step, per RK4 step', ()),
+    'tick': ('tick_cost', 'one tick of the core at 12 to 4096 segments', ()),
+    'crowds': ('tick_cost', 'N characters in one scene, one tick (--runner: as a node)',
+               ('--characters', '1', '10', '100', '250')),
+    'node': ('node_cpu', "ponytail_node's CPU share beside the head demo", ()),
+    'replay': ('replay_cost', 'ponytail_replay of a 300 s head bag, and where it goes', ()),
+    'compile': ('compile_cost', 'the cold compile of every kernel, two cores and one', ()),
+    'head': ('head_estimation_bench', "the head pose fit's accuracy and cost", ()),
 }
 #: What ``all`` (the default) runs, before ``report``.
 ALL = ('trade', 'scaling', 'mujoco', 'batch', 'energy', 'terms')
@@ -120,11 +143,25 @@ def build_parser() -> argparse.ArgumentParser:
     helps['all'] = ALL_HELP
     for name, text in helps.items():
         sub.add_parser(name, parents=[_common_options(suppress=True)], help=text)
+    for name, (_, text, _) in TOOLS.items():
+        sub.add_parser(name, help=text)
     return p
+
+
+def run_tool(name: str, argv: list[str]) -> int:
+    """Run the measurement ``name`` of ``TOOLS`` with its own command line ``argv``."""
+    import importlib
+    module, _, preset = TOOLS[name]
+    main = getattr(importlib.import_module(f'{__package__}.{module}'), 'main')
+    status = main([*preset, *argv])
+    return status if isinstance(status, int) else 0
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     """``ponytail_bench [options] [command] [options]``; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in TOOLS:
+        return run_tool(argv[0], argv[1:])
     args = build_parser().parse_args(argv)
     report_compile()            # the cold compile is said, and not timed as a setting's cost
     profile = args.profile or 'quick'

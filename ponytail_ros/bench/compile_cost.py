@@ -6,7 +6,7 @@ project's own cache is not touched) and ``PONYTAIL_COMPILE_JOBS`` set, calling
 ``compile.report_compile``. Prints per run the wall time, the CPU time of the process and its
 children (a two-core compile that duplicated much work would show more CPU than the serial
 one) and the wall time of each part (``compile.STAGE_SECONDS``), then a warm start (the same,
-its cache kept). Runs one after the other: ~7 + ~9 min on 2026-12-03's 2-core machine.
+its cache kept). Runs one after the other (minutes each; figures: ``docs/performance.md``).
 """
 import argparse
 import json

@@ -45,7 +45,7 @@ stamps are exact but irregular; each pose is the head at its stamp).
    in the first 100 ms after the node's start, a teleport (1 m jump) and a rebuild, at 30, 120
    and 1000 Hz input (the figures ``test/test_pose_accuracy.py`` bounds by ``WHIP_BOUND``).
 
-Not timed; CPU cost is ~1 ms per RK4 step of the NumPy core (tip part: minutes).
+Not timed; the tip part runs the NumPy core for minutes.
 """
 import argparse
 import os

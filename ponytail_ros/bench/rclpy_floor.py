@@ -8,7 +8,7 @@ publishes its CDR bytes raw), spun as ``ponytail_node`` is (``ros.spin``: the ex
 ``PONYTAIL_EXECUTOR``, ``EventsExecutor`` by default). ``--objects`` uses message objects both
 ways instead (what a plain rclpy node does). ``node_cpu --floor`` measures it beside the head
 demo exactly as it measures the real node: the difference is what the simulation and its
-bookkeeping cost, and the floor bounds what any Python node can reach on this machine.
+bookkeeping cost, and the floor bounds what any Python node can reach on the machine.
 """
 import argparse
 import sys

@@ -2,7 +2,7 @@
 as a user runs it: one process, its start (imports, loading the compiled step) included.
 
 The input is the demo head script recorded at 100 Hz for ``--seconds`` s (as ``ros2 bag
-record`` stores it, ``replay_bench.make_head_recording``); the scene is a params file
+record`` stores it, ``head_bag.make_head_recording``); the scene is a params file
 (default ``config/ponytail.yaml``). Prints simulated seconds per wall second, then where the
 time goes: the process start (the same command on a ``START_INPUT_S`` s input), and, in a
 replay of the same input in this process, the compiled step's calls (``ReplayResult.
@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .replay_bench import make_head_recording
+from .head_bag import make_head_recording
 
 #: The input of the process-start measurement, s: a few ticks, so that the start (imports,
 #: loading the compiled step, opening the files) is what is timed.

@@ -24,7 +24,7 @@ no array; their callers own all of them): compiled without numba's reference cou
 skip the atomic increment and decrement each array bound, sliced or passed costs otherwise.
 
 numba's cache does not see edits of a callee in another file (``chain_solve``,
-``limit_kernels``): after editing those, clear this module's cache.
+``limit_kernels``); ``kernel_cache.py`` drops the cache files when any kernel source changes.
 """
 import math
 
@@ -2063,8 +2063,7 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
 
     It allocates nothing and borrows every array (``_nrt=False``): entering a function
     that counts references costs an atomic increment of each of its arrays (the model's, the
-    detector's, the workspace's) and a decrement on the way out, at every step; what that
-    cost is in ``docs/bench/README.md``."""
+    detector's, the workspace's) and a decrement on the way out, at every step."""
     if first == 0:
         stats[:] = 0
         if has_colliders:

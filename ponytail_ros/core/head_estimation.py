@@ -402,8 +402,8 @@ class HeadEstimatorBank:
     """Several bodies' ``HeadEstimator``s (same settings) whose histories share one set of
     arrays, so that all their fits at one time run in one compiled call
     (``head_kernels.states_fit``) instead of one call and one ``KinematicState`` each: a
-    node with many frames (a crowd) pays per body a few µs of compiled fit, not ~10 µs of
-    Python. ``states_at(t)`` equals stacking every estimator's ``state_at(t)`` bit for bit (a
+    node with many frames (a crowd) pays per body a compiled fit, not a Python call.
+    ``states_at(t)`` equals stacking every estimator's ``state_at(t)`` bit for bit (a
     body without samples: still at the origin, unrotated)."""
 
     def __init__(self, estimators):

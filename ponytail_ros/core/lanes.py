@@ -62,11 +62,9 @@ __all__ = ['LANES', 'MIN_CHAINS', 'advance', 'advance_lanes', 'crowd_layout', 's
            'kernel_for', 'crowd_records', 'step_blocks']
 
 # Chains per block. A compile-time constant: the lane loops' trip count, which LLVM splits
-# into whole vectors (<4 x double>: AVX2, and AVX-512 parts prefer 256-bit vectors). Chosen by
-# measurement, crowds of 16-segment chains, µs per chain-step (best of 3, a busy 2-core
-# machine): 4 lanes 2.7 (10 chains), 1.8 (100), 1.7 (1000); 8 lanes 3.1, 2.9, 1.8;
-# 16 lanes 4.5, 3.3, 2.9 (the record of a wider block outgrows L1, and a partial block pads
-# more copies).
+# into whole vectors (<4 x double>: AVX2, and AVX-512 parts prefer 256-bit vectors). 4 lanes
+# beat 8 and 16 at every crowd size of 16-segment chains (``ponytail_bench step``): the record
+# of a wider block outgrows L1, and a partial block pads more copies.
 LANES = 4
 # Fewer chains than this run through ``step.advance`` (a padded block costs a full block).
 MIN_CHAINS = 4
@@ -712,8 +710,8 @@ def step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, R, E, S, MB):
     ``R``, anchor rows ``E`` and stiffness scratch ``S`` (``crowd_records``): each
     block's model (a copy of its ``MB``), anchors of the step and state are loaded, the step
     taken and the state scattered back, since the caller changes it between steps
-    (contacts). A record kept per block across the steps was measured slower: the records of
-    a crowd outgrow the cache the contact stage needs between two steps. The same bits as
+    (contacts). A record kept per block across the steps would be slower: the records of a
+    crowd outgrow the cache the contact stage needs between two steps. The same bits as
     ``step.advance``'s step ``k``."""
     m = R.shape[0]
     n_chains = x.shape[0] // m          # (every chain has m segments: ``crowd_layout``)

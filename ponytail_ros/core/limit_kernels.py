@@ -193,8 +193,8 @@ def rotvec_factor(x, y, z, w):
 @njit(cache=True, inline='always')
 def qto_rotvec(q):
     """Rotation vector (axis × angle, angle in [0, π]) of the unit quaternion ``q`` (inlined
-    where it is used: a call of its own cost the general step's stiffness loop more than its
-    arithmetic, ``docs/bench/README.md``)."""
+    where it is used: a call of its own would cost the general step's stiffness loop more than
+    its arithmetic)."""
     x, y, z, w = q
     f = rotvec_factor(x, y, z, w)
     return (x * f, y * f, z * f)

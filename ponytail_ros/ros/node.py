@@ -85,7 +85,8 @@ from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, Rec
 from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
-                                         FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
+                                         FRAME_PARAMS, GLOBAL_PARAMS, NODE_PARAMS,
+                                         ParameterError,
                                          chain_param_name, check_names, definition)
 from ponytail_ros.app.sink import HEAD, Sinks
 from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
@@ -388,15 +389,12 @@ class PonytailNode(Node):
         """``tf.publish`` / ``tf.prefix``: the segments as TF frames ``<prefix><chain>/<i>``
         (children of the outputs' frame) on ``/tf`` live, when ``tf2_msgs`` is importable, and
         always in recordings. Node-only (they do not change the simulation)."""
-        self.declare_parameter('tf.publish', True, ParameterDescriptor(
-            description='Publish every segment as a TF frame on /tf (needs tf2_msgs: a sourced '
-                        'ROS 2 workspace; recordings hold /tf regardless)', read_only=True))
+        publish, prefix = NODE_PARAMS
+        self.declare_parameter('tf.publish', publish.default, ParameterDescriptor(
+            description=publish.description, read_only=True))
         self.declare_parameter('tf.prefix', tf_prefix_of(self.get_namespace()),
-                               ParameterDescriptor(
-            description='TF frames of the segments are <tf.prefix><chain>/<i> (i from 0 at the '
-                        'root), children of the outputs\' frame (fixed_frame with the head from '
-                        'TF); default: the node\'s namespace (/alice -> alice/, the root '
-                        'namespace -> none)', read_only=True))
+                               ParameterDescriptor(description=prefix.description,
+                                                   read_only=True))
         self._tf_prefix = str(self.get_parameter('tf.prefix').value)
 
     def _make_tf_publisher(self):
@@ -789,7 +787,8 @@ class PonytailNode(Node):
 
 
 def node_help() -> str:
-    """``ponytail_node --help``: usage, topics and the global parameters with their meaning."""
+    """``ponytail_node --help``: usage, topics and every parameter (``app/param_docs.py``)."""
+    from ponytail_ros.app.param_docs import help_text
     lines = [
         'usage: ponytail_node [-h] [--ros-args --params-file config/ponytail.yaml '
         '-p name:=value -r __ns:=/alice]',
@@ -799,17 +798,10 @@ def node_help() -> str:
         'segment_markers, /diagnostics and, with tf2_msgs installed, /tf. record_path:=run.mcap '
         'records the run for ponytail_replay.',
         '',
-        'Parameters (ros2 param describe /ponytail <name> for ranges; per chain: '
-        '<chain>.n_segments, <chain>.length, <chain>.damping, ...):',
-    ]
-    for pdef in GLOBAL_PARAMS:
-        lines.append(f'  {pdef.name} (default {pdef.default!r}): '
-                     f'{" ".join(str(pdef.description).split())}')
-    lines += ['  tf.publish (default True), tf.prefix (default: the namespace, /alice -> '
-              'alice/): segments as TF frames <tf.prefix><chain>/<i>',
-              '',
-              'Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the '
-              'parameter and the allowed values).']
+        help_text(),
+        '',
+        'Exit status: 0 on Ctrl-C/SIGTERM, 2 for invalid parameters (one line naming the '
+        'parameter and the allowed values).']
     return '\n'.join(lines)
 
 

@@ -235,7 +235,7 @@ def assert_no_resets(trace: Trace, reasons: Optional[Iterable[str]] = None,
                      since: Optional[float] = None) -> None:
     """No reset at rest (``reasons``: only these, e.g. ``['guard']``; default any: guard,
     teleport, frame_changed, clock_backwards, rebuild) from ``since`` on. A guard reset means
-    the step was too coarse for the motion (see the README's Known limits)."""
+    the step was too coarse for the motion (see docs/limits.md)."""
     chosen = None if reasons is None else set(reasons)
     t0 = -np.inf if since is None else since - 1e-12
     bad: List = [r for r in trace.resets if r.t >= t0 and (chosen is None or r.reason in chosen)]

@@ -1,5 +1,5 @@
 """pytest plugin of ponytail_ros: registered as the ``pytest11`` entry point
-``ponytail_ros.testing.plugin``, so ``pip install ponytail_ros`` is enough (or pass
+``ponytail_ros.testing.plugin``, so installing ponytail_ros (pip or colcon) is enough (or pass
 ``-p ponytail_ros.testing.plugin``).
 
 Fixtures:

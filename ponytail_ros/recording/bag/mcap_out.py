@@ -8,10 +8,10 @@ chunks are cut by the caller (:meth:`flush`), never by size here.
 
 Why not ``mcap``'s writer: a message there is a ``Message`` dataclass, statistics and chunk
 bookkeeping through several calls and a ``BytesIO`` record builder with a seek back per
-record, some 10 µs of Python per message; a replay writes 4-5 messages per tick. Here a message
-is one ``struct.pack`` of its 31-byte record head appended to the chunk, and its index entry.
-The rare records (header, schemas, channels, metadata, the summary) are written by ``mcap``'s
-own record classes.
+record: several times the Python per message, and a replay writes 4-5 messages per tick. Here
+a message is one ``struct.pack`` of its 31-byte record head appended to the chunk, and its
+index entry. The rare records (header, schemas, channels, metadata, the summary) are written by
+``mcap``'s own record classes.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.crowd_terms``: what each force term and the colliders cost a
+"""``python benchmarks/crowd_terms.py``: what each force term and the colliders cost a
 crowd's tick, and which step takes its chains (the SIMD-lanes step or the general one).
 
 The crowd is ``tick_cost.crowd_scene``'s (N copies of a params file's character, each on its
@@ -17,7 +17,7 @@ from ponytail_ros.core import lanes
 from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.simulator import Simulator
 
-from .tick_cost import crowd_scene
+from ponytail_ros.bench.tick_cost import crowd_scene
 
 __all__ = ['TERMS', 'cases', 'measure', 'main']
 
@@ -52,7 +52,7 @@ def measure(scene, heads, colliders, terms, ticks, rate):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.crowd_terms',
+    p = argparse.ArgumentParser(prog='python benchmarks/crowd_terms.py',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--params', default='config/ponytail.yaml')
     p.add_argument('--characters', type=int, default=100)

@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.kernel_profile``: CPU µs per RK4 step of the compiled kernel
+"""``python benchmarks/kernel_profile.py``: CPU µs per RK4 step of the compiled kernel
 alone (``step_cost.kernel_cost``: ``step.advance`` over a precomputed anchor table, 1 ms steps,
 the ``moving`` head driven exactly), without MuJoCo: the quick loop for kernel work.
 
@@ -11,8 +11,8 @@ import numpy as np
 
 from ponytail_ros.core.scene import Scene, SolverSpec
 
-from .scenes import make_scene
-from .step_cost import DT, kernel_cost
+from ponytail_ros.bench.scenes import make_scene
+from ponytail_ros.bench.step_cost import DT, kernel_cost
 
 
 def cases(segments, crowds, integrator):
@@ -29,7 +29,7 @@ def cases(segments, crowds, integrator):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.kernel_profile',
+    p = argparse.ArgumentParser(prog='python benchmarks/kernel_profile.py',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--segments', default='10,20,50')
     p.add_argument('--crowds', default='100')

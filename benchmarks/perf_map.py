@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.perf_map``: where the compiled step's time goes, by kernel,
+"""``python benchmarks/perf_map.py``: where the compiled step's time goes, by kernel,
 with Linux ``perf``.
 
 numba's machine code lives in anonymous memory, so ``perf report`` shows its samples as bare
@@ -9,7 +9,7 @@ loaded in this process (its address, its size up to the next function, its name 
 ``module.function`` and, when a function has several compiled versions, numba's
 specialisation number). Run it under ``perf record``::
 
-    perf record -F 4000 -o /tmp/k.data python -m ponytail_ros.bench.perf_map --characters 100
+    perf record -F 4000 -o /tmp/k.data python benchmarks/perf_map.py --characters 100
     perf report -i /tmp/k.data --no-children --sort sym
 
 Functions that numba or LLVM inlined count in their caller (``inline='always'`` kernels
@@ -24,7 +24,7 @@ import re
 
 from ponytail_ros.core.compile import report_compile
 
-from .tick_cost import crowd_runner
+from ponytail_ros.bench.tick_cost import crowd_runner
 
 __all__ = ['compiled_functions', 'write_map']
 
@@ -73,7 +73,7 @@ def write_map(path=None):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.perf_map',
+    p = argparse.ArgumentParser(prog='python benchmarks/perf_map.py',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--params', default='config/ponytail.yaml')
     p.add_argument('--characters', type=int, default=1)

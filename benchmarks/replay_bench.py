@@ -1,6 +1,6 @@
 """Benchmark of the offline replay: simulated seconds per wall second.
 
-Run: ``python -m ponytail_ros.bench.replay_bench [--seconds 20] [--quick]``.
+Run: ``python benchmarks/replay_bench.py [--seconds 20] [--quick]``.
 
 Input: the demo head script (``HeadScript``: nod, shake, turn, run, sharp stop) published at
 100 Hz for ``--seconds`` s, stored as ``ros2 bag record -s mcap`` would (``/head_pose``,
@@ -28,33 +28,11 @@ from pathlib import Path
 
 import yaml
 
-__all__ = ['main', 'make_head_recording', 'bench_scene']
+from ponytail_ros.bench.head_bag import INPUT_RATE, make_head_recording
 
-INPUT_RATE = 100.0
+__all__ = ['main', 'bench_scene']
+
 NODE_RATE = 120.0
-
-
-def make_head_recording(path, seconds, rate=INPUT_RATE, t0_ns=1_700_000_000_000_000_000):
-    """A head-only recording of the demo head script (as ``ros2 bag record`` would store it)."""
-    from geometry_msgs.msg import PoseStamped
-    from ponytail_ros.recording.bag import BagWriter
-    from ponytail_ros.app.head_script import HeadScript
-    script = HeadScript()
-    period_ns = int(round(1e9 / rate))
-    msg = PoseStamped()
-    msg.header.frame_id = 'world'
-    with BagWriter(path, overwrite=True) as writer:
-        writer.add_topic('/head_pose', PoseStamped)
-        for k in range(int(seconds * rate)):
-            t_ns = t0_ns + k * period_ns
-            p, q = script.pose(k / rate)
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
-            pos, ori = msg.pose.position, msg.pose.orientation
-            pos.x, pos.y, pos.z = (float(v) for v in p)
-            ori.x, ori.y, ori.z, ori.w = (float(v) for v in q)
-            # received 0.5 ms after the stamp
-            writer.write('/head_pose', msg, t_ns + 500_000)
-    return Path(path)
 
 
 def scene_params(n_chains, n_segments=20):

@@ -28,7 +28,7 @@ Then the ready-made scenes (``config/*.yaml``, as the node builds them) on the s
 of ``ponytail_head_demo``, each with what it enables.
 
 Run: ``ponytail_bench terms`` (tables in ``docs/bench/terms.*``), or
-``python -m ponytail_ros.bench.terms [--segments N] [--seconds S] [--repeats R]``.
+``python -m ponytail_ros.bench.term_cost [--segments N] [--seconds S] [--repeats R]``.
 """
 import argparse
 from dataclasses import replace

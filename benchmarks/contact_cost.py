@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.contact_cost``: CPU time of the contact and limit stage alone
+"""``python benchmarks/contact_cost.py``: CPU time of the contact and limit stage alone
 (``contact_kernels.resolve``) per internal step, on states recorded from a moving-head run.
 
 A params file's scene (``--segments`` of its chain, or ``--characters`` N copies as in
@@ -21,7 +21,7 @@ from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.testing import load_config
 
-from .tick_cost import crowd_scene
+from ponytail_ros.bench.tick_cost import crowd_scene
 
 __all__ = ['record', 'replay_cost', 'main']
 
@@ -94,7 +94,7 @@ def replay_cost(inputs, constants, repeats=5):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.contact_cost',
+    p = argparse.ArgumentParser(prog='python benchmarks/contact_cost.py',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--params', default='config/ponytail.yaml')
     p.add_argument('--chain', default='ponytail')

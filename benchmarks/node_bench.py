@@ -1,6 +1,6 @@
 """Benchmark of the ponytail node: tick cost, input-to-output latency, latency vs smoothness.
 
-Run: ``python -m ponytail_ros.bench.node_bench [--quick] [--part ros|trade|all]``.
+Run: ``python benchmarks/node_bench.py [--quick] [--part ros|trade|all]``.
 
 ``ros`` part (real rclpy + DDS): the node runs in this process with nothing else in its executor
 (as in production); a helper child process publishes the head (``HeadScript``, stamped with the
@@ -142,7 +142,7 @@ def ros_case(n_chains, duration, input_rate, domain_id):
     node.tick_hook = lambda out, w0, w_pub, w_end: ticks.append(
         (out.t, out.newest_stamp, w_end - w0, w_pub + offset))
     child = subprocess.Popen(
-        [sys.executable, '-m', 'ponytail_ros.bench.node_bench', '--helper', '--topic', topic,
+        [sys.executable, __file__, '--helper', '--topic', topic,
          '--duration', str(duration + 1.5), '--input-rate', str(input_rate)],
         env=env, stdout=subprocess.PIPE, text=True)
     ex = SingleThreadedExecutor(context=ctx)

@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.output_cost``: what a tick's output costs beside the physics.
+"""``python benchmarks/output_cost.py``: what a tick's output costs beside the physics.
 
 Runs ``NodeCore`` (what the node and ``ponytail_replay`` run) on a params file under a moving
 head for ``--ticks`` ticks at 120 Hz, with the recorder as its sink (the replay's output), and
@@ -68,7 +68,7 @@ def measure(params: str, ticks: int = 2400) -> Dict[str, float]:
 
 
 def main(argv: Any = None) -> None:
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.output_cost',
+    p = argparse.ArgumentParser(prog='python benchmarks/output_cost.py',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('params', nargs='*', default=['config/ponytail.yaml'])
     p.add_argument('--ticks', type=int, default=2400)
