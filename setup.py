@@ -20,7 +20,8 @@ ROS_WHEELS = [
     'ros-diagnostic-msgs',
 ]
 # numba compiles the internal step (ponytail_ros.core.step); nopython, cache=True, no fastmath.
-CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60']
+CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60',
+        'rosbags']  # rosbags: rosbag2's .db3 storage and zstd compression (bag folders)
 
 setup(
     name=package_name,

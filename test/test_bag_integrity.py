@@ -148,18 +148,24 @@ def test_several_chunks_out_of_order_across_chunks(tmp_path):
 # -- clocks ---------------------------------------------------------------------------------------
 
 
-def test_head_stamps_on_another_clock_are_said_with_the_fix_which_works(tmp_path, params,
+def test_head_stamps_on_another_clock_are_refused_with_the_fix_which_works(tmp_path, params,
                                                                         capsys):
     good = rosbags_bag(tmp_path, 'good', head_samples())
     # A simulator clock from exactly 0: stamps T0 before the log times; the first stamp is 0.
     sim = rosbags_bag(tmp_path, 'sim', head_samples(stamp_offset_ns=-T0_NS))
     code, _, err = run([good, '-o', tmp_path / 'good.mcap', '--params', params], capsys)
     assert code == 0 and err == []
+    # Refused (exit 2, nothing written) with the fix named ...
     code, _, err = run([sim, '-o', tmp_path / 'sim.mcap', '--params', params], capsys)
+    assert code == 2 and len(err) == 1 and str(sim) in err[0] and 'another clock' in err[0]
+    assert '--stamp-source receive' in err[0] and 'stamp_source: receive' in err[0]
+    assert not (tmp_path / 'sim.mcap').exists()
+    # ... unless header stamps are asked for: then replayed by them, with the warning.
+    code, _, err = run([sim, '-o', tmp_path / 'sim.mcap', '--params', params,
+                        '--stamp-source', 'header'], capsys)
     assert code == 0
     warning = [e for e in err if 'another clock' in e]
-    assert len(warning) == 1 and str(sim) in warning[0]
-    assert '--stamp-source receive' in warning[0] and 'stamp_source: receive' in warning[0]
+    assert len(warning) == 1 and str(sim) in warning[0] and '--stamp-source receive' in warning[0]
     # The first stamp, exactly 0, is a stamp: nothing is dropped as going backwards.
     _, diag = last_diagnostics(tmp_path / 'sim.mcap')
     assert diag['dropped inputs: stamp_backwards'] == '0'

@@ -280,26 +280,55 @@ def test_the_parallel_check_sees_interference_when_both_runs_share_a_localhost_g
 
 @pytest.mark.ros
 def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path):
-    """Head poses from a bag (``bag_samples``) drive the node exactly as the same poses given
-    as a list: the same ticks, the same chain."""
+    """Head poses from a rosbag2 bag folder written by rosbags, stamped on a wall clock
+    (absolute times), come back from ``bag_samples`` rebased to the first pose, and drive the
+    harness and ``run_offline`` exactly as the same poses given as a list from t = 0."""
     pytest.importorskip('rclpy')
-    from geometry_msgs.msg import PoseStamped
-    from ponytail_ros.recording.bag import BagWriter
+    rosbag2 = pytest.importorskip('rosbags.rosbag2')
+    from rosbags.typesys import Stores, get_typestore
+    from rclpy.serialization import serialize_message
     from ponytail_ros.testing import bag_samples, sample_motion
-    from ponytail_ros.testing.harness import pose_msg
-    from ponytail_ros.testing.motion import stamp_ns
+    from ponytail_ros.testing.harness import HarnessError, pose_msg
+    t0_ns = 1_700_000_000_123_456_789
     samples = sample_motion(walk, 0.5)
-    path = tmp_path / 'take.mcap'
-    with BagWriter(path) as bag:
-        bag.add_topic('/head_pose', PoseStamped)
+    store = get_typestore(Stores.ROS2_KILTED)
+    folder = tmp_path / 'take'
+    with rosbag2.Writer(folder, version=9, storage_plugin=rosbag2.StoragePlugin.MCAP) as bag:
+        conn = bag.add_connection('/head_pose', 'geometry_msgs/msg/PoseStamped',
+                                  typestore=store)
         for s in samples:
-            bag.write('/head_pose', pose_msg(s.t, s.position, s.orientation), stamp_ns(s.t))
-    read = bag_samples(path)
+            t_ns = t0_ns + stamp_ns(s.t)
+            msg = pose_msg(0.0, s.position, s.orientation)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+            bag.write(conn, t_ns + 500_000, serialize_message(msg))
+    read = bag_samples(folder)
+    assert read.start_ns == t0_ns and read[0].t == 0.0
     assert [stamp_ns(s.t) for s in read] == [stamp_ns(s.t) for s in samples]
     run = ponytail(PARAMS).run(read, 0.5)
     reference = run_offline(PARAMS, samples, 0.5)
     assert run.n_ticks == published(0.5, 60.0)
     assert np.array_equal(run.origins, reference.origins)
+    assert np.array_equal(run_offline(PARAMS, read, 0.5).origins, reference.origins)
+    # The same poses at their absolute stamps: an error naming the cause, not 0 ticks.
+    absolute = [s._replace(t=s.t + t0_ns * 1e-9) for s in read]
+    with pytest.raises(HarnessError, match='absolute stamps'):
+        ponytail(PARAMS).run(absolute, 0.5)
+    with pytest.raises(ValueError, match='absolute stamps'):
+        run_offline(PARAMS, absolute, 0.5)
+
+
+def test_every_check_fails_on_a_run_without_ticks():
+    """No head pose, no tick: every ``assert_*`` of ``ponytail_ros.testing`` fails saying so
+    (an empty trace passes nothing)."""
+    import ponytail_ros.testing as testing
+    empty = run_offline(PARAMS, [], 0.3)
+    assert empty.n_ticks == 0
+    extra = {'assert_tips_close': (empty, 1.0)}
+    checks = [name for name in testing.__all__ if name.startswith('assert_')]
+    assert len(checks) >= 6
+    for name in checks:
+        with pytest.raises(CheckFailed, match='no published tick'):
+            getattr(testing, name)(empty, *extra.get(name, ()))
 
 
 @pytest.mark.ros

@@ -3,15 +3,20 @@ or play a recording's head poses into a running graph.
 
 Usage::
 
-    ponytail_replay INPUT.mcap -o OUTPUT.mcap [--params FILE.yaml] [--head-topic /head_pose]
+    ponytail_replay BAG -o OUTPUT.mcap [--params FILE.yaml] [--head-topic /head_pose]
                     [--ticks auto|recorded|nominal] [--look-ahead] [--overwrite] [--quiet]
+    ponytail_replay BAG BAG... -o OUT_DIR [-j N] [...]   (or a folder of bags: one output each)
     ponytail_replay compare A.mcap B.mcap [--plot out.png]      (or --compare A B)
     ponytail_replay --live INPUT.mcap [--rate 1.0] [--no-clock] [--restamp] [--loop]
     ponytail_replay repair IN.mcap OUT.mcap [--overwrite]    (a killed or damaged recording)
 
+A BAG is what rosbag2 writes: a bag folder (``metadata.yaml`` and the ``.mcap`` or ``.db3``
+files it lists, split or not, compressed or not), its ``metadata.yaml``, or a single ``.mcap``
+(``.db3``) file (``bag/layout.py``).
+
 Offline replay (no ROS graph, no sleeping; as fast as the machine allows): the head poses
-(``geometry_msgs/msg/PoseStamped`` or ``TransformStamped``) of any rosbag2 MCAP file -- one
-written by the node (``record_path``) or by ``ros2 bag record -s mcap`` -- are pushed into a
+(``geometry_msgs/msg/PoseStamped`` or ``TransformStamped``) of any rosbag2 bag -- one
+written by the node (``record_path``) or by ``ros2 bag record`` -- are pushed into a
 ``ChainRunner`` at their log times (receive times), the runner is ticked on the recorded clock
 and the output is written exactly as the node records a run (same topics, types, metadata).
 
@@ -54,6 +59,16 @@ and the output is written exactly as the node records a run (same topics, types,
 * Diagnostics are written every ``diagnostics_period`` s of the recorded clock with the node's
   keys; wall-time measurements (solve time, timer lateness) are ``n/a`` offline.
 
+Many bags (several BAGs, or a folder of bags): one output per bag, ``OUT_DIR/<bag>.mcap``, in
+parallel worker processes (``-j N``, default the number of cores; ``many.py``), one line per
+bag as it ends, exit status the worst of them.
+
+Interrupted (SIGINT, SIGTERM): the replay stops between two input messages, its output is
+finalised (every MCAP reader opens it) and marked partial in its metadata (``partial``,
+``partial_reason``, ``complete_until_ns`` in ``ponytail_ros/recording``; the same in rosbag2's
+``custom_data``); one line says so; exit 130 (SIGINT) or 143 (SIGTERM). Replaying into it again
+needs ``--overwrite``; reading it says it is partial.
+
 Compare: per chain, the tip (last segment's far end; segment length from the recorded
 parameters, else the joint spacing) of two runs at the same stamps (each run's ``output_stamp``
 is read from its parameters and printed: ``tick`` stamps label a chain simulated ``delay``
@@ -78,9 +93,12 @@ Nothing is lost or wrong in silence:
 * a bag not written by the node is replayed in **log-time order** (as ``ros2 bag play``), with a
   warning if it was stored out of that order; the node's own recordings in file order (the order
   the node handled the messages);
-* head stamps on **another clock** than the log times (median offset over 5 s) are said on the
-  terminal with the fix, ``--stamp-source receive``; in such a bag a first stamp of exactly 0 is
-  a stamp, not "no stamp";
+* head stamps on **another clock** than the log times (median offset over 5 s) are refused
+  (exit 2) with the fix, ``--stamp-source receive``; with ``--stamp-source header`` (or
+  ``stamp_source`` in the ``--params`` file, or a node recording's own) they are used, with a
+  warning; in such a bag a first stamp of exactly 0 is a stamp, not "no stamp";
+* one file of a split bag given alone is replayed with a warning naming the folder that holds
+  the whole bag;
 * unknown ``--params`` names are warned with the closest known name; dropped input poses are
   counted on the terminal; the last (partial) diagnostics period is written; a run in which
   nothing could be simulated (every pose dropped) is an error saying why.
@@ -90,15 +108,17 @@ Every recording and replay output also holds the segments as TF frames on ``/tf`
 simulated time and the ETA; ``--quiet`` silences it, the summary and the warnings.
 
 Exit status: 0 on success (warnings on stderr), 2 on bad or damaged input (one line on stderr
-naming the file and the problem: not an MCAP file, damaged, truncated before the head topic, no
-such topic, not a head pose type, invalid parameters, nothing simulated), 1 on an unexpected
-error.
+naming the file and the problem: not a bag, a listed file missing, damaged, truncated before the
+head topic, no such topic, not a head pose type, head stamps on another clock, invalid
+parameters, nothing simulated), 1 on an unexpected error, 130 / 143 when interrupted by SIGINT /
+SIGTERM (the output finalised and marked partial). With many bags: the worst of them.
 """
 from __future__ import annotations
 
 import argparse
 import gc
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
@@ -107,6 +127,7 @@ from ponytail_ros.core.compile import report_compile
 
 from .compare import compare, format_comparison, plot_comparison
 from .inputs import ReplayError
+from .interrupt import EXIT_CODES, StopRequest
 from .live import live_replay
 from .offline import Progress, replay
 
@@ -124,9 +145,15 @@ def _parser():
                '   |   ponytail_replay --live run.mcap'
                '   |   ponytail_replay repair killed.mcap fixed.mcap.  Exit status: 0 done, 2 bad '
                'or damaged input (one line naming the file and the problem), 1 unexpected error.')
-    p.add_argument('inputs', nargs='+', metavar='INPUT.mcap',
-                   help='the recording (two with --compare)')
-    p.add_argument('-o', '--output', metavar='OUTPUT.mcap', help='replay: the new recording')
+    p.add_argument('inputs', nargs='+', metavar='BAG',
+                   help='the recording: a bag folder, its metadata.yaml, or a .mcap/.db3 file '
+                        '(two with --compare; several, or a folder of bags, for replay -o DIR)')
+    p.add_argument('-o', '--output', metavar='OUTPUT',
+                   help='replay: the new recording (.mcap), or a folder (one <bag>.mcap per '
+                        'bag) for several bags')
+    p.add_argument('-j', '--jobs', type=int, default=None, metavar='N',
+                   help='several bags: replay N at a time in worker processes (default: the '
+                        'number of cores)')
     p.add_argument('--params', metavar='FILE.yaml',
                    help='node parameters (default: the recorded ones, else the package config)')
     p.add_argument('--head-topic', help='head pose topic (default: the recorded node\'s, '
@@ -219,15 +246,15 @@ def _main(argv) -> int:
     try:
         if args.compare:
             return _main_compare(args, parser, error)
-        if len(args.inputs) != 1:
-            parser.error('give one input recording')
         if args.live:
+            if len(args.inputs) != 1:
+                parser.error('--live plays one bag')
             return _main_live(args, ros_args, warn, error)
-        return _main_replay(args, warn)
+        return _main_replay(args, warn, error, parser)
     except ReplayError as exc:
         return error(exc)
     except KeyboardInterrupt:
-        return 130
+        return EXIT_CODES[signal.SIGINT]
 
 
 def _parse(parser, argv):
@@ -265,22 +292,87 @@ def _main_compare(args, parser, error) -> int:
     return 0
 
 
-def _main_replay(args, warn) -> int:
-    """``INPUT -o OUTPUT``: the offline replay, with a progress bar on a terminal."""
+def _replay_options(args) -> dict:
+    return dict(params_file=args.params, head_topic=args.head_topic, ticks=args.ticks,
+                overwrite=args.overwrite, stamp_source=args.stamp_source, tf=not args.no_tf,
+                tf_prefix=args.tf_prefix, look_ahead=args.look_ahead)
+
+
+def _main_replay(args, warn, error, parser) -> int:
+    """``BAG -o OUTPUT`` (a progress bar on a terminal), or many bags ``-o DIR -j N``."""
+    from .many import expand_inputs
+    if args.jobs is not None and args.jobs < 1:
+        parser.error(f'-j must be at least 1, not {args.jobs}')
+    bags = expand_inputs(args.inputs)
+    output = Path(args.output)
+    if len(bags) > 1 or len(args.inputs) > 1:
+        return _main_replay_many(args, bags, output, error)
+    if output.is_dir() or args.output.endswith(('/', os.sep)):
+        from .many import bag_name
+        output = output / f'{bag_name(bags[0])}.mcap'
     progress = Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
     report_compile((lambda m: None) if args.quiet else None)   # before the first tick, said
     try:
-        result = replay(args.inputs[0], args.output, params_file=args.params,
-                        head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
-                        progress=progress, warn=None if args.quiet else warn,
-                        stamp_source=args.stamp_source, tf=not args.no_tf,
-                        tf_prefix=args.tf_prefix, look_ahead=args.look_ahead)
+        with StopRequest() as stop:
+            result = replay(bags[0], output, progress=progress,
+                            warn=None if args.quiet else warn, stop=stop,
+                            **_replay_options(args))
     finally:
         if progress is not None:
             progress.close()
+    if result.interrupted:
+        print(f'ponytail_replay: {result.interrupted_line(bags[0])}', file=sys.stderr)
+        return stop.exit_code
     if not args.quiet:
-        print(result.summary(args.inputs[0]))
+        print(result.summary(bags[0]))
     return 0
+
+
+def _main_replay_many(args, bags, out_dir: Path, error) -> int:
+    """Several bags into ``out_dir``, ``-j`` at a time; one line per bag; the worst exit."""
+    from .many import output_paths, replay_many
+    outputs = output_paths(bags, out_dir)
+    jobs = args.jobs or os.cpu_count() or 1
+    report_compile(lambda m: None)    # loaded once here: the forked workers inherit it
+    codes: list = []
+
+    def report(outcome) -> None:
+        codes.append(_bag_line(outcome, args.quiet, error))
+
+    with StopRequest() as stop:
+        outcomes = replay_many(bags, outputs, _replay_options(args), jobs=jobs, report=report,
+                               stop=stop)
+    if stop:
+        return stop.exit_code
+    failed = sum(1 for o in outcomes if o.status not in ('ok',))
+    if not args.quiet or failed:
+        print(f'ponytail_replay: {len(bags)} bags, {len(bags) - failed} replayed into '
+              f'{out_dir}, {failed} failed', file=sys.stderr if failed else sys.stdout)
+    return max(codes, default=0)
+
+
+def _bag_line(outcome, quiet: bool, error) -> int:
+    """The line (and warnings) of one bag of many; its exit code."""
+    if not quiet:
+        for text in outcome.warnings:
+            print(f'ponytail_replay: warning: {text}', file=sys.stderr)
+    if outcome.status == 'ok':
+        if not quiet:
+            print(outcome.result.summary(outcome.bag), flush=True)
+        return 0
+    if outcome.status == 'interrupted':
+        print(f'ponytail_replay: {outcome.result.interrupted_line(outcome.bag)}',
+              file=sys.stderr, flush=True)
+        return 0            # (the exit code is the signal's)
+    if outcome.status == 'not started':
+        print(f'ponytail_replay: {outcome.bag}: not replayed (interrupted before it started)',
+              file=sys.stderr, flush=True)
+        return 0
+    if outcome.status == 'error':
+        return error(outcome.text)
+    print(f'ponytail_replay: error: {outcome.bag}: unexpected error:\n{outcome.text}',
+          file=sys.stderr, flush=True)
+    return 1
 
 
 def _main_repair(argv, error) -> int:

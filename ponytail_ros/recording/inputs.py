@@ -25,7 +25,7 @@ from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, resolve_topic, 
 from .tf import TFMESSAGE_TYPE
 
 __all__ = ['ReplayError', 'ReplayInput', 'head_pose', 'head_stamps', 'foreign_clock',
-           'recorded_value', 'used_frame_names', 'event_values', 'FOREIGN_CLOCK_S']
+           'partial_note', 'recorded_value', 'used_frame_names', 'event_values', 'FOREIGN_CLOCK_S']
 
 
 class ReplayError(Exception):
@@ -62,7 +62,14 @@ class ReplayInput:
         #: see recorder.py); any other bag in log-time order, as rosbag2 plays it.
         self.order = 'file' if self.layout is not None else 'log_time'
         self.recorded_parameters = self.metadata.get(PARAMETERS_METADATA)
+        #: What to tell the user about the input (one file of a split bag, no metadata.yaml,
+        #: an interrupted replay's output), one line each.
+        self.notes = list(self.reader.notes) + [
+            n for n in (partial_note(self.path, self.metadata),) if n]
         self.note = None
+        #: Checked between messages (:meth:`messages`); :attr:`stopped`: it ended a read.
+        self.stop: Any = None
+        self.stopped = False
         if head_topic is None:
             head_topic = self.layout.head_topic if self.layout else '/head_pose'
             if head_topic not in self.topics:
@@ -126,8 +133,13 @@ class ReplayInput:
 
     def messages(self, topics, raw=False):
         """``BagReader.messages`` in this input's order (:attr:`order`); ``raw``: as CDR
-        bytes."""
-        return self.reader.messages(topics, order=self.order, raw=raw)
+        bytes. Ends early, setting :attr:`stopped`, once :attr:`stop` is true (an
+        ``interrupt.StopRequest``: SIGINT or SIGTERM arrived)."""
+        for item in self.reader.messages(topics, order=self.order, raw=raw):
+            if self.stop:
+                self.stopped = True
+                return
+            yield item
 
     def truncated_warning(self) -> str:
         return (f'{self.path} is {self.truncation or "truncated (no footer)"}; replaying what '
@@ -160,16 +172,8 @@ class ReplayInput:
             return 0
 
     def span_ns(self) -> Optional[Tuple[int, int]]:
-        """(first, last) log time of a finished file (summary statistics), else None."""
-        if self.truncated:
-            return None
-        from mcap.reader import make_reader
-        try:
-            with self.path.open('rb') as f:
-                stats = make_reader(f).get_summary().statistics
-            return stats.message_start_time, stats.message_end_time
-        except Exception:  # noqa: BLE001 - only the progress bar needs it
-            return None
+        """(first, last) log time of a finished bag, else None."""
+        return self.reader.span_ns()
 
 
 def head_pose(msg, head_type):
@@ -205,10 +209,21 @@ def head_stamps(inp: ReplayInput):
     return out
 
 
+def partial_note(path, metadata) -> Optional[str]:
+    """A line saying that ``path`` is the output of an interrupted replay (and up to which
+    time it holds the run), or None."""
+    record = metadata.get(RECORDING_METADATA) or {}
+    if record.get('partial') != 'true':
+        return None
+    return (f'{path} is partial: {record.get("partial_reason", "its run was interrupted")}; it '
+            f'holds the run up to log time {record.get("complete_until_ns", "?")} ns only')
+
+
 def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[str]:
-    """A warning if the head stamps are on another clock than the log times (a bag stamped
-    by a simulator clock from 0, or from another epoch) and would be used (``stamp_source:
-    header``): the head motion would be estimated on one clock and simulated on the other."""
+    """Why the head stamps cannot be used if they are on another clock than the log times (a
+    bag stamped by a simulator clock from 0, or from another epoch) and would be used
+    (``stamp_source: header``): the head motion would be estimated on one clock and simulated
+    on the other. None if they are on the same clock (or not used)."""
     if stamp_source != 'header':
         return None
     pairs = [(s, l) for s, l in head_stamps if s]
@@ -218,9 +233,10 @@ def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[
     if abs(offset) <= FOREIGN_CLOCK_S:
         return None
     return (f'{inp.path}: the head pose stamps on {inp.head_topic} are {offset:+.6g} s off their '
-            f'log times (another clock: a simulator from 0, or another machine); the replay '
-            f'would be physically wrong. Use --stamp-source receive (stamp_source: receive in '
-            f'the params file) to time the poses by their log times')
+            f'log times (another clock: a simulator from 0, or another machine); replaying by '
+            f'them would be physically wrong. Use --stamp-source receive (stamp_source: receive '
+            f'in the params file) to time the poses by their log times, or --stamp-source '
+            f'header to use the stamps anyway')
 
 
 def recorded_value(recorded: Optional[Mapping[str, str]], name: str, default: Any) -> Any:

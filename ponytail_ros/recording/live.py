@@ -87,6 +87,8 @@ def _live_input(path, head_topic, warn):
     inp = ReplayInput(path, head_topic)
     if inp.note:
         warn(inp.note)
+    for note in inp.notes:
+        warn(note)
     if inp.truncated:
         warn(inp.truncated_warning().replace('replaying', 'playing'))
     topics = {inp.head_topic: inp.head_type}

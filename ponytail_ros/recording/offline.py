@@ -77,12 +77,24 @@ class ReplayResult:
     tick_mode: str = ''
     parameters_from: str = ''
     truncated: bool = False
+    #: The signal that stopped the replay early ("SIGINT", "SIGTERM"), else None: the output
+    #: is finalised and its metadata says it is partial.
+    interrupted: Optional[str] = None
 
     @property
     def sim_seconds(self) -> float:
         if self.first_tick_ns is None:
             return 0.0
         return (self.last_tick_ns - self.first_tick_ns) * 1e-9
+
+    def interrupted_line(self, input_path) -> str:
+        """The one terminal line of an interrupted replay."""
+        upto = (f'up to t = {self.sim_seconds:.2f} s of its run ({self.ticks} ticks, last at '
+                f'log time {self.last_tick_ns} ns)' if self.last_tick_ns is not None
+                else 'with no tick')
+        return (f'{input_path}: interrupted by {self.interrupted}: {self.output} is partial, '
+                f'simulated {upto} (its metadata says so); rerun with --overwrite to replace '
+                f'it')
 
     def summary(self, input_path) -> str:
         speed = self.sim_seconds / self.wall_seconds if self.wall_seconds > 0 else float('inf')
@@ -159,7 +171,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: Optional[str] = None) -> ReplayResult:
+           tf_prefix: Optional[str] = None, stop: Any = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -176,6 +188,13 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             (head stamps on another clock than the log times need ``'receive'``).
         tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
             ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
+        stop: checked between input messages (``interrupt.StopRequest``): once true (its
+            ``name`` the signal's), the replay ends there, its output finalised and marked
+            partial (``ReplayResult.interrupted``).
+
+    Head stamps on another clock than the log times are refused (``foreign_clock``) unless
+    header stamps were asked for explicitly (``stamp_source='header'``, or ``stamp_source``
+    in the params file or in the node's recorded parameters): then only warned.
 
     Raises:
         ReplayError: bad input or options (one-line message naming the file and topic), a
@@ -184,6 +203,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     warn = warn or (lambda text: None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     inp, output_path = _open_input(input_path, output_path, head_topic, ticks, warn)
+    inp.stop = stop
     result = ReplayResult(output=output_path, truncated=inp.truncated)
     values, result.parameters_from = _resolve_parameters(inp, params_file, stamp_source,
                                                          look_ahead, warn)
@@ -191,6 +211,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     stamps = [] if tf_head else head_stamps(inp)
     clock_note = foreign_clock(inp, stamps, values['stamp_source'])
     if clock_note:
+        if not _header_stamps_asked(inp, params_file, stamp_source):
+            raise ReplayError(clock_note)
         warn(clock_note)
     mode, tick_topic = _tick_mode(inp, ticks, values)
     result.tick_mode = mode
@@ -215,6 +237,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                         tf_head=tf_head)
     try:
         loop.run()
+        if inp.stopped:
+            result.interrupted = getattr(stop, 'name', '') or 'a stop request'
+            recorder.mark_partial(f'interrupted by {result.interrupted}', result.last_tick_ns)
     except BagError as exc:
         recorder.close()
         output_path.unlink(missing_ok=True)
@@ -229,6 +254,16 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
         progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
     return result
+
+
+def _header_stamps_asked(inp: ReplayInput, params_file, stamp_source) -> bool:
+    """The user chose header stamps: ``--stamp-source header``, ``stamp_source`` in the
+    ``--params`` file, or (no ``--params``) the node's own recorded choice."""
+    if stamp_source is not None:
+        return stamp_source == 'header'
+    if params_file is not None:
+        return 'stamp_source' in _given_values(inp, params_file)
+    return inp.layout is not None and 'stamp_source' in (inp.recorded_parameters or {})
 
 
 def _use_spline_estimators(runner) -> None:
@@ -264,6 +299,8 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
         raise ReplayError(f'{output_path}: the output would overwrite the input')
     if inp.note:
         warn(inp.note)
+    for note in inp.notes:
+        warn(note)
     if inp.truncated:
         warn(inp.truncated_warning())
     return inp, output_path
@@ -395,8 +432,20 @@ def _open_output(inp: ReplayInput, output_path: Path, values, frames, frame_topi
     except BagError as exc:
         text = str(exc)
         if 'already exists' in text:
-            text = f'{output_path} already exists (use --overwrite to replace it)'
+            partial = _partial_output(output_path)
+            text = (f'{output_path} already exists{f" ({partial})" if partial else ""} (use '
+                    f'--overwrite to replace it)')
         raise ReplayError(text) from None
+
+
+def _partial_output(path: Path) -> Optional[str]:
+    """How an existing output is partial (an interrupted replay's), or None."""
+    from .bag import BagReader
+    from .inputs import partial_note
+    try:
+        return partial_note(path, BagReader(path).metadata())
+    except BagError:
+        return None
 
 
 class _OfflineLoop:
@@ -616,9 +665,12 @@ def _tf_finish(inp: ReplayInput, node: ReplayNode, result: ReplayResult, output_
 
 def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,
             output_path: Path, clock_note: Optional[str], warn) -> None:
-    """What was simulated checked (nothing: an error, the output removed) and said."""
+    """What was simulated checked (nothing: an error, the output removed) and said; an
+    interrupted replay's output is kept as it is (marked partial)."""
     if recorder.error is not None:
         raise ReplayError(f'writing {output_path} failed: {recorder.error}')
+    if result.interrupted:
+        return
     if result.head_samples == 0 and (node.runner.needs_head or result.ticks == 0):
         output_path.unlink(missing_ok=True)
         raise ReplayError(f'{inp.path}: no message on {inp.head_topic} could be read')

@@ -246,6 +246,7 @@ class RunRecorder:
             if tf:
                 meta.update({'tf_topic': TF_TOPIC, 'tf_prefix': tf_prefix})
             meta.update(info or {})
+            self._meta = meta
             self._writer.write_metadata(RECORDING_METADATA, meta)
             self._writer.add_topic(layout.head_topic, head_type, qos.get(layout.head_topic,
                                                                          HEAD_QOS))
@@ -398,6 +399,25 @@ class RunRecorder:
 
     def on_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
         self.parameters_changed(changed, log_time_ns)
+
+    def mark_partial(self, reason: str, until_ns: Optional[int]) -> None:
+        """Say in the file that it holds only part of the run: ``reason`` (e.g. "interrupted by
+        SIGINT") and the log time (ns) up to which it is complete. Written as a new
+        ``ponytail_ros/recording`` record (the last of a name wins) with ``partial: true``,
+        ``partial_reason``, ``complete_until_ns``, and in rosbag2's ``custom_data`` of the
+        final ``rosbag2`` record (``ponytail_ros.partial`` ...). Call before :meth:`close`."""
+        until = '' if until_ns is None else str(int(until_ns))
+        if self._closed:
+            return
+        self._meta = {**self._meta, 'partial': 'true', 'partial_reason': reason,
+                      'complete_until_ns': until}
+        try:
+            self._writer.write_metadata(RECORDING_METADATA, self._meta)
+        except BagError as exc:
+            self._failed(exc)
+        self._writer.custom_data.update({'ponytail_ros.partial': 'true',
+                                         'ponytail_ros.partial_reason': reason,
+                                         'ponytail_ros.complete_until_ns': until})
 
     def close(self) -> None:
         """Finalise the file (idempotent)."""

@@ -80,6 +80,11 @@ def repair(input_path: Union[str, os.PathLike], output_path: Union[str, os.PathL
             is the input, exists (and not ``overwrite``) or cannot be written.
     """
     src, dst = Path(input_path), Path(output_path)
+    if src.is_dir():
+        files = sorted(p.name for p in src.glob('*.mcap'))
+        raise RepairError(f'{src} is a folder: repair works on one MCAP file; give the file to '
+                          f'repair ({", ".join(files) or "it holds no .mcap file"}), then put '
+                          f'the repaired file in its place')
     if not src.is_file():
         raise RepairError(f'{src}: no such file')
     if dst.exists() and dst.resolve() == src.resolve():

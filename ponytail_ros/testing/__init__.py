@@ -23,14 +23,15 @@ from .motion import Motion, PoseSample, head_samples, sample_motion, still
 from .offline import n_ticks, run_offline, tick_period_ns
 from .trace import Reset, Trace
 
-__all__ = ['CheckFailed', 'Config', 'Harness', 'HarnessError', 'HarnessTimeout', 'Motion',
+__all__ = ['BagSamples', 'CheckFailed', 'Config', 'Harness', 'HarnessError', 'HarnessTimeout',
+           'Motion',
            'ParameterError', 'PoseSample', 'Reset', 'Trace', 'assert_energy_does_not_grow',
            'assert_joints_closed', 'assert_no_penetration', 'assert_no_resets',
            'assert_tips_close', 'assert_within_joint_limits', 'bag_samples', 'head_samples',
            'joint_gaps', 'load_config', 'max_penetration', 'n_ticks', 'run_offline',
            'sample_motion', 'still', 'tick_period_ns', 'tip_distance']
 
-_LAZY = {'Harness', 'HarnessError', 'HarnessTimeout', 'bag_samples'}
+_LAZY = {'BagSamples', 'Harness', 'HarnessError', 'HarnessTimeout', 'bag_samples'}
 
 
 def __getattr__(name: str) -> Any:

@@ -239,6 +239,8 @@ def assert_no_resets(trace: Trace, reasons: Optional[Iterable[str]] = None,
     chosen = None if reasons is None else set(reasons)
     t0 = -np.inf if since is None else since - 1e-12
     bad: List = [r for r in trace.resets if r.t >= t0 and (chosen is None or r.reason in chosen)]
+    # A run without a tick fails, like every check here: nothing simulated is not a pass.
+    _window(trace, since)
     if bad:
         listed = '; '.join(f'{r.detail} at t = {r.t:.3f} s' for r in bad[:3])
         more = f' (and {len(bad) - 3} more)' if len(bad) > 3 else ''

@@ -52,7 +52,8 @@ from .offline import _frame_samples, n_ticks, stamp_msg, tick_period_ns
 from .trace import Trace, TraceBuilder
 
 __all__ = ['Harness', 'HarnessError', 'HarnessTimeout', 'default_domain_id', 'pose_msg',
-           'pose_array_msg',           'bag_samples', 'diagnostic_values', 'TIMEOUT_SCALE']
+           'pose_array_msg', 'bag_samples', 'BagSamples', 'diagnostic_values',
+           'TIMEOUT_SCALE']
 
 #: Wall-time waits are stretched by this factor (``PONYTAIL_TEST_TIMEOUT_SCALE``, default 4):
 #: they only matter when a loaded machine is slow; a passing test never waits for one to
@@ -150,20 +151,49 @@ def diagnostic_values(msg: DiagnosticArray) -> Dict[str, str]:
     return {kv.key: kv.value for kv in msg.status[0].values}
 
 
-def bag_samples(path: Union[str, Path], head_topic: Optional[str] = None) -> List[PoseSample]:
-    """The head poses (``PoseStamped`` or ``TransformStamped``) of a rosbag2 MCAP file, by
-    their ``header.stamp``, as ``PoseSample``s (a recorded take to feed :meth:`Harness.run`)."""
-    from ponytail_ros.recording.inputs import ReplayInput
+class BagSamples(List[PoseSample]):
+    """A bag's head poses as ``PoseSample``s, times in s from its first head pose
+    (:attr:`start_ns`, the absolute stamp of ``t = 0``, integer ns)."""
+
+    start_ns: int = 0
+
+
+def bag_samples(path: Union[str, Path], head_topic: Optional[str] = None) -> BagSamples:
+    """The head poses (``PoseStamped`` or ``TransformStamped``) of a rosbag2 bag (a bag folder,
+    its ``metadata.yaml``, or a ``.mcap`` / ``.db3`` file), in log-time order, timed by their
+    ``header.stamp`` **rebased to the first head pose** (``t = 0``; the absolute stamp of that
+    instant in :attr:`BagSamples.start_ns`): what :meth:`Harness.run` and
+    :func:`~ponytail_ros.testing.run_offline` take as they are, whose sim time starts at 0.
+
+    Raises:
+        ponytail_ros.recording.inputs.ReplayError: not a bag, no head topic (the message names
+            the file and the topics recorded), a damaged file.
+    """
+    from ponytail_ros.recording.inputs import ReplayInput, head_pose
+    from ponytail_ros.recording.recorder import stamp_ns as stamp_of
     inp = ReplayInput(path, head_topic)
-    out = []
-    for _, type_name, msg, _ in inp.reader.messages([inp.head_topic]):
-        if type_name.endswith('TransformStamped'):
-            p, q = msg.transform.translation, msg.transform.rotation
-        else:
-            p, q = msg.pose.position, msg.pose.orientation
-        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        out.append(PoseSample(t, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+    out = BagSamples()
+    stamps = []
+    for _, _, msg, _ in inp.reader.messages({inp.head_topic: inp.head_type}):
+        p, q = head_pose(msg, inp.head_type)
+        stamps.append(stamp_of(msg.header.stamp))
+        out.append(PoseSample(0.0, p, q))
+    if stamps:
+        out.start_ns = stamps[0]
+        out[:] = [s._replace(t=(t - out.start_ns) * 1e-9) for s, t in zip(out, stamps)]
     return out
+
+
+def check_samples_reach(samples: Sequence[PoseSample], end_ns: int, what: str) -> None:
+    """A run ending at ``end_ns`` whose head samples all lie after it would tick without a
+    head: an error saying so (stamps in another time base, e.g. a bag's absolute stamps),
+    never 0 ticks in silence."""
+    if samples and all(stamp_ns(s.t) > end_ns for s in samples):
+        raise HarnessError(
+            f'{what}: all {len(samples)} head samples are stamped after the run\'s end '
+            f'(first at t = {samples[0].t:.9g} s, the run ends at t = {end_ns * 1e-9:.9g} s of '
+            f'sim time, which starts at 0): absolute stamps? bag_samples() rebases a bag\'s to '
+            f'its first pose')
 
 
 class Harness:
@@ -395,8 +425,10 @@ class Harness:
 
         def window(inputs: List[PoseSample]) -> List[PoseSample]:
             return [s for s in inputs if after < stamp_ns(s.t) <= end]
-        feeds = [(self.head_pub, 'head pose', window(head_samples(head, end * 1e-9,
-                                                                   input_rate)))]
+        given = head_samples(head, end * 1e-9, input_rate)
+        if self._sent == 0:
+            check_samples_reach(given, end, 'Harness.run')
+        feeds = [(self.head_pub, 'head pose', window(given))]
         per_frame = _frame_samples(self.config, frames, end * 1e-9, input_rate)
         if self.frames_pub is not None:
             feeds.append((self.frames_pub, 'poses of the frames',

@@ -90,6 +90,12 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
     """
     config = _config(params, overrides)
     samples: List[PoseSample] = head_samples(head, duration, input_rate)
+    if samples and all(stamp_ns(s.t) > stamp_ns(duration) for s in samples):
+        raise ValueError(
+            f'run_offline: all {len(samples)} head samples are stamped after the run\'s end '
+            f'(first at t = {samples[0].t:.9g} s, the run ends at t = {duration:.9g} s of sim '
+            f'time, which starts at 0): absolute stamps? bag_samples() rebases a bag\'s to '
+            f'its first pose')
     frame_samples = _frame_samples(config, frames, duration, input_rate)
     frame_next = [0] * len(frame_samples)
     core = NodeCore(config.values)

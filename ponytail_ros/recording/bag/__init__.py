@@ -35,7 +35,10 @@ for the writer thread (normally none: the thread keeps up unless the disk stalls
 no summary or index: ``ponytail_replay repair`` rewrites it as a complete, indexed file that
 indexed readers (``rosbags``, mcap's ``SeekingReader``) open too.
 
-Reading (:class:`BagReader`) checks every record (``mcap_scan.py``): a damaged file (chunk or
+Reading (:class:`BagReader`) takes what rosbag2 writes: a bag folder (``metadata.yaml`` and
+every file it lists, in order: split bags), its ``metadata.yaml``, or one file; MCAP or sqlite3
+(``.db3``, read with ``rosbags``) storage; zstd compression of whole files, messages or MCAP
+chunks (``layout.py``). It checks every MCAP record (``mcap_scan.py``): a damaged file (chunk or
 data-section CRC mismatch, a record that does not fit its length) is an error naming the byte,
 never a shorter file; a cut-short one is read up to the cut and says where it is cut.
 
@@ -46,7 +49,9 @@ interpreter exit finalises the file). SIGTERM's default action kills the process
 
 The package, split as ``rosbags.rosbag2`` is: ``msgdefs.py`` (message definitions, type
 hashes), ``metadata.py`` (QoS YAML, rosbag2's metadata records), ``writer.py``
-(:class:`BagWriter`), ``reader.py`` (:class:`BagReader`), ``errors.py``.
+(:class:`BagWriter`), ``layout.py`` (a path to a bag's files), ``reader.py`` (:class:`BagReader`
+and its MCAP file reader), ``db3.py`` (the ``.db3`` file reader), ``wanted.py`` (the topics a
+read asks for, checked), ``errors.py``.
 
 It imports rclpy; nothing in ``ponytail_ros.core`` may import it.
 """

@@ -85,6 +85,9 @@ class BagWriter:
         self._chunk_duration_ns = chunk_duration_ns
         self._ros_distro = os.environ.get('ROS_DISTRO') or _DEFAULT_ROS_DISTRO
         self._topics: Dict[str, _Topic] = {}
+        #: rosbag2's ``custom_data`` (str -> str) of the final metadata record (e.g. that the
+        #: run is partial); set it before :meth:`close`.
+        self.custom_data: Dict[str, str] = {}
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: Optional[BagError] = None
         self._closed = False
@@ -396,7 +399,7 @@ class BagWriter:
                        'starting_time': {'nanoseconds_since_epoch': starting_time},
                        'duration': {'nanoseconds': duration},
                        'message_count': message_count}],
-            'custom_data': None,
+            'custom_data': dict(self.custom_data) or None,
             'ros_distro': self._ros_distro,
         }
         # Current rosbag2 keeps the distro in serialized_metadata only; earlier releases wrote
