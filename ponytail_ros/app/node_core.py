@@ -21,6 +21,7 @@ from .wire import MarkerArrayLayout
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
+from .tf_input import TFInput
 
 __all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'MIN_RATE_PERIODS', 'OVERLOAD_FRACTION',
            'OVERLOADED', 'tick_rate', 'time_msg']
@@ -125,6 +126,9 @@ class NodeCore:
         self.frames_topic = str(self.values.get('frames_topic') or '')
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
+        #: The head (and frames) from TF (``head_frame`` set), else None.
+        self.tf: Optional[TFInput] = (TFInput(self.values) if self.values.get('head_frame')
+                                      else None)
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._color_names = [chain_param_name(c, 'color') for c in self.chains]
         self._slices_model: Any = None
@@ -197,9 +201,10 @@ class NodeCore:
                    for m, c in zip(self._chain_msgs, scene.chains)):
                 self._chain_msgs = self._make_chain_messages(scene)
             self._msgs_scene = scene
-        # No frame set and no head pose seen (chains hanging from the world only): 'world'.
+        # No frame set and no head pose frame (an empty header.frame_id, or chains hanging
+        # from the world only): fixed_frame.
         values = self.values
-        frame = values['frame_id'] or out.frame_id or 'world'
+        frame = values['frame_id'] or out.frame_id or values.get('fixed_frame', 'world')
         stamp_ns = self.stamp_ns(t_ns, out)
         slices = self._chain_slices()
         origins, orientations = out.origins, out.orientations
@@ -352,6 +357,11 @@ class NodeCore:
                 flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
             elif r.needs_frame(i) and state == 'stale':
                 flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
+        tf_kv: List[Any] = []
+        if self.tf is not None:
+            tf_problems, tf_kv = self.tf.diagnostics()
+            for text in tf_problems:
+                flag(DiagnosticStatus.WARN, text)
         if dropped_window:
             flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped' if not self.frames
                  else f'{dropped_window} input poses dropped')
@@ -374,6 +384,7 @@ class NodeCore:
         ]
         for (key, state), n in zip(frames, r.frame_accepted_total):
             kv += [(key, state), (f'{key} poses accepted', str(n))]
+        kv += tf_kv
         kv += [
             ('ticks per s', f'{win.ticks / span:.1f}'),
             ('tick rate (Hz)', 'n/a' if achieved is None else f'{achieved:.1f}'),
