@@ -200,3 +200,18 @@ def test_an_extra_frame_from_tf_replays_as_its_pose_topic(tmp_path):
     _same_poses(a, b)
     arm = poses_by_stamp(a.output, '/arm_pose')           # recorded on its topic
     assert len(arm) == N and arm[T0_NS].header.frame_id == 'world'
+
+
+def test_the_command_line_takes_the_head_frame(tmp_path, capsys):
+    """``ponytail_replay BAG --head-frame head`` is the params file's ``head_frame: head``."""
+    from ponytail_ros.recording.cli import main
+    tf_bag = _write(tmp_path, 'tf')
+    a = replay(tf_bag, tmp_path / 'a.mcap', params_file=_params(tmp_path, 'head'))
+    assert main([str(tf_bag), '-o', str(tmp_path / 'b.mcap'), '-q', '--head-frame', 'head',
+                 '--fixed-frame', 'world', '--params', str(_params(tmp_path))]) == 0
+    pa, pb = poses_by_stamp(a.output), poses_by_stamp(tmp_path / 'b.mcap')
+    assert sorted(pa) == sorted(pb) and len(pb) > 100
+    assert all(pa[s].poses == pb[s].poses for s in pb)
+    assert main([str(tf_bag), '-o', str(tmp_path / 'c.mcap'), '-q', '--head-frame', 'nose',
+                 '--params', str(_params(tmp_path))]) == 2
+    assert "frame 'nose' has not appeared" in capsys.readouterr().err

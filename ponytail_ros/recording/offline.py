@@ -171,7 +171,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: Optional[str] = None, stop: Any = None) -> ReplayResult:
+           tf_prefix: Optional[str] = None, stop: Any = None,
+           head_frame: Optional[str] = None,
+           fixed_frame: Optional[str] = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -188,6 +190,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             (head stamps on another clock than the log times need ``'receive'``).
         tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
             ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
+        head_frame, fixed_frame: the parameters ``head_frame`` / ``fixed_frame`` over the
+            params file's and the recorded ones (the head from the bag's ``/tf``).
         stop: checked between input messages (``interrupt.StopRequest``): once true (its
             ``name`` the signal's), the replay ends there, its output finalised and marked
             partial (``ReplayResult.interrupted``).
@@ -207,6 +211,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     result = ReplayResult(output=output_path, truncated=inp.truncated)
     values, result.parameters_from = _resolve_parameters(inp, params_file, stamp_source,
                                                          look_ahead, warn)
+    _frames_given(values, head_frame, fixed_frame)
     tf_head = inp.use_tf_head(values)
     stamps = [] if tf_head else head_stamps(inp)
     clock_note = foreign_clock(inp, stamps, values['stamp_source'])
@@ -340,6 +345,16 @@ def _resolve_parameters(inp: ReplayInput, params_file, stamp_source, look_ahead,
     if look_ahead:
         values = {**values, **LOOK_AHEAD_VALUES}
     return values, parameters_from
+
+
+def _frames_given(values, head_frame: Optional[str], fixed_frame: Optional[str]) -> None:
+    """``--head-frame`` / ``--fixed-frame`` over the parameters' ``head_frame`` /
+    ``fixed_frame``."""
+    if fixed_frame is not None and not fixed_frame.strip('/'):
+        raise ReplayError(f'--fixed-frame must name a frame (e.g. world), not {fixed_frame!r}')
+    for name, value in (('head_frame', head_frame), ('fixed_frame', fixed_frame)):
+        if value is not None:
+            values[name] = value
 
 
 def _tick_mode(inp: ReplayInput, ticks: str, values) -> Tuple[str, Optional[str]]:
