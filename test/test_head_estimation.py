@@ -367,12 +367,24 @@ def test_history_is_capped():
     assert est.sample_period == pytest.approx(0.001)
 
 
-def test_before_the_oldest_sample_the_oldest_pose_is_used():
+def test_before_the_oldest_sample_the_oldest_pose_is_held_at_rest():
+    """Before its first stamp a history (a new one, one resumed after a gap) is the head held
+    at its first pose: no velocity or acceleration fitted backwards (a chain hanging from the
+    held head would be whipped by it); from the first stamp on, the fit's."""
     est = HeadEstimator(delay=0.05)
-    est.add(1.0, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
-    est.add(1.01, [1.01, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    q = quat_from_rotvec(np.array([0.0, 0.0, 0.3]))
+    for k in range(4):
+        est.add(1.0 + 0.01 * k, [1.0 + 0.01 * k, 0.0, 0.0],
+                quat_from_rotvec(np.array([0.0, 0.0, 0.3 + 0.02 * k])))
     s = est.state_at(1.02)                                    # evaluated at 0.97 → 1.0
     assert np.allclose(s.position[0], [1.0, 0.0, 0.0])
+    assert np.allclose(s.orientation[0], q)
+    for name in ('linear_velocity', 'angular_velocity', 'linear_acceleration',
+                 'angular_acceleration'):
+        assert not np.any(getattr(s, name))
+    at_first = est.state_at(1.05)
+    assert at_first.linear_velocity[0] == pytest.approx([1.0, 0.0, 0.0], abs=1e-6)
+    assert at_first.angular_velocity[0] == pytest.approx([0.0, 0.0, 2.0], abs=1e-5)
 
 
 # -- validation -----------------------------------------------------------------------------------

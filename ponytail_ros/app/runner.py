@@ -27,6 +27,23 @@ Per tick, at node clock time ``t``:
    on the current head while the dynamics are driven by the delayed, smoother estimate. Segment
    geometry is unchanged (joints stay closed); the swing itself still lags by ``delay``.
 
+Time: the node and the replay give times as integer ns (``seconds`` / ``tick_ns``); the runner
+differences them from its origin, the first such time, before they become float seconds, so
+that everything downstream (estimation, splines, anchor tables, the simulator) sees small
+times and the result does not depend on the clock's epoch (float seconds since 1970 resolve
+only ~0.2 µs, which a derivative estimate amplifies). ``push``/``tick`` take seconds on that
+origin (the floats a caller without an ns clock passes as they are).
+
+Sparse and broken head streams (``docs/head_input.md``): below ``SPARSE_RATE`` the head
+stream is sparse (an animation exported at 5–24 Hz): said once through ``on_notice`` with the
+measured rate; its pose-to-pose steps are judged as a teleport only beyond the thresholds per
+``1/SPARSE_RATE`` of their interval (a speed, not a distance), and the output is the chain as
+simulated at ``t - delay`` (no latency compensation: extrapolating a sparse stream by up to a
+period freezes the root, then jumps it). A stamp more than ``head.max_gap`` after the previous
+one is a gap, said through ``on_notice`` with its times: the head was held at its last pose
+across it (the estimator braked, then held it) and the new history is held at its first pose
+before its first stamp, so the chain resumes from the held pose without a whip.
+
 Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input period)`` where
 the input period is the median interval of the stored head samples (the longest of the head's
 and those of the frames the scene uses, when there are frames): a delay of a period or two
@@ -99,7 +116,7 @@ from ponytail_ros.core.head_estimation import (REJECT_REASONS, RESTARTED, HeadEs
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
-           'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change']
+           'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change', 'SPARSE_RATE']
 
 #: Why a head pose sample may be dropped (counted per reason).
 DROP_REASONS = tuple(REJECT_REASONS) + ('frame_changed', 'queue_overflow', 'frames_count')
@@ -119,6 +136,12 @@ DELAY_SLEW = 0.5
 START_SAMPLES = 3
 #: Resets after which the head history is new (the chain waits for ``START_SAMPLES``).
 HISTORY_RESETS = ('teleport', 'frame_changed')
+#: Below this measured input rate (Hz, the median interval of the stored head poses) the
+#: head stream is sparse (module docstring); 28 rather than 30 so that a jittered 30 Hz stream
+#: stays dense.
+SPARSE_RATE = 28.0
+#: Poses a history must hold before its rate is judged sparse or dense.
+RATE_SAMPLES = 8
 #: ``output_stamp`` values: what the stamp of the published state means.
 OUTPUT_STAMPS = ('tick', 'simulated')
 
@@ -277,8 +300,19 @@ class ChainRunner:
         self.ticks = 0
         self.last_reset = None
         #: Called as ``on_drop(reason, t_stamp, source)`` for every dropped sample (logging);
-        #: ``source`` is ``'head'`` or the frame's name.
+        #: ``source`` is ``'head'`` or the frame's name; ``t_stamp`` on the clock given
+        #: (``clock_seconds``).
         self.on_drop = None
+        #: Called as ``on_notice(key, text)`` when the head stream turns sparse (``'sparse'``,
+        #: with the measured rate) or resumes after a gap (``'gap'``, with its times): said
+        #: to the user (the node's terminal, the replay's warnings); the caller throttles.
+        self.on_notice = None
+        #: Integer ns of runner time 0 (``seconds``): the first ns time given, or None.
+        self.origin_ns = None
+        #: The head stream is sparse (None: not judged yet) and the gaps seen (count).
+        self.head_sparse = None
+        self._sparse_said = False
+        self.gaps = 0
 
     # -- configuration ---------------------------------------------------------------------
     def set_scene(self, scene):
@@ -396,6 +430,22 @@ class ChainRunner:
         """``t`` minus the newest accepted stamp (s), None without samples."""
         return None if self._newest_stamp is None else t - self._newest_stamp
 
+    def seconds(self, t_ns):
+        """Runner time (s) of an integer-ns time: ``t_ns`` minus the origin (the first ns time
+        given, ``origin_ns``), differenced as integers before it becomes a float."""
+        t_ns = int(t_ns)
+        if self.origin_ns is None:
+            self.origin_ns = t_ns
+        return (t_ns - self.origin_ns) * 1e-9
+
+    def clock_seconds(self, t):
+        """The clock's own seconds (for messages) of runner time ``t``."""
+        return t if self.origin_ns is None else t + self.origin_ns * 1e-9
+
+    def tick_ns(self, t_ns):
+        """``tick`` at integer-ns clock time ``t_ns`` (``seconds``)."""
+        return self.tick(self.seconds(t_ns))
+
     # -- input ---------------------------------------------------------------------------------
     def push(self, t, position, orientation, frame_id=''):
         """Queue a head pose sample (stamp ``t`` s, position ``(3,)``, quaternion ``(4,)``
@@ -437,7 +487,61 @@ class ChainRunner:
     def _drop(self, reason, t, source='head'):
         self.dropped[reason] += 1
         if self.on_drop is not None:
+            try:
+                t = self.clock_seconds(float(t))
+            except (TypeError, ValueError):
+                pass                    # (a malformed stamp is reported as it came)
             self.on_drop(reason, t, source)
+
+    def _notice(self, key, text):
+        if self.on_notice is not None:
+            self.on_notice(key, text)
+
+    def head_rate(self):
+        """The head's measured input rate (Hz, 1 / the median interval of its stored poses),
+        None with fewer than two."""
+        period = self.estimator.sample_period
+        return None if not period else 1.0 / period
+
+    def _judge_rate(self):
+        """``head_sparse`` from the head history (from ``START_SAMPLES`` poses: the first
+        output knows it); the turn to sparse said (``on_notice``) once the history holds
+        ``RATE_SAMPLES`` poses, once per turn (back above ``SPARSE_RATE`` re-arms it)."""
+        n = len(self.estimator)
+        if n < START_SAMPLES:
+            return
+        rate = self.head_rate()
+        self.head_sparse = sparse = rate < SPARSE_RATE
+        if not sparse:
+            if n >= RATE_SAMPLES:
+                self._sparse_said = False
+            return
+        if n >= RATE_SAMPLES and not self._sparse_said:
+            self._sparse_said = True
+            head = f'Head poses arrive at {rate:.1f} Hz, below {SPARSE_RATE:g} Hz: a sparse stream'
+            if getattr(self.estimator, 'spline_degree', None):      # (the look-ahead replay)
+                text = (f'{head}; look-ahead splines the head through them (fine for exact '
+                        f'animation poses); pose-to-pose steps are not teleports.')
+            else:
+                text = (f'{head}. Live, the head is fitted through poses {1e3 / rate:.0f} ms '
+                        f'apart (its velocity and acceleration are coarse) and the output is '
+                        f'the chain at t - {self.target_delay():.3f} s (no latency '
+                        f'compensation); pose-to-pose steps are not teleports. For exact '
+                        f'animation poses replay offline with --look-ahead (a spline through '
+                        f'them), or publish at 30 Hz or more.')
+            self._notice('sparse', text)
+
+    def _teleport_scale(self, t):
+        """The teleport thresholds' factor for a pose at stamp ``t``: 1, or, for an interval
+        from the newest pose between ``1/SPARSE_RATE`` and ``max_gap``, the interval in units
+        of ``1/SPARSE_RATE`` (a sparse stream's steps are judged as a speed)."""
+        last = self.estimator.last_stamp
+        if last is None:
+            return 1.0
+        dt = t - last
+        if dt * SPARSE_RATE <= 1.0 or dt > self.settings.max_gap:
+            return 1.0
+        return dt * SPARSE_RATE
 
     def _restart(self, reason):
         """Forget the head and the frames (histories, frame) and the chain; the next sample
@@ -550,12 +654,15 @@ class ChainRunner:
                     continue
                 restart = 'frame_changed'
                 self._reset_frames()      # in the old frame (all stale)
-            elif valid and est.jumped(p, q, s.teleport_distance, s.teleport_angle):
+            elif valid and est.jumped(p, q, *self._teleport_thresholds(t)):
                 restart = 'teleport'
             elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
                 # The stream restarted with an earlier time base (a publisher restarted, a bag
                 # replayed without sim time): adopt it, keep the chain.
                 restart = 'stream_restart'
+            if (valid and restart is None and est.last_stamp is not None
+                    and t - est.last_stamp > s.max_gap):
+                self._gap(est.last_stamp, t)
             if restart is not None:
                 est.reset()
                 if restart == 'stream_restart':
@@ -575,7 +682,24 @@ class ChainRunner:
                 self.frame_id = frame
             self._newest_stamp = est.last_stamp
         self.accepted_total += accepted
+        if accepted:
+            self._judge_rate()
         return accepted
+
+    def _teleport_thresholds(self, t):
+        """``(distance, angle)`` of the teleport test of a head pose at stamp ``t``."""
+        k = self._teleport_scale(t)
+        return self.settings.teleport_distance * k, self.settings.teleport_angle * k
+
+    def _gap(self, t_last, t_next):
+        """A head stream resuming at stamp ``t_next`` after its newest pose at ``t_last``,
+        more than ``max_gap`` before: counted and said."""
+        self.gaps += 1
+        a, b = self.clock_seconds(t_last), self.clock_seconds(t_next)
+        self._notice('gap', f'Head poses resumed after a gap of {t_next - t_last:.3f} s '
+                            f'(stamps {a:.3f} s to {b:.3f} s, head.max_gap '
+                            f'{self.settings.max_gap:g} s): the chain held the last head pose '
+                            f'across it; {self.gaps} gap(s) so far')
 
     def _drain_frame(self, i, t_tick):
         """Frame ``i``'s queued samples, as :meth:`_drain_head` (a teleport resets only the
@@ -710,7 +834,8 @@ class ChainRunner:
         self.dropped_time_total += report.dropped_time
         # The chain at the frame time itself (not up to one internal step behind it).
         origins, quats = self.sim.segment_poses(self._t_frame)
-        if self.settings.latency_compensation and self.settings.output_stamp == 'tick':
+        if (self.settings.latency_compensation and self.settings.output_stamp == 'tick'
+                and not self.head_sparse):
             # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
             # moved onto the attachment point of the head estimated at t.
             m = self.sim.model

@@ -57,6 +57,14 @@ the acceleration, so high degrees (the replay uses 9) recover the head's derivat
 exactly; on noisy or kinked poses a high degree rings and amplifies the noise (use the
 smoothing defaults instead). ``ponytail_ros/bench/pose_bench.py`` measures both modes.
 
+Time origin: stamps are float seconds on any origin, but the fit differences them, so give
+them on a near origin (``ChainRunner`` passes seconds since its first integer-ns time): float
+seconds since 1970 resolve only ~0.2 µs, a stamp error that an interpolating fit's
+derivatives amplify by orders of magnitude (``pose_bench --epoch``).
+
+A history restarted after a gap (or a new one) holds its oldest pose at rest before its
+oldest stamp: the head held until its stream resumed.
+
 Stale streams: between the newest sample and ``max_extrapolation`` after it the fit is
 extrapolated, for the first half at full speed, then time is smoothly braked (a C² time warp) so
 that velocity and acceleration decay to exactly zero at ``t_last + max_extrapolation``; later the
@@ -313,8 +321,9 @@ class HeadEstimator:
     def state_at(self, t):
         """The ``KinematicState`` (K = 1) of the body at ``t - delay`` (world frame, SI).
 
-        Within the history the fit interpolates; before the oldest sample it is evaluated at the
-        oldest sample; past the newest it extrapolates and brakes (see the module docstring).
+        Within the history the fit interpolates; before the oldest sample the oldest pose is
+        held, at rest (zero derivatives: the head held across a gap until its stream resumed);
+        past the newest it extrapolates and brakes (see the module docstring).
         Raises ``LookupError`` when no sample has been accepted yet (check ``last_stamp``) and
         ``ValueError`` for a non-finite ``t``.
         """

@@ -292,8 +292,12 @@ def _brake_warp(x):
 def fit_time(ts, n, t, delay, max_extrapolation):
     """``HeadEstimator.fit_time``: ``(te, rate, rate_d)`` of the fit of the first ``n`` ≥ 2
     stamps ``ts`` asked at ``t`` (s): ``t - delay`` within the history; past the newest stamp
-    warped (full-speed extrapolation for half of ``max_extrapolation``, then a C² brake)."""
+    warped (full-speed extrapolation for half of ``max_extrapolation``, then a C² brake);
+    before the oldest, the oldest held (rate 0: the body at rest there, as a head held across
+    a gap before its stream resumed)."""
     te = t - delay
+    if te < ts[0]:
+        return ts[0], 0.0, 0.0
     t_last = ts[n - 1]
     rate, rate_d = 1.0, 0.0
     s = te - t_last
