@@ -37,12 +37,16 @@ origin (the floats a caller without an ns clock passes as they are).
 Sparse and broken head streams (``docs/head_input.md``): below ``SPARSE_RATE`` the head
 stream is sparse (an animation exported at 5–24 Hz): said once through ``on_notice`` with the
 measured rate; its pose-to-pose steps are judged as a teleport only beyond the thresholds per
-``1/SPARSE_RATE`` of their interval (a speed, not a distance), and the output is the chain as
-simulated at ``t - delay`` (no latency compensation: extrapolating a sparse stream by up to a
-period freezes the root, then jumps it). A stamp more than ``head.max_gap`` after the previous
-one is a gap, said through ``on_notice`` with its times: the head was held at its last pose
-across it (the estimator braked, then held it) and the new history is held at its first pose
-before its first stamp, so the chain resumes from the held pose without a whip.
+``1/SPARSE_RATE`` of their interval (a speed, not a distance), the head is the cubic
+interpolating the poses around ``t - delay`` (``_fit_for_rate``: a smoothing fit would change
+at every new pose) and the output is the chain as simulated at ``t - delay`` (no latency
+compensation: extrapolating a sparse stream by up to a period freezes the root, then jumps
+it). With extra frames (one compiled fit for all) the frames follow the head's fit.
+
+A stamp more than ``head.max_gap`` after the previous one is a gap, said through
+``on_notice`` with its times: the head was held at its last pose across it (the estimator
+braked, then held it) and the new history is held at its first pose before its first stamp,
+so the chain resumes from the held pose without a whip.
 
 Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input period)`` where
 the input period is the median interval of the stored head samples (the longest of the head's
@@ -339,6 +343,23 @@ class ChainRunner:
             e.min_samples = int(s.min_samples) or int(s.degree) + 3
             e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
             e.quat_tolerance = float(s.quat_tolerance)
+        self._fit_for_rate()
+
+    def _fit_for_rate(self):
+        """The head estimator's fit for its stream's rate: the settings' (dense), or for a
+        sparse stream the cubic interpolating the ``degree + 1`` poses around each instant
+        (``min_samples = degree + 1``, ``window`` under a period). A smoothing fit over
+        poses a period or more apart changes at every new pose, around instants the chain has
+        already been simulated through; the interpolant at ``t - delay`` (two periods back)
+        is fixed by poses that have all arrived. Exact animation poses assumed; the
+        look-ahead spline is left alone."""
+        e, s = self.estimator, self.settings
+        if getattr(e, 'spline_degree', None):
+            return
+        e.window, e.min_samples = float(s.window), int(s.min_samples) or int(s.degree) + 3
+        period = e.sample_period
+        if self.head_sparse and period:
+            e.window, e.min_samples = min(e.window, period), e.degree + 1
 
     @property
     def delay(self):
@@ -511,7 +532,10 @@ class ChainRunner:
         if n < START_SAMPLES:
             return
         rate = self.head_rate()
-        self.head_sparse = sparse = rate < SPARSE_RATE
+        sparse = rate < SPARSE_RATE
+        if sparse != self.head_sparse or sparse:
+            self.head_sparse = sparse
+            self._fit_for_rate()
         if not sparse:
             if n >= RATE_SAMPLES:
                 self._sparse_said = False
@@ -523,12 +547,13 @@ class ChainRunner:
                 text = (f'{head}; look-ahead splines the head through them (fine for exact '
                         f'animation poses); pose-to-pose steps are not teleports.')
             else:
-                text = (f'{head}. Live, the head is fitted through poses {1e3 / rate:.0f} ms '
-                        f'apart (its velocity and acceleration are coarse) and the output is '
-                        f'the chain at t - {self.target_delay():.3f} s (no latency '
-                        f'compensation); pose-to-pose steps are not teleports. For exact '
-                        f'animation poses replay offline with --look-ahead (a spline through '
-                        f'them), or publish at 30 Hz or more.')
+                text = (f'{head}. Live, the head is the cubic through the poses around '
+                        f'each instant, {1e3 / rate:.0f} ms apart (its velocity and '
+                        f'acceleration are coarse), and the output is the chain at t - '
+                        f'{self.target_delay():.3f} s (no latency compensation); pose-to-pose '
+                        f'steps are not teleports. For exact animation poses replay offline '
+                        f'with --look-ahead (a spline through them), or publish at 30 Hz or '
+                        f'more.')
             self._notice('sparse', text)
 
     def _teleport_scale(self, t):

@@ -319,8 +319,6 @@ def reference_tip_errors(rate, t0_ns, workdir, *, look_ahead=True, dt=REFERENCE_
                             states.orientation[:, 0])
     values = chain_values(dt)
     values['rate'] = tick_rate
-    if not look_ahead:
-        values['solver']['dt'] = dt
     params = d / 'params.yaml'
     params.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}))
     out = d / 'out.mcap'
