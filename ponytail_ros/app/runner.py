@@ -557,11 +557,13 @@ class ChainRunner:
             self._notice('sparse', text)
 
     def _teleport_scale(self, t):
-        """The teleport thresholds' factor for a pose at stamp ``t``: 1, or, for an interval
-        from the newest pose between ``1/SPARSE_RATE`` and ``max_gap``, the interval in units
-        of ``1/SPARSE_RATE`` (a sparse stream's steps are judged as a speed)."""
+        """The teleport thresholds' factor for a pose at stamp ``t``: 1 on a dense stream; on
+        a sparse one (or one not judged yet: its first poses), for an interval from the newest
+        pose between ``1/SPARSE_RATE`` and ``max_gap``, the interval in units of
+        ``1/SPARSE_RATE`` (a sparse stream's steps are judged as a speed). A dense stream's
+        pause is no sparse step: a jump across it is judged as any."""
         last = self.estimator.last_stamp
-        if last is None:
+        if last is None or self.head_sparse is False:
             return 1.0
         dt = t - last
         if dt * SPARSE_RATE <= 1.0 or dt > self.settings.max_gap:
