@@ -134,3 +134,31 @@ def test_a_gap_is_said_with_its_times_and_the_chain_resumes_as_from_a_held_head(
         v = speeds(t, tips)
         after.append(v[(t[1:] > first) & (t[1:] <= first + 0.3)].max())
     assert after[0] <= 1.1 * after[1]
+
+
+def test_the_node_says_a_sparse_stream_once_and_gaps_with_their_stamps_throttled():
+    """``NodeCore`` (the node's and the replay's logic) fed ``header.stamp``s at a wall-clock
+    epoch: a 10 Hz stream is said sparse once; of three gaps 5 s apart the first is said with
+    its stamps, the second is held back (one notice per 10 s of node clock), the third is said
+    with the count of the one held back."""
+    from builtin_interfaces.msg import Time
+    from ponytail_ros.app.node_core import NodeCore
+    from ponytail_ros.app.param_values import complete_values
+    core = NodeCore(complete_values({'chains': ['ponytail'], 'markers': {'style': 'off'}}))
+    said = []
+    core.on_notice = lambda key, text: said.append((key, text))
+    motion = SwayYawMotion()
+    holes = [(2.0, 3.0), (7.0, 8.0), (12.5, 13.5)]
+    for k in range(int(16.0 * 100)):                 # ticks at 100 Hz, poses at 10 Hz
+        t_ns = WALL_NS + k * 10_000_000
+        if k % 10 == 0 and not any(a <= k / 100 < b for a, b in holes):
+            s = motion.state_at(k / 100)
+            core.push_head(Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), t_ns,
+                           tuple(s.position[0]), tuple(s.orientation[0]), 'world')
+        core.tick(t_ns)
+    assert [k for k, _ in said] == ['sparse', 'gap', 'gap']
+    assert '10.0 Hz' in said[0][1]
+    assert '1700000001.900 s to 1700000003.000 s' in said[1][1]
+    assert '1700000012.400 s to 1700000013.500 s' in said[2][1]
+    assert '1 more since the last such notice' in said[2][1]
+    assert core.runner.gaps == 3 and sum(core.runner.resets.values()) == 0
