@@ -214,7 +214,12 @@ class NodeCore:
         win.last_call_ns = t_ns
         win.calls += 1
         self._clock_ns = t_ns
-        out = self.runner.tick(self.runner.seconds(t_ns))
+        runner = self.runner
+        if runner.origin_ns is None and runner.missing_inputs():
+            # No input yet (a pose sets the origin): nothing to simulate, and the origin stays
+            # the first input's, as in a replay of this run (which sees no such tick).
+            return None
+        out = runner.tick(runner.seconds(t_ns))
         if out is None:
             return None
         scene = self.runner.scene
