@@ -203,7 +203,8 @@ class TickOutput:
     """What one tick produced (arrays are fresh copies).
 
     Attributes:
-        t: tick time (node clock), s.
+        t: tick time (node clock), s: runner time (from ``ChainRunner.origin_ns``, as every
+            time here; ``ChainRunner.clock_seconds`` gives the clock's).
         t_head: head time the chain was advanced to, ``t - delay``, s.
         t_state: time of the chain state in ``origins``/``orientations`` before latency
             compensation, s: ``t_head``, or the previous frame's time when this tick was merged
@@ -217,7 +218,7 @@ class TickOutput:
             guard reset reason).
         reset_reason: why the chain was put at rest this tick (``RESET_REASONS``) or None.
         head_stale: no sample accepted during the ``stale_timeout`` s before ``t``.
-        newest_stamp: stamp of the newest accepted sample, s.
+        newest_stamp: stamp of the newest accepted sample, s (runner time, as ``t``).
         accepted: samples accepted this tick.
         frames_reset: the frames that teleported this tick, whose chains alone were put at
             rest on their new poses (the others carried on), in the order of ``frames``.
@@ -440,7 +441,10 @@ class ChainRunner:
 
     @property
     def newest_stamp(self):
-        return self._newest_stamp
+        """Stamp of the newest accepted head pose on the clock given (``clock_seconds``: the
+        stamp as the publisher wrote it, to ~0.2 µs at today's epoch), None without one;
+        ``TickOutput.newest_stamp`` is the same in runner time."""
+        return None if self._newest_stamp is None else self.clock_seconds(self._newest_stamp)
 
     def head_stale(self, t):
         """No sample accepted during the last ``stale_timeout`` s of clock time before ``t``."""
