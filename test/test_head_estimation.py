@@ -283,9 +283,9 @@ def test_stale_head_is_held_with_zero_velocity():
     speeds = [np.linalg.norm(est.state_at(t_last + s).linear_velocity)
               for s in np.linspace(0.05, 0.1, 11)]
     assert speeds[-1] == 0.0 and speeds[0] > 0.0
-    # ...and from then on the pose is held.
+    # ...and from then on the pose is held, up to max_gap (0.5 s)...
     held = est.state_at(t_last + 0.1)
-    for s in (0.1001, 0.5, 100.0):
+    for s in (0.1001, 0.3, 0.5):
         st_ = est.state_at(t_last + s)
         assert np.array_equal(st_.position, held.position)
         assert np.array_equal(st_.orientation, held.orientation)
@@ -293,6 +293,19 @@ def test_stale_head_is_held_with_zero_velocity():
             assert np.all(getattr(st_, k) == 0.0)
     # Close to the last sample's pose (the extrapolation ran for 75 ms at ≤ 0.5 m/s).
     assert np.linalg.norm(held.position[0] - ps[-1]) < 0.05
+    # ...then, a gap, it returns within max_extrapolation to the last pose the stream gave
+    # (the fit at the newest stamp) and holds that.
+    last = est.state_at(t_last)
+    returning = [est.state_at(t_last + 0.5 + s) for s in np.linspace(0.0, 0.1, 21)]
+    assert max(np.linalg.norm(r.linear_velocity) for r in returning) < 1.0
+    for s in (0.6, 0.7, 100.0):
+        st_ = est.state_at(t_last + s)
+        assert np.array_equal(st_.position, last.position)
+        assert np.array_equal(st_.orientation, last.orientation)
+        for k in KEYS:
+            assert np.all(getattr(st_, k) == 0.0)
+    # (the least-squares cubic over 0.1 s at its newest sample: µm from the exact pose)
+    assert np.linalg.norm(last.position[0] - ps[-1]) < 1e-5
 
 
 def test_zero_max_extrapolation_holds_the_newest_fit():

@@ -317,6 +317,7 @@ class ChainRunner:
         #: The head stream is sparse (None: not judged yet) and the gaps seen (count).
         self.head_sparse = None
         self._sparse_said = False
+        self._head_period = None        # (the head's last known input period, s)
         self.gaps = 0
 
     # -- configuration ---------------------------------------------------------------------
@@ -373,6 +374,11 @@ class ChainRunner:
         s = self.settings
         d = s.interpolation_delay
         period = self.estimator.sample_period
+        if period is None:
+            # A history restarted (a gap, a teleport) has no period yet: the stream's last.
+            period = self._head_period
+        else:
+            self._head_period = period
         used = _used_frames(self.scene, len(self.frames))
         if self._banked():              # (a crowd's frames in one compiled call)
             periods = [self._bank.longest_sample_period([1 + i for i in used])] if used else []
