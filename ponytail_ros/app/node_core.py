@@ -3,12 +3,13 @@ a diagnostics period, as messages and without an rclpy node: ``PonytailNode`` pu
 ``NodeCore`` returns, ``ponytail_replay`` records it. One implementation, so a replay is the
 node's run.
 
-Times are integer ns of the node clock (the recorded clock in a replay). The per-tick logic
-(input checks, head estimation, stepping) is ``ChainRunner``; the parameter table is
-``parameters.py``; messages are built by ``messages.py``.
+Times are integer ns of the node clock (the recorded clock in a replay); the runner gets them
+relative to its origin (``ChainRunner.seconds``), so nothing depends on the clock's epoch. The
+per-tick logic (input checks, head estimation, stepping) is ``ChainRunner``; the parameter
+table is ``parameters.py``; messages are built by ``messages.py``.
 """
 from dataclasses import dataclass, field
-from typing import Any, List, Mapping, Optional
+from typing import Any, Callable, List, Mapping, Optional
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -44,6 +45,8 @@ TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time me
 OVERLOAD_FRACTION = 0.9
 #: The start of that warning's text (the node says it on its terminal too, with the fix).
 OVERLOADED = 'overloaded'
+#: A runner notice (``on_notice``) of one kind is said at most once per this much node clock.
+NOTICE_PERIOD_NS = 10_000_000_000
 #: Tick calls spanning fewer nominal periods than this say nothing about the rate (one late
 #: timer callback among a few would read as a fall).
 MIN_RATE_PERIODS = 10
@@ -142,6 +145,12 @@ class NodeCore:
         self._last_marker_t = None
         self.published = 0
         self.window = _Window()
+        #: Called as ``on_notice(key, text)`` with what the user should read on the terminal
+        #: (a sparse head stream, a gap in it: ``ChainRunner.on_notice``), throttled per key.
+        self.on_notice: Optional[Callable[[str, str], None]] = None
+        self._notices: dict = {}
+        self._clock_ns: Optional[int] = None
+        self.runner.on_notice = self._runner_notice
         self._dropped_at_diag = dict(self.runner.dropped)
 
     def is_parameter(self, name: str) -> bool:
@@ -153,9 +162,26 @@ class NodeCore:
 
     # -- input ---------------------------------------------------------------------------------
     def _stamp(self, stamp, receive_ns):
+        """The runner time (s) of a pose: its stamp (or receive time) as integer ns, made
+        relative to the run's origin before it becomes a float (``ChainRunner.seconds``)."""
         if self.stamp_source == 'receive' or (stamp.sec == 0 and stamp.nanosec == 0):
-            return receive_ns * 1e-9
-        return stamp.sec + stamp.nanosec * 1e-9
+            return self.runner.seconds(receive_ns)
+        return self.runner.seconds(stamp.sec * 1_000_000_000 + stamp.nanosec)
+
+    def _runner_notice(self, key: str, text: str) -> None:
+        """A runner notice (a sparse head, a gap) passed to ``on_notice``, a key said at most
+        once per ``NOTICE_PERIOD_NS`` of the node clock (the later ones counted into the
+        next)."""
+        t_ns = self._clock_ns
+        last, held = self._notices.get(key, (None, 0))
+        if last is not None and t_ns is not None and t_ns - last < NOTICE_PERIOD_NS:
+            self._notices[key] = (last, held + 1)
+            return
+        self._notices[key] = (t_ns, 0)
+        if held:
+            text += f' ({held} more since the last such notice)'
+        if self.on_notice is not None:
+            self.on_notice(key, text)
 
     def push_head(self, stamp, receive_ns: int, position, orientation, frame_id: str) -> None:
         """Queue a head pose: ``stamp`` its ``header.stamp`` (a zero stamp, or ``stamp_source:
@@ -191,7 +217,13 @@ class NodeCore:
             win.first_call_ns = t_ns
         win.last_call_ns = t_ns
         win.calls += 1
-        out = self.runner.tick(t_ns * 1e-9)
+        self._clock_ns = t_ns
+        runner = self.runner
+        if runner.origin_ns is None and runner.missing_inputs():
+            # No input yet (a pose sets the origin): nothing to simulate, and the origin stays
+            # the first input's, as in a replay of this run (which sees no such tick).
+            return None
+        out = runner.tick(runner.seconds(t_ns))
         if out is None:
             return None
         scene = self.runner.scene
@@ -325,7 +357,7 @@ class NodeCore:
         win, self.window = self.window, _Window(t0_ns=t_ns)
         r = self.runner
         span = max(span, 1e-9)
-        t = t_ns * 1e-9
+        t = r.seconds(t_ns)
         dropped_now = dict(r.dropped)
         dropped_window = sum(dropped_now[k] - self._dropped_at_diag.get(k, 0)
                              for k in DROP_REASONS)

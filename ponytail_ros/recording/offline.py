@@ -236,6 +236,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                                         and any(stamp for stamp, _ in stamps)))
     if look_ahead:
         _use_spline_estimators(node.runner)
+    node.core.on_notice = lambda key, text: warn(f'{inp.path}: {text}')   # sparse head, gaps
     loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
                         events_topic=events_topic, frame_topics=frame_topics,
                         frame_types=frame_types, look_ahead=look_ahead, progress=progress,

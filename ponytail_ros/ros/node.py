@@ -287,6 +287,9 @@ class PonytailNode(Node):
         # Compile (or load) the step now, saying so, rather than stalling the first tick.
         report_compile(self.get_logger().info)
         self.core.runner.on_drop = self._on_drop
+        # A sparse head stream, a gap in it (NodeCore throttles them on the node clock).
+        self.core.on_notice = lambda key, text: self._log_throttled(f'notice:{key}', 0.0,
+                                                                    'warning', text)
         self._check_input_topics()
         #: Warnings said at start-up about the parameters given (unknown names; tf).
         self.startup_warnings = []
