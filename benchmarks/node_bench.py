@@ -139,8 +139,10 @@ def ros_case(n_chains, duration, input_rate, domain_id):
     node.runner.tick = timed_tick
     # Wall clock (time.time) of the end of the PoseArray publication: perf_counter offset.
     offset = time.time() - time.perf_counter()
+    clock = node.runner.clock_seconds           # (runner times are from its origin)
     node.tick_hook = lambda out, w0, w_pub, w_end: ticks.append(
-        (out.t, out.newest_stamp, w_end - w0, w_pub + offset))
+        (clock(out.t), None if out.newest_stamp is None else clock(out.newest_stamp),
+         w_end - w0, w_pub + offset))
     child = subprocess.Popen(
         [sys.executable, __file__, '--helper', '--topic', topic,
          '--duration', str(duration + 1.5), '--input-rate', str(input_rate)],

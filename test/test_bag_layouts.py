@@ -226,7 +226,7 @@ def test_a_killed_recorders_folder_replays_what_was_written_and_says_so(tmp_path
                                                                         capsys):
     """What a SIGKILLed ``ros2 bag record`` leaves: ``<bag>/<bag>_0.mcap`` cut short, no
     ``metadata.yaml``. Replayed up to the cut, with the missing metadata and the cut said."""
-    from ponytail_ros.bench.replay_bench import make_head_recording
+    from ponytail_ros.bench.head_bag import make_head_recording
     whole = make_head_recording(tmp_path / 'whole.mcap', 10.0)   # 100 Hz, many chunks
     folder = tmp_path / 'killed'
     folder.mkdir()

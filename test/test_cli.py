@@ -94,7 +94,7 @@ def test_a_typo_in_the_params_file_is_warned_with_the_closest_name(ros_context, 
     node = PonytailNode(context=ros_context, cli_args=['--ros-args', '--params-file',
                                                        str(params)])
     try:
-        assert node.startup_warnings == [
+        assert [w for w in node.startup_warnings if 'tf2_msgs' not in w] == [
             "unknown parameter 'ponytail.n_segmentz' ignored (did you mean "
             "'ponytail.n_segments'?): not a parameter of /ponytail (params file or -p)"]
         assert node.get_parameter('ponytail.damping').value == 0.002
@@ -160,20 +160,31 @@ def test_two_nodes_with_one_name_are_warned_about(ros_context):
         b.destroy_node()
 
 
-def test_tf_publish_asked_for_without_tf2_msgs_is_said_once(ros_context):
-    from ponytail_ros.recording.tf import tf2_msgs_available
-    if tf2_msgs_available():
-        pytest.skip('tf2_msgs is installed: /tf is published')
+def test_live_tf_off_without_tf2_msgs_is_said_once(ros_context, monkeypatch):
+    """Without tf2_msgs (made unimportable here) the node runs and says once that live TF is
+    off and why, whether tf.publish was asked for or is the default; tf.publish false says
+    nothing; the head from TF is refused naming head_frame."""
+    import sys
+    from ponytail_ros.app.parameters import ParameterError
+    monkeypatch.setitem(sys.modules, 'tf2_msgs.msg', None)
     asked = PonytailNode(context=ros_context,
                          parameter_overrides=[Parameter('tf.publish', value=True)])
     default = PonytailNode('other', context=ros_context)
+    off = PonytailNode('off', context=ros_context,
+                       parameter_overrides=[Parameter('tf.publish', value=False)])
     try:
-        said = [w for w in asked.startup_warnings if 'tf2_msgs' in w]
-        assert len(said) == 1 and 'not published on /tf' in said[0]
-        assert not [w for w in default.startup_warnings if 'tf2_msgs' in w]
+        for node in (asked, default):
+            said = [w for w in node.startup_warnings if 'tf2_msgs' in w]
+            assert len(said) == 1 and 'Live TF is off' in said[0] \
+                and 'not published on /tf' in said[0]
+            assert node._tf_pub is None
+        assert not [w for w in off.startup_warnings if 'tf2_msgs' in w]
     finally:
-        asked.destroy_node()
-        default.destroy_node()
+        for node in (asked, default, off):
+            node.destroy_node()
+    with pytest.raises(ParameterError, match="head_frame = 'head' needs tf2_msgs"):
+        PonytailNode('tf_head', context=ros_context,
+                     parameter_overrides=[Parameter('head_frame', value='head')])
 
 
 # -- progress -------------------------------------------------------------------------------------

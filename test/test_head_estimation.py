@@ -283,9 +283,9 @@ def test_stale_head_is_held_with_zero_velocity():
     speeds = [np.linalg.norm(est.state_at(t_last + s).linear_velocity)
               for s in np.linspace(0.05, 0.1, 11)]
     assert speeds[-1] == 0.0 and speeds[0] > 0.0
-    # ...and from then on the pose is held.
+    # ...and from then on the pose is held, up to max_gap (0.5 s)...
     held = est.state_at(t_last + 0.1)
-    for s in (0.1001, 0.5, 100.0):
+    for s in (0.1001, 0.3, 0.5):
         st_ = est.state_at(t_last + s)
         assert np.array_equal(st_.position, held.position)
         assert np.array_equal(st_.orientation, held.orientation)
@@ -293,6 +293,19 @@ def test_stale_head_is_held_with_zero_velocity():
             assert np.all(getattr(st_, k) == 0.0)
     # Close to the last sample's pose (the extrapolation ran for 75 ms at ≤ 0.5 m/s).
     assert np.linalg.norm(held.position[0] - ps[-1]) < 0.05
+    # ...then, a gap, it returns within max_extrapolation to the last pose the stream gave
+    # (the fit at the newest stamp) and holds that.
+    last = est.state_at(t_last)
+    returning = [est.state_at(t_last + 0.5 + s) for s in np.linspace(0.0, 0.1, 21)]
+    assert max(np.linalg.norm(r.linear_velocity) for r in returning) < 1.0
+    for s in (0.6, 0.7, 100.0):
+        st_ = est.state_at(t_last + s)
+        assert np.array_equal(st_.position, last.position)
+        assert np.array_equal(st_.orientation, last.orientation)
+        for k in KEYS:
+            assert np.all(getattr(st_, k) == 0.0)
+    # (the least-squares cubic over 0.1 s at its newest sample: µm from the exact pose)
+    assert np.linalg.norm(last.position[0] - ps[-1]) < 1e-5
 
 
 def test_zero_max_extrapolation_holds_the_newest_fit():
@@ -367,12 +380,24 @@ def test_history_is_capped():
     assert est.sample_period == pytest.approx(0.001)
 
 
-def test_before_the_oldest_sample_the_oldest_pose_is_used():
+def test_before_the_oldest_sample_the_oldest_pose_is_held_at_rest():
+    """Before its first stamp a history (a new one, one resumed after a gap) is the head held
+    at its first pose: no velocity or acceleration fitted backwards (a chain hanging from the
+    held head would be whipped by it); from the first stamp on, the fit's."""
     est = HeadEstimator(delay=0.05)
-    est.add(1.0, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
-    est.add(1.01, [1.01, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    q = quat_from_rotvec(np.array([0.0, 0.0, 0.3]))
+    for k in range(4):
+        est.add(1.0 + 0.01 * k, [1.0 + 0.01 * k, 0.0, 0.0],
+                quat_from_rotvec(np.array([0.0, 0.0, 0.3 + 0.02 * k])))
     s = est.state_at(1.02)                                    # evaluated at 0.97 → 1.0
     assert np.allclose(s.position[0], [1.0, 0.0, 0.0])
+    assert np.allclose(s.orientation[0], q)
+    for name in ('linear_velocity', 'angular_velocity', 'linear_acceleration',
+                 'angular_acceleration'):
+        assert not np.any(getattr(s, name))
+    at_first = est.state_at(1.05)
+    assert at_first.linear_velocity[0] == pytest.approx([1.0, 0.0, 0.0], abs=1e-6)
+    assert at_first.angular_velocity[0] == pytest.approx([0.0, 0.0, 2.0], abs=1e-5)
 
 
 # -- validation -----------------------------------------------------------------------------------

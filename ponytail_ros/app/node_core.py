@@ -3,12 +3,13 @@ a diagnostics period, as messages and without an rclpy node: ``PonytailNode`` pu
 ``NodeCore`` returns, ``ponytail_replay`` records it. One implementation, so a replay is the
 node's run.
 
-Times are integer ns of the node clock (the recorded clock in a replay). The per-tick logic
-(input checks, head estimation, stepping) is ``ChainRunner``; the parameter table is
-``parameters.py``; messages are built by ``messages.py``.
+Times are integer ns of the node clock (the recorded clock in a replay); the runner gets them
+relative to its origin (``ChainRunner.seconds``), so nothing depends on the clock's epoch. The
+per-tick logic (input checks, head estimation, stepping) is ``ChainRunner``; the parameter
+table is ``parameters.py``; messages are built by ``messages.py``.
 """
 from dataclasses import dataclass, field
-from typing import Any, List, Mapping, Optional
+from typing import Any, Callable, List, Mapping, Optional
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -21,6 +22,7 @@ from .wire import MarkerArrayLayout
 from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
                          collider_names, definition, frame_names, frame_topics)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
+from .tf_input import TFInput
 
 __all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'MIN_RATE_PERIODS', 'OVERLOAD_FRACTION',
            'OVERLOADED', 'tick_rate', 'time_msg']
@@ -43,6 +45,8 @@ TIMING_KEYS = ('solve time mean (ms)', 'solve time max (ms)', 'integrate time me
 OVERLOAD_FRACTION = 0.9
 #: The start of that warning's text (the node says it on its terminal too, with the fix).
 OVERLOADED = 'overloaded'
+#: A runner notice (``on_notice``) of one kind is said at most once per this much node clock.
+NOTICE_PERIOD_NS = 10_000_000_000
 #: Tick calls spanning fewer nominal periods than this say nothing about the rate (one late
 #: timer callback among a few would read as a fall).
 MIN_RATE_PERIODS = 10
@@ -125,6 +129,9 @@ class NodeCore:
         self.frames_topic = str(self.values.get('frames_topic') or '')
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
+        #: The head (and frames) from TF (``head_frame`` set), else None.
+        self.tf: Optional[TFInput] = (TFInput(self.values) if self.values.get('head_frame')
+                                      else None)
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._color_names = [chain_param_name(c, 'color') for c in self.chains]
         self._slices_model: Any = None
@@ -138,6 +145,12 @@ class NodeCore:
         self._last_marker_t = None
         self.published = 0
         self.window = _Window()
+        #: Called as ``on_notice(key, text)`` with what the user should read on the terminal
+        #: (a sparse head stream, a gap in it: ``ChainRunner.on_notice``), throttled per key.
+        self.on_notice: Optional[Callable[[str, str], None]] = None
+        self._notices: dict = {}
+        self._clock_ns: Optional[int] = None
+        self.runner.on_notice = self._runner_notice
         self._dropped_at_diag = dict(self.runner.dropped)
 
     def is_parameter(self, name: str) -> bool:
@@ -149,9 +162,26 @@ class NodeCore:
 
     # -- input ---------------------------------------------------------------------------------
     def _stamp(self, stamp, receive_ns):
+        """The runner time (s) of a pose: its stamp (or receive time) as integer ns, made
+        relative to the run's origin before it becomes a float (``ChainRunner.seconds``)."""
         if self.stamp_source == 'receive' or (stamp.sec == 0 and stamp.nanosec == 0):
-            return receive_ns * 1e-9
-        return stamp.sec + stamp.nanosec * 1e-9
+            return self.runner.seconds(receive_ns)
+        return self.runner.seconds(stamp.sec * 1_000_000_000 + stamp.nanosec)
+
+    def _runner_notice(self, key: str, text: str) -> None:
+        """A runner notice (a sparse head, a gap) passed to ``on_notice``, a key said at most
+        once per ``NOTICE_PERIOD_NS`` of the node clock (the later ones counted into the
+        next)."""
+        t_ns = self._clock_ns
+        last, held = self._notices.get(key, (None, 0))
+        if last is not None and t_ns is not None and t_ns - last < NOTICE_PERIOD_NS:
+            self._notices[key] = (last, held + 1)
+            return
+        self._notices[key] = (t_ns, 0)
+        if held:
+            text += f' ({held} more since the last such notice)'
+        if self.on_notice is not None:
+            self.on_notice(key, text)
 
     def push_head(self, stamp, receive_ns: int, position, orientation, frame_id: str) -> None:
         """Queue a head pose: ``stamp`` its ``header.stamp`` (a zero stamp, or ``stamp_source:
@@ -187,7 +217,13 @@ class NodeCore:
             win.first_call_ns = t_ns
         win.last_call_ns = t_ns
         win.calls += 1
-        out = self.runner.tick(t_ns * 1e-9)
+        self._clock_ns = t_ns
+        runner = self.runner
+        if runner.origin_ns is None and runner.missing_inputs():
+            # No input yet (a pose sets the origin): nothing to simulate, and the origin stays
+            # the first input's, as in a replay of this run (which sees no such tick).
+            return None
+        out = runner.tick(runner.seconds(t_ns))
         if out is None:
             return None
         scene = self.runner.scene
@@ -197,9 +233,10 @@ class NodeCore:
                    for m, c in zip(self._chain_msgs, scene.chains)):
                 self._chain_msgs = self._make_chain_messages(scene)
             self._msgs_scene = scene
-        # No frame set and no head pose seen (chains hanging from the world only): 'world'.
+        # No frame set and no head pose frame (an empty header.frame_id, or chains hanging
+        # from the world only): fixed_frame.
         values = self.values
-        frame = values['frame_id'] or out.frame_id or 'world'
+        frame = values['frame_id'] or out.frame_id or values.get('fixed_frame', 'world')
         stamp_ns = self.stamp_ns(t_ns, out)
         slices = self._chain_slices()
         origins, orientations = out.origins, out.orientations
@@ -320,7 +357,7 @@ class NodeCore:
         win, self.window = self.window, _Window(t0_ns=t_ns)
         r = self.runner
         span = max(span, 1e-9)
-        t = t_ns * 1e-9
+        t = r.seconds(t_ns)
         dropped_now = dict(r.dropped)
         dropped_window = sum(dropped_now[k] - self._dropped_at_diag.get(k, 0)
                              for k in DROP_REASONS)
@@ -352,6 +389,11 @@ class NodeCore:
                 flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
             elif r.needs_frame(i) and state == 'stale':
                 flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
+        tf_kv: List[Any] = []
+        if self.tf is not None:
+            tf_problems, tf_kv = self.tf.diagnostics()
+            for text in tf_problems:
+                flag(DiagnosticStatus.WARN, text)
         if dropped_window:
             flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped' if not self.frames
                  else f'{dropped_window} input poses dropped')
@@ -374,6 +416,7 @@ class NodeCore:
         ]
         for (key, state), n in zip(frames, r.frame_accepted_total):
             kv += [(key, state), (f'{key} poses accepted', str(n))]
+        kv += tf_kv
         kv += [
             ('ticks per s', f'{win.ticks / span:.1f}'),
             ('tick rate (Hz)', 'n/a' if achieved is None else f'{achieved:.1f}'),

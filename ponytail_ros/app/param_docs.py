@@ -56,6 +56,8 @@ _TYPES = {'double': 'double', 'int': 'integer', 'bool': 'bool', 'string': 'strin
 def _default(p: ParamDef) -> str:
     if p.name == 'color':
         return 'a colour per chain, cycled'
+    if p.name == 'tf.prefix':
+        return 'the namespace'
     if p.kind == 'string':
         return repr(p.default) if p.default == '' else str(p.default)
     if isinstance(p.default, bool):
@@ -116,7 +118,8 @@ def markdown() -> str:
         'running value stays.',
         '',
         'Units are SI, frames REP 103 (right-handed, Z up). Vectors such as `gravity` and '
-        '`wind` are in the head pose\'s frame; `attach`, `center` and `axis` in the frame of '
+        '`wind` are in the simulation\'s frame (`fixed_frame`, which must be inertial, or the '
+        'head poses\' frame: [tf.md](tf.md)); `attach`, `center` and `axis` in the frame of '
         'the body they are fixed in.',
     ]
     for heading, prefix, defs, what in GROUPS:

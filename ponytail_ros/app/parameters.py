@@ -11,13 +11,16 @@ collider and frame names share one namespace. In a params file the dots are nest
 Frames (kinematic bodies): a chain hangs from, and a collider is fixed in, one of
 
 * ``head``: the pose on ``head_pose`` (``<chain>.attach``, ``<collider>.center``/``axis`` are
-  fixed offsets in the head frame);
+  fixed offsets in the head frame), or, with ``head_frame`` set, the TF frame ``head_frame``
+  in ``fixed_frame`` (``app/tf_buffer.py``; ``head_pose`` is then not read);
 * a frame named in ``frames``: a kinematic body whose pose arrives on its own
   ``geometry_msgs/PoseStamped`` topic, ``<frame>.topic`` (default ``<frame>_pose``, relative to
   the node's namespace), e.g. a forearm carrying a capsule collider; its poses must be in the
   same frame as the head's (``header.frame_id``), and offsets are in that body's frame; they
   go through the same input checks and estimation settings as the head's (``head.*``,
-  ``stale_timeout``, ``input_queue_size``, ``stamp_source``);
+  ``stale_timeout``, ``input_queue_size``, ``stamp_source``); with ``<frame>.tf_frame`` set
+  (and ``head_frame``) its pose comes from TF as the head's, ``fixed_frame -> tf_frame``, and
+  its topic is not read;
 * ``world``: static, in the head pose's frame (a rope from a ceiling, a floor, a wall). A node
   in which nothing uses the head needs no head pose at all.
 
@@ -37,8 +40,9 @@ Live or not (``ParamDef.live``):
   the simulator is rebuilt from the new scene at rest at the
   current head pose on the next tick (a reset with reason ``'rebuild'``);
 * read-only (fixed at start-up): ``chains`` (it decides the topics), ``colliders`` (it decides
-  the parameters), ``frames`` and every ``<frame>.topic`` (they decide the subscriptions),
-  ``stamp_source``, ``output_stamp``,
+  the parameters), ``frames``, every ``<frame>.topic`` and ``<frame>.tf_frame``,
+  ``head_frame`` and ``fixed_frame`` (they decide the subscriptions), ``stamp_source``,
+  ``output_stamp``,
   ``input_queue_size``, ``head.max_samples``, ``diagnostics_period``, ``record_path``.
 
 This module does not import rclpy (the descriptors are built by the node).
@@ -74,6 +78,8 @@ RESERVED_NAMES = ('solver', 'head', 'markers', 'qos', 'use_sim_time', 'chains', 
 #: A ROS topic name (relative, absolute or ``~/`` private; no substitutions).
 _TOPIC_NAME = re.compile(r'^(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
 _CHAIN_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+#: A TF frame name: printable, no white space, not empty (a leading / is tolerated, as tf2's).
+_TF_FRAME = re.compile(r'^/?[^\s/][^\s]*$')
 
 #: Marker colours cycled over the chains when ``<chain>.color`` is not set.
 DEFAULT_COLORS = ((0.55, 0.33, 0.16, 1.0), (0.85, 0.65, 0.30, 1.0), (0.20, 0.20, 0.22, 1.0),
@@ -126,6 +132,18 @@ GLOBAL_PARAMS = (
              'advances by the clock\'s elapsed time, not the nominal period.', 1.0, 1000.0),
     ParamDef('frame_id', '', 'string', 'frame_id of the outputs; empty: the head pose\'s '
              'frame (the simulation runs in the head pose\'s frame either way).'),
+    ParamDef('head_frame', '', 'string', 'The head from TF: the TF frame of the head (e.g. '
+             'head, from robot_state_publisher, mocap or ROS4HRI). Its pose is fixed_frame -> '
+             'head_frame composed along the TF tree (/tf, /tf_static) at the stamps of the '
+             'moving transforms on the way, interpolated between their samples; head_pose is '
+             'then not read. "" = the head pose on head_pose (PoseStamped).', live=False),
+    ParamDef('fixed_frame', 'world', 'string', 'The frame the simulation runs in, which must '
+             'be inertial (world, odom, map: not moving or accelerating): gravity, wind and '
+             'drag are in it. With head_frame set, the head pose (and every frame with a '
+             '<frame>.tf_frame) is taken in it and the segments are published in it (/tf '
+             'parent, segment_poses header.frame_id unless frame_id is set). With head poses '
+             'on head_pose, it is their frame when their header.frame_id is empty (the poses\' '
+             'frame otherwise).', live=False),
     ParamDef('chains', ['ponytail'], 'strings', 'Names of the chains (each configured by '
              '<name>.* parameters). One chain publishes segment_poses, several publish '
              'segment_poses/<name>.', live=False),
@@ -169,10 +187,11 @@ GLOBAL_PARAMS = (
              1e-3, 1e3),
     ParamDef('teleport_angle', 1.0, 'double', 'A head pose rotated more than this (rad) from '
              'the previous one is a teleport.', 1e-3, math.pi),
-    ParamDef('gravity', [0.0, 0.0, -9.81], 'double3', 'Gravity in the head pose\'s frame, '
-             'm/s^2.', -1e4, 1e4),
-    ParamDef('wind', [0.0, 0.0, 0.0], 'double3', 'Air velocity in the head pose\'s frame, m/s '
-             '(drag acts on the velocity relative to it).', -1e3, 1e3),
+    ParamDef('gravity', [0.0, 0.0, -9.81], 'double3', 'Gravity in the simulation\'s frame '
+             '(fixed_frame, or the head poses\' frame; inertial), m/s^2.', -1e4, 1e4),
+    ParamDef('wind', [0.0, 0.0, 0.0], 'double3', 'Air velocity in the simulation\'s frame '
+             '(fixed_frame, or the head poses\' frame; inertial), m/s (drag acts on the '
+             'velocity relative to it).', -1e3, 1e3),
     ParamDef('stamp_source', 'header', 'string', 'Time of a head pose: header (its '
              'header.stamp; a zero stamp falls back to the receive time) or receive (the node '
              'clock on arrival: use when the publisher\'s clock differs).',
@@ -320,16 +339,23 @@ FRAME_PARAMS = (
     ParamDef('topic', '', 'string', 'The frame\'s pose topic (geometry_msgs/PoseStamped, '
              'sensor-data QoS, header.frame_id that of the head poses); "" = <frame>_pose. '
              'Relative names are in the node\'s namespace.', live=False),
+    ParamDef('tf_frame', '', 'string', 'The frame from TF: its pose is fixed_frame -> '
+             'tf_frame composed along the TF tree, as the head\'s with head_frame (which must '
+             'be set too); its topic is then not read. "" = from its topic.', live=False),
 )
 
 #: The ROS front end's own parameters (``ros/node.py`` declares them; they do not change the
 #: simulation, and ``ponytail_replay`` records ``/tf`` regardless).
 NODE_PARAMS = (
     ParamDef('tf.publish', True, 'bool', 'Publish every segment as a TF frame on /tf (needs '
-             'tf2_msgs: a sourced ROS 2 workspace; recordings hold /tf regardless).',
+             'tf2_msgs: a sourced ROS 2 workspace, or built into the environment; without it '
+             'the node says once that live TF is off; recordings hold /tf regardless).',
              live=False),
     ParamDef('tf.prefix', '', 'string', 'TF frames of the segments are <tf.prefix><chain>/<i> '
-             '(i from 0 at the root), children of the head pose\'s frame.', live=False),
+             '(i from 0 at the root), children of the outputs\' frame (fixed_frame with the head '
+             'from TF). Default: the node\'s namespace (/alice -> alice/, so alice/ponytail/3; '
+             'the root namespace: none), so characters never share a frame; "" = none.',
+             live=False),
 )
 
 _GLOBAL = {p.name: p for p in GLOBAL_PARAMS}
@@ -445,6 +471,32 @@ def _check_frame_topics(values, frames):
             raise ParameterError(name, f'{name} = {topic!r} is not allowed: {seen[topic]} '
                                        f'already reads that topic')
         seen[topic] = f'frame {f}'
+
+
+def _check_tf_frames(values, frames):
+    """``fixed_frame`` a TF frame name, ``head_frame`` and each ``<frame>.tf_frame`` empty or
+    one other than ``fixed_frame``; a frame from TF only with the head from TF."""
+    fixed = values.get('fixed_frame', 'world')
+    if not _TF_FRAME.match(str(fixed)):
+        raise ParameterError('fixed_frame', f'fixed_frame = {fixed!r} is not allowed: must be '
+                                            f'a TF frame name (no spaces, not empty), e.g. '
+                                            f'world, odom or map: an inertial frame')
+    head = values.get('head_frame', '')
+    names = [('head_frame', head)] + [(chain_param_name(f, 'tf_frame'),
+                                       values.get(chain_param_name(f, 'tf_frame'), ''))
+                                      for f in frames]
+    for name, frame in names:
+        if frame and (not _TF_FRAME.match(str(frame)) or frame.lstrip('/') == fixed.lstrip('/')):
+            raise ParameterError(name, f'{name} = {frame!r} is not allowed: must be "" or a TF '
+                                       f'frame name (no spaces) other than fixed_frame '
+                                       f'({fixed!r})')
+        if frame and not head:
+            raise ParameterError((name, 'head_frame'), f'{name} = {frame!r} needs the head from '
+                                                       f'TF too: set head_frame')
+        if frame and name != 'head_frame' and values.get('frames_topic'):
+            raise ParameterError((name, 'frames_topic'), f'{name} = {frame!r} is not allowed '
+                                                         f'with frames_topic (every frame\'s '
+                                                         f'pose on that one topic)')
 
 
 def _check_value(name, pdef, value):
@@ -603,6 +655,7 @@ def check_values(values, chains, changed=None):
         if pdef is not None:
             _check_value(name, pdef, values[name])
     _check_frame_topics(values, frames)
+    _check_tf_frames(values, frames)
     scene = build_scene(values, chains)
     dt, steps, rate = (values['solver.dt'], values['solver.max_steps_per_call'], values['rate'])
     if steps * dt < 1.0 / rate * (1.0 - 1e-9):

@@ -27,6 +27,27 @@ Per tick, at node clock time ``t``:
    on the current head while the dynamics are driven by the delayed, smoother estimate. Segment
    geometry is unchanged (joints stay closed); the swing itself still lags by ``delay``.
 
+Time: the node and the replay give times as integer ns (``seconds`` / ``tick_ns``); the runner
+differences them from its origin, the first such time, before they become float seconds, so
+that everything downstream (estimation, splines, anchor tables, the simulator) sees small
+times and the result does not depend on the clock's epoch (float seconds since 1970 resolve
+only ~0.2 µs, which a derivative estimate amplifies). ``push``/``tick`` take seconds on that
+origin (the floats a caller without an ns clock passes as they are).
+
+Sparse and broken head streams (``docs/head_input.md``): below ``SPARSE_RATE`` the head
+stream is sparse (an animation exported at 5–24 Hz): said once through ``on_notice`` with the
+measured rate; its pose-to-pose steps are judged as a teleport only beyond the thresholds per
+``1/SPARSE_RATE`` of their interval (a speed, not a distance), the head is the cubic
+interpolating the poses around ``t - delay`` (``_fit_for_rate``: a smoothing fit would change
+at every new pose) and the output is the chain as simulated at ``t - delay`` (no latency
+compensation: extrapolating a sparse stream by up to a period freezes the root, then jumps
+it). With extra frames (one compiled fit for all) the frames follow the head's fit.
+
+A stamp more than ``head.max_gap`` after the previous one is a gap, said through
+``on_notice`` with its times: the head was held at its last pose across it (the estimator
+braked, then held it) and the new history is held at its first pose before its first stamp,
+so the chain resumes from the held pose without a whip.
+
 Delay: ``delay = max(interpolation_delay, interpolation_delay_periods × input period)`` where
 the input period is the median interval of the stored head samples (the longest of the head's
 and those of the frames the scene uses, when there are frames): a delay of a period or two
@@ -99,7 +120,7 @@ from ponytail_ros.core.head_estimation import (REJECT_REASONS, RESTARTED, HeadEs
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
-           'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change']
+           'TUNABLE_CHAIN_FIELDS', 'TUNABLE_SCENE_FIELDS', 'structural_change', 'SPARSE_RATE']
 
 #: Why a head pose sample may be dropped (counted per reason).
 DROP_REASONS = tuple(REJECT_REASONS) + ('frame_changed', 'queue_overflow', 'frames_count')
@@ -119,6 +140,12 @@ DELAY_SLEW = 0.5
 START_SAMPLES = 3
 #: Resets after which the head history is new (the chain waits for ``START_SAMPLES``).
 HISTORY_RESETS = ('teleport', 'frame_changed')
+#: Below this measured input rate (Hz, the median interval of the stored head poses) the
+#: head stream is sparse (module docstring); 28 rather than 30 so that a jittered 30 Hz stream
+#: stays dense.
+SPARSE_RATE = 28.0
+#: Poses a history must hold before its rate is judged sparse or dense.
+RATE_SAMPLES = 8
 #: ``output_stamp`` values: what the stamp of the published state means.
 OUTPUT_STAMPS = ('tick', 'simulated')
 
@@ -176,7 +203,8 @@ class TickOutput:
     """What one tick produced (arrays are fresh copies).
 
     Attributes:
-        t: tick time (node clock), s.
+        t: tick time (node clock), s: runner time (from ``ChainRunner.origin_ns``, as every
+            time here; ``ChainRunner.clock_seconds`` gives the clock's).
         t_head: head time the chain was advanced to, ``t - delay``, s.
         t_state: time of the chain state in ``origins``/``orientations`` before latency
             compensation, s: ``t_head``, or the previous frame's time when this tick was merged
@@ -190,7 +218,7 @@ class TickOutput:
             guard reset reason).
         reset_reason: why the chain was put at rest this tick (``RESET_REASONS``) or None.
         head_stale: no sample accepted during the ``stale_timeout`` s before ``t``.
-        newest_stamp: stamp of the newest accepted sample, s.
+        newest_stamp: stamp of the newest accepted sample, s (runner time, as ``t``).
         accepted: samples accepted this tick.
         frames_reset: the frames that teleported this tick, whose chains alone were put at
             rest on their new poses (the others carried on), in the order of ``frames``.
@@ -277,8 +305,20 @@ class ChainRunner:
         self.ticks = 0
         self.last_reset = None
         #: Called as ``on_drop(reason, t_stamp, source)`` for every dropped sample (logging);
-        #: ``source`` is ``'head'`` or the frame's name.
+        #: ``source`` is ``'head'`` or the frame's name; ``t_stamp`` on the clock given
+        #: (``clock_seconds``).
         self.on_drop = None
+        #: Called as ``on_notice(key, text)`` when the head stream turns sparse (``'sparse'``,
+        #: with the measured rate) or resumes after a gap (``'gap'``, with its times): said
+        #: to the user (the node's terminal, the replay's warnings); the caller throttles.
+        self.on_notice = None
+        #: Integer ns of runner time 0 (``seconds``): the first ns time given, or None.
+        self.origin_ns = None
+        #: The head stream is sparse (None: not judged yet) and the gaps seen (count).
+        self.head_sparse = None
+        self._sparse_said = False
+        self._head_period = None        # (the head's last known input period, s)
+        self.gaps = 0
 
     # -- configuration ---------------------------------------------------------------------
     def set_scene(self, scene):
@@ -305,6 +345,23 @@ class ChainRunner:
             e.min_samples = int(s.min_samples) or int(s.degree) + 3
             e.max_extrapolation, e.max_gap = float(s.max_extrapolation), float(s.max_gap)
             e.quat_tolerance = float(s.quat_tolerance)
+        self._fit_for_rate()
+
+    def _fit_for_rate(self):
+        """The head estimator's fit for its stream's rate: the settings' (dense), or for a
+        sparse stream the cubic interpolating the ``degree + 1`` poses around each instant
+        (``min_samples = degree + 1``, ``window`` under a period). A smoothing fit over
+        poses a period or more apart changes at every new pose, around instants the chain has
+        already been simulated through; the interpolant at ``t - delay`` (two periods back)
+        is fixed by poses that have all arrived. Exact animation poses assumed; the
+        look-ahead spline is left alone."""
+        e, s = self.estimator, self.settings
+        if getattr(e, 'spline_degree', None):
+            return
+        e.window, e.min_samples = float(s.window), int(s.min_samples) or int(s.degree) + 3
+        period = e.sample_period
+        if self.head_sparse and period:
+            e.window, e.min_samples = min(e.window, period), e.degree + 1
 
     @property
     def delay(self):
@@ -317,6 +374,11 @@ class ChainRunner:
         s = self.settings
         d = s.interpolation_delay
         period = self.estimator.sample_period
+        if period is None:
+            # A history restarted (a gap, a teleport) has no period yet: the stream's last.
+            period = self._head_period
+        else:
+            self._head_period = period
         used = _used_frames(self.scene, len(self.frames))
         if self._banked():              # (a crowd's frames in one compiled call)
             periods = [self._bank.longest_sample_period([1 + i for i in used])] if used else []
@@ -385,7 +447,10 @@ class ChainRunner:
 
     @property
     def newest_stamp(self):
-        return self._newest_stamp
+        """Stamp of the newest accepted head pose on the clock given (``clock_seconds``: the
+        stamp as the publisher wrote it, to ~0.2 µs at today's epoch), None without one;
+        ``TickOutput.newest_stamp`` is the same in runner time."""
+        return None if self._newest_stamp is None else self.clock_seconds(self._newest_stamp)
 
     def head_stale(self, t):
         """No sample accepted during the last ``stale_timeout`` s of clock time before ``t``."""
@@ -395,6 +460,22 @@ class ChainRunner:
     def head_age(self, t):
         """``t`` minus the newest accepted stamp (s), None without samples."""
         return None if self._newest_stamp is None else t - self._newest_stamp
+
+    def seconds(self, t_ns):
+        """Runner time (s) of an integer-ns time: ``t_ns`` minus the origin (the first ns time
+        given, ``origin_ns``), differenced as integers before it becomes a float."""
+        t_ns = int(t_ns)
+        if self.origin_ns is None:
+            self.origin_ns = t_ns
+        return (t_ns - self.origin_ns) * 1e-9
+
+    def clock_seconds(self, t):
+        """The clock's own seconds (for messages) of runner time ``t``."""
+        return t if self.origin_ns is None else t + self.origin_ns * 1e-9
+
+    def tick_ns(self, t_ns):
+        """``tick`` at integer-ns clock time ``t_ns`` (``seconds``)."""
+        return self.tick(self.seconds(t_ns))
 
     # -- input ---------------------------------------------------------------------------------
     def push(self, t, position, orientation, frame_id=''):
@@ -437,7 +518,67 @@ class ChainRunner:
     def _drop(self, reason, t, source='head'):
         self.dropped[reason] += 1
         if self.on_drop is not None:
+            try:
+                t = self.clock_seconds(float(t))
+            except (TypeError, ValueError):
+                pass                    # (a malformed stamp is reported as it came)
             self.on_drop(reason, t, source)
+
+    def _notice(self, key, text):
+        if self.on_notice is not None:
+            self.on_notice(key, text)
+
+    def head_rate(self):
+        """The head's measured input rate (Hz, 1 / the median interval of its stored poses),
+        None with fewer than two."""
+        period = self.estimator.sample_period
+        return None if not period else 1.0 / period
+
+    def _judge_rate(self):
+        """``head_sparse`` from the head history (from ``START_SAMPLES`` poses: the first
+        output knows it); the turn to sparse said (``on_notice``) once the history holds
+        ``RATE_SAMPLES`` poses, once per turn (back above ``SPARSE_RATE`` re-arms it)."""
+        n = len(self.estimator)
+        if n < START_SAMPLES:
+            return
+        rate = self.head_rate()
+        sparse = rate < SPARSE_RATE
+        if sparse != self.head_sparse or sparse:
+            self.head_sparse = sparse
+            self._fit_for_rate()
+        if not sparse:
+            if n >= RATE_SAMPLES:
+                self._sparse_said = False
+            return
+        if n >= RATE_SAMPLES and not self._sparse_said:
+            self._sparse_said = True
+            head = f'Head poses arrive at {rate:.1f} Hz, below {SPARSE_RATE:g} Hz: a sparse stream'
+            if getattr(self.estimator, 'spline_degree', None):      # (the look-ahead replay)
+                text = (f'{head}; look-ahead splines the head through them (fine for exact '
+                        f'animation poses); pose-to-pose steps are not teleports.')
+            else:
+                text = (f'{head}. Live, the head is the cubic through the poses around '
+                        f'each instant, {1e3 / rate:.0f} ms apart (its velocity and '
+                        f'acceleration are coarse), and the output is the chain at t - '
+                        f'{self.target_delay():.3f} s (no latency compensation); pose-to-pose '
+                        f'steps are not teleports. For exact animation poses replay offline '
+                        f'with --look-ahead (a spline through them), or publish at 30 Hz or '
+                        f'more.')
+            self._notice('sparse', text)
+
+    def _teleport_scale(self, t):
+        """The teleport thresholds' factor for a pose at stamp ``t``: 1 on a dense stream; on
+        a sparse one (or one not judged yet: its first poses), for an interval from the newest
+        pose between ``1/SPARSE_RATE`` and ``max_gap``, the interval in units of
+        ``1/SPARSE_RATE`` (a sparse stream's steps are judged as a speed). A dense stream's
+        pause is no sparse step: a jump across it is judged as any."""
+        last = self.estimator.last_stamp
+        if last is None or self.head_sparse is False:
+            return 1.0
+        dt = t - last
+        if dt * SPARSE_RATE <= 1.0 or dt > self.settings.max_gap:
+            return 1.0
+        return dt * SPARSE_RATE
 
     def _restart(self, reason):
         """Forget the head and the frames (histories, frame) and the chain; the next sample
@@ -550,12 +691,15 @@ class ChainRunner:
                     continue
                 restart = 'frame_changed'
                 self._reset_frames()      # in the old frame (all stale)
-            elif valid and est.jumped(p, q, s.teleport_distance, s.teleport_angle):
+            elif valid and est.jumped(p, q, *self._teleport_thresholds(t)):
                 restart = 'teleport'
             elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
                 # The stream restarted with an earlier time base (a publisher restarted, a bag
                 # replayed without sim time): adopt it, keep the chain.
                 restart = 'stream_restart'
+            if (valid and restart is None and est.last_stamp is not None
+                    and t - est.last_stamp > s.max_gap):
+                self._gap(est.last_stamp, t)
             if restart is not None:
                 est.reset()
                 if restart == 'stream_restart':
@@ -575,7 +719,24 @@ class ChainRunner:
                 self.frame_id = frame
             self._newest_stamp = est.last_stamp
         self.accepted_total += accepted
+        if accepted:
+            self._judge_rate()
         return accepted
+
+    def _teleport_thresholds(self, t):
+        """``(distance, angle)`` of the teleport test of a head pose at stamp ``t``."""
+        k = self._teleport_scale(t)
+        return self.settings.teleport_distance * k, self.settings.teleport_angle * k
+
+    def _gap(self, t_last, t_next):
+        """A head stream resuming at stamp ``t_next`` after its newest pose at ``t_last``,
+        more than ``max_gap`` before: counted and said."""
+        self.gaps += 1
+        a, b = self.clock_seconds(t_last), self.clock_seconds(t_next)
+        self._notice('gap', f'Head poses resumed after a gap of {t_next - t_last:.3f} s '
+                            f'(stamps {a:.3f} s to {b:.3f} s, head.max_gap '
+                            f'{self.settings.max_gap:g} s): the chain held the last head pose '
+                            f'across it; {self.gaps} gap(s) so far')
 
     def _drain_frame(self, i, t_tick):
         """Frame ``i``'s queued samples, as :meth:`_drain_head` (a teleport resets only the
@@ -710,7 +871,8 @@ class ChainRunner:
         self.dropped_time_total += report.dropped_time
         # The chain at the frame time itself (not up to one internal step behind it).
         origins, quats = self.sim.segment_poses(self._t_frame)
-        if self.settings.latency_compensation and self.settings.output_stamp == 'tick':
+        if (self.settings.latency_compensation and self.settings.output_stamp == 'tick'
+                and not self.head_sparse):
             # Each chain's root (segment 1's proximal joint, on the anchor at the chain's time)
             # moved onto the attachment point of the head estimated at t.
             m = self.sim.model

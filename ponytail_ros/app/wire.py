@@ -35,14 +35,15 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
 __all__ = ['ENCAPSULATION', 'POSE_FLOATS', 'PoseArrayLayout', 'TFLayout', 'MarkerSpec',
            'MarkerArrayLayout', 'pose_array_layout', 'tf_layout', 'pose_array_cdr', 'pose_block',
            'pose_array_fields',
-           'pose_stamped_fields', 'pose_stamped_cdr', 'is_canonical_pose_stamped']
+           'pose_stamped_fields', 'pose_stamped_cdr', 'is_canonical_pose_stamped',
+           'tf_message_fields']
 
 #: CDR little endian, options 0.
 ENCAPSULATION = b'\x00\x01\x00\x00'
@@ -369,3 +370,41 @@ def is_canonical_pose_stamped(data: bytes) -> bool:
     end = 16 + _U32.unpack_from(data, 12)[0]
     at = end + (-(end - len(ENCAPSULATION)) % 8)
     return len(data) == at + 8 * POSE_FLOATS and not any(data[end:at])
+
+
+def _read_string(data: bytes, at: int) -> Tuple[str, int]:
+    """A CDR string at ``at`` (aligned to 4 from the encapsulation's end): its text and the
+    offset after it. Raises ``ValueError`` when it does not fit or is not UTF-8."""
+    at += -(at - len(ENCAPSULATION)) % 4
+    (length,) = _U32.unpack_from(data, at)
+    end = at + 4 + length
+    if length == 0 or end > len(data) or data[end - 1] != 0:
+        raise ValueError('bad string')
+    return data[at + 4:end - 1].decode('utf-8'), end
+
+
+def tf_message_fields(data: bytes) -> List[Tuple[int, int, str, str, Tuple[float, ...],
+                                                  Tuple[float, ...]]]:
+    """The transforms of the CDR of a ``tf2_msgs/msg/TFMessage`` (``/tf``, ``/tf_static``) as
+    ``(sec, nanosec, parent frame_id, child_frame_id, (x, y, z), (qx, qy, qz, qw))``: read with
+    ``struct``, so neither ``tf2_msgs`` nor a message object is needed (the inverse of
+    ``TFLayout.encode``). Raises ``ValueError`` if ``data`` is not little-endian plain CDR of
+    that layout."""
+    if len(data) < 8 or data[0] != 0 or data[1] != 1:
+        raise ValueError('not little-endian plain CDR')
+    try:
+        (n,) = _U32.unpack_from(data, 4)
+        at = 8
+        out = []
+        for _ in range(n):
+            at += -(at - len(ENCAPSULATION)) % 4
+            sec, nanosec = _TIME.unpack_from(data, at)
+            parent, at = _read_string(data, at + 8)
+            child, at = _read_string(data, at)
+            at += -(at - len(ENCAPSULATION)) % 8
+            pose = _POSE.unpack_from(data, at)
+            at += 8 * POSE_FLOATS
+            out.append((sec, nanosec, parent, child, pose[:3], pose[3:]))
+    except (struct.error, UnicodeDecodeError) as exc:
+        raise ValueError(f'not a TFMessage: {exc}') from None
+    return out

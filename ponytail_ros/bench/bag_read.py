@@ -10,7 +10,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .replay_bench import make_head_recording
+from .head_bag import make_head_recording
 
 
 def _best(fn, repeat):

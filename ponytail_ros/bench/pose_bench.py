@@ -40,6 +40,12 @@ stamps are exact but irregular; each pose is the head at its stamp).
    and the largest RMS / max tip distance between two rates (the figures
    ``test/test_pose_accuracy.py`` asserts, there from bags written by ``rosbags``).
 
+   With ``--epoch SECONDS`` (repeatable, e.g. ``--epoch 100 --epoch 1.7e9``): the bags are
+   written by ``rosbags`` with stamps from that epoch, the look-ahead replays use RK4 1/8000 s
+   and ticks at 1000 Hz, and the tip RMS against the file is printed per epoch at 1000 and
+   120 Hz beside the bounds of ``REFERENCE_BOUNDS`` (the runner differences integer-ns times
+   from its origin, so the figures do not depend on the epoch); live replays likewise.
+
 4. Start-up whip (``--whip``): a head running at 2 m/s and turning at 3 rad/s (``RunAndTurn``),
    the node's defaults; the largest speed of the tip relative to the head (in the head frame)
    in the first 100 ms after the node's start, a teleport (1 m jump) and a rebuild, at 30, 120
@@ -247,6 +253,112 @@ def run(profile='quick', out=None, log=print, meta=None):
     return est_rows, tip_rows
 
 
+#: ``--reference``: the look-ahead replays' step and tick rate (``--epoch`` figures), fine
+#: enough that the core's own error on the file is below the estimation's at 120 Hz.
+REFERENCE_DT = 1.0 / 8000
+REFERENCE_TICK_RATE = 1000.0
+#: Bounds of ``--reference``'s look-ahead tip RMS against the file (m), by head rate: what
+#: ``test/test_pose_accuracy.py`` asserts (on a shortened case).
+REFERENCE_BOUNDS = {1000: 1e-6, 120: 5e-5}
+
+
+def epoch_ns(text):
+    """Integer ns of an epoch given in seconds (``'1.7e9'``, ``'100'``), exactly."""
+    from decimal import Decimal
+    return int(Decimal(str(text)) * 1_000_000_000)
+
+
+def write_rosbags_bag(directory, t0_ns, ns, ps, qs):
+    """A rosbag2 MCAP bag written by ``rosbags`` (``rosbag2.Writer``, the ROS 2 typestore) of
+    ``PoseStamped`` poses on ``/head_pose`` (frame ``world``): pose ``k`` stamped and logged at
+    ``t0_ns + ns[k]`` (integers). Returns the ``.mcap`` file."""
+    from rosbags import rosbag2, typesys
+    store = typesys.get_typestore(getattr(typesys.Stores, 'ROS2_KILTED', typesys.Stores.LATEST))
+    T = store.types
+    directory = Path(directory)
+    msgtype = 'geometry_msgs/msg/PoseStamped'
+    with rosbag2.Writer(directory, version=9,
+                        storage_plugin=rosbag2.StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection('/head_pose', msgtype, typestore=store)
+        for k, p, q in zip(ns, np.asarray(ps).tolist(), np.asarray(qs).tolist()):
+            stamp = int(t0_ns) + int(k)
+            msg = T[msgtype](
+                header=T['std_msgs/msg/Header'](
+                    stamp=T['builtin_interfaces/msg/Time'](sec=stamp // 10**9,
+                                                          nanosec=stamp % 10**9),
+                    frame_id='world'),
+                pose=T['geometry_msgs/msg/Pose'](
+                    position=T['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+                    orientation=T['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2],
+                                                                  w=q[3])))
+            writer.write(conn, stamp, store.serialize_cdr(msg, msgtype))
+    return next(directory.glob('*.mcap'))
+
+
+def reference_tip_errors(rate, t0_ns, workdir, *, look_ahead=True, dt=REFERENCE_DT,
+                         tick_rate=REFERENCE_TICK_RATE, duration=3.2, t_end=None):
+    """Tip distances (m) to ``ponytail_N10_moving_hanging`` at its valid sample times (up to
+    ``t_end`` s) of a replay of its head's poses at ``rate`` Hz (each the motion at its
+    integer-ns stamp, for ``duration`` s) stamped from ``t0_ns``, written by ``rosbags``; and
+    the output track ``(t, tips)``."""
+    import yaml
+    from scipy.interpolate import CubicSpline
+    from ponytail_ros.core.reference import default_reference_dir, load_reference
+    from ponytail_ros.recording.compare import load_chain_runs
+    from ponytail_ros.recording.offline import replay
+    ref = load_reference(default_reference_dir() / 'ponytail_N10_moving_hanging.json')
+    ok = ref.t <= ref.window() + 1e-9
+    if t_end is not None:
+        ok &= ref.t <= t_end + 1e-9
+    t_ref, tip_ref = ref.t[ok], ref.points[-1][ok]
+    motion = SwayYawMotion()
+    ns = [int(round(k * 1e9 / rate)) for k in range(int(round(duration * rate)) + 1)]
+    states = motion.states_at(np.array(ns) * 1e-9)
+    d = Path(tempfile.mkdtemp(dir=workdir))
+    bag = write_rosbags_bag(d / 'head', t0_ns, ns, states.position[:, 0],
+                            states.orientation[:, 0])
+    values = chain_values(dt)
+    values['rate'] = tick_rate
+    params = d / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': values}}))
+    out = d / 'out.mcap'
+    replay(bag, out, params_file=params, look_ahead=look_ahead)
+    run = load_chain_runs(out)[0]['ponytail']
+    t = (run.stamps - t0_ns) * 1e-9
+    sel = (t_ref >= t[0] - 1e-9) & (t_ref <= t[-1] + 1e-9)
+    e = np.linalg.norm(CubicSpline(t, run.tips)(t_ref[sel]) - tip_ref[sel], axis=1)
+    return e, (t, run.tips)
+
+
+def epoch_figures(epochs=('100', '1.7e9'), rates=(1000, 120), log=print, workdir=None,
+                  modes=('look_ahead', 'live')):
+    """Look-ahead (RK4 ``REFERENCE_DT``, ticks ``REFERENCE_TICK_RATE``) and live (the node's
+    defaults, RK4 1/1000 s, ticks 100 Hz) replays of the reference head at ``rates``, its bags
+    stamped from each of ``epochs`` (s); tip RMS / max against the file over its valid window.
+    Rows of dicts."""
+    rows = []
+    log(f"{'mode':>10} {'epoch s':>8} {'rate':>6} {'RK4 dt':>8} {'ticks Hz':>8} "
+        f"{'tip RMS m':>10} {'tip max m':>10} {'bound':>8}")
+    with tempfile.TemporaryDirectory(dir=workdir) as d:
+        for mode in modes:
+            for epoch in epochs:
+                for rate in rates:
+                    la = mode == 'look_ahead'
+                    dt, ticks = (REFERENCE_DT, REFERENCE_TICK_RATE) if la else (1 / 1000,
+                                                                                TICK_RATE)
+                    e, _ = reference_tip_errors(rate, epoch_ns(epoch), d, look_ahead=la,
+                                                dt=dt, tick_rate=ticks)
+                    rms = float(np.sqrt(np.mean(e * e)))
+                    bound = REFERENCE_BOUNDS.get(rate) if la else None
+                    rows.append(dict(mode=mode, epoch_s=str(epoch), rate_hz=rate, dt=dt,
+                                     tick_hz=ticks, tip_rms_m=rms, tip_max_m=float(e.max()),
+                                     bound_m=bound))
+                    log(f'{mode:>10} {epoch:>8} {rate:6.0f} {"1/" + format(1 / dt, ".0f"):>8} '
+                        f'{ticks:8.0f} {rms:10.2e} {e.max():10.2e} '
+                        f'{"" if bound is None else format(bound, ".0e"):>8}')
+    return rows
+
+
 def reference_figures(log=print, rates=(30, 60, 120, 1000), workdir=None):
     """Part 3 of the module docstring; returns rows of dicts."""
     import yaml
@@ -412,12 +524,24 @@ def main(argv=None):
     parser.add_argument('--out', default=None, help='write pose_*.csv/json here')
     parser.add_argument('--reference', action='store_true',
                         help='only part 3: replays of the shared reference head')
+    parser.add_argument('--epoch', action='append', default=None, metavar='SECONDS',
+                        help='with --reference: stamp the head bags (written by rosbags) from '
+                             'this epoch (s, e.g. 1.7e9; repeat for several) and print the '
+                             'look-ahead (RK4 1/8000 s, ticks 1000 Hz) and live tip errors at '
+                             '1000 and 120 Hz')
     parser.add_argument('--whip', action='store_true',
                         help='only part 4: start-up whip on a running, turning head')
     args = parser.parse_args(argv)
     log = lambda *a: print(*a, flush=True)  # noqa: E731
     if args.whip:
         whip_figures(log)
+        return
+    if args.reference and args.epoch:
+        rows = epoch_figures(args.epoch, log=log)
+        if args.out:
+            from ponytail_ros.bench.tables import make_meta, write_table
+            os.makedirs(args.out, exist_ok=True)
+            write_table(args.out, 'pose_epoch', rows, make_meta('reference', 'pose'))
         return
     if args.reference:
         rows = reference_figures(log)

@@ -2,7 +2,7 @@
 with ``-j 1`` and ``-j 2`` (worker processes), timed as a user runs it (one command, its start
 included). With two free cores the second takes about half the first's wall time.
 
-The bags are the demo head script at 100 Hz (``replay_bench.make_head_recording``, as ``ros2
+The bags are the demo head script at 100 Hz (``head_bag.make_head_recording``, as ``ros2
 bag record`` stores it), ``--bags`` of ``--seconds`` s each; the scene a params file (default
 ``config/ponytail.yaml``). Prints each wall time, the CPU time of the command's processes
 over it (how many cores it kept busy: ~1 at ``-j 1``, up to ``-j`` when that many cores are
@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .replay_bench import make_head_recording
+from .head_bag import make_head_recording
 
 
 def _children_cpu() -> float:

@@ -57,11 +57,23 @@ the acceleration, so high degrees (the replay uses 9) recover the head's derivat
 exactly; on noisy or kinked poses a high degree rings and amplifies the noise (use the
 smoothing defaults instead). ``ponytail_ros/bench/pose_bench.py`` measures both modes.
 
+Time origin: stamps are float seconds on any origin, but the fit differences them, so give
+them on a near origin (``ChainRunner`` passes seconds since its first integer-ns time): float
+seconds since 1970 resolve only ~0.2 µs, a stamp error that an interpolating fit's
+derivatives amplify by orders of magnitude (``pose_bench --epoch``).
+
+A history restarted after a gap (or a new one) holds its oldest pose at rest before its
+oldest stamp: the head held until its stream resumed.
+
 Stale streams: between the newest sample and ``max_extrapolation`` after it the fit is
 extrapolated, for the first half at full speed, then time is smoothly braked (a C² time warp) so
 that velocity and acceleration decay to exactly zero at ``t_last + max_extrapolation``; later the
 head is held at that pose with zero derivatives ("stale head: the last pose is held"). Pose,
-velocity and acceleration stay continuous when the stream stops.
+velocity and acceleration stay continuous when the stream stops. From ``max_gap`` after the
+newest sample (a gap: the next sample starts a new history) the held pose returns, C², over
+``max_extrapolation`` to the newest sample's and is held there: across a gap the head is held
+at the last pose the stream gave, not at an extrapolation of it, so that a stream resuming
+where it stopped (a paused animation, a stalled publisher) resumes without a jump.
 
 ROS-free: numpy and the core only.
 """
@@ -313,8 +325,9 @@ class HeadEstimator:
     def state_at(self, t):
         """The ``KinematicState`` (K = 1) of the body at ``t - delay`` (world frame, SI).
 
-        Within the history the fit interpolates; before the oldest sample it is evaluated at the
-        oldest sample; past the newest it extrapolates and brakes (see the module docstring).
+        Within the history the fit interpolates; before the oldest sample the oldest pose is
+        held, at rest (zero derivatives: the head held across a gap until its stream resumed);
+        past the newest it extrapolates and brakes (see the module docstring).
         Raises ``LookupError`` when no sample has been accepted yet (check ``last_stamp``) and
         ``ValueError`` for a non-finite ``t``.
         """
@@ -339,15 +352,15 @@ class HeadEstimator:
             return
         out = np.empty((len(missing), FIT_SIZE))
         fits_at(self._t, self._p, self._q, self._n, np.array([keys[k] for k in missing]),
-                self.delay, self.max_extrapolation, self.window, self.degree, self.min_samples,
-                out)
+                self.delay, self.max_extrapolation, self.max_gap, self.window, self.degree,
+                self.min_samples, out)
         for r, key in enumerate(missing):
             self._keep(key, fit_state(out[r:r + 1]))
 
     def _key(self, t):
         """The memo's key of ``state_at(t)``: the time, the history's version, the settings."""
         return (float(t), self._version, self.delay, self.window, self.degree, self.min_samples,
-                self.max_extrapolation)
+                self.max_extrapolation, self.max_gap)
 
     def _keep(self, key, state):
         """``state`` kept under ``key``, the oldest of ``MEMO_SIZE`` dropped; returns it."""
@@ -373,7 +386,8 @@ class HeadEstimator:
         within the history; past the newest sample, warped: full-speed extrapolation, then a
         C² brake) and the warp's ``dt_warped/dt`` and derivative (1, 0 inside). Needs two
         samples or more (``head_kernels.fit_time``)."""
-        return kernel_fit_time(self._t, self._n, float(t), self.delay, self.max_extrapolation)
+        return kernel_fit_time(self._t, self._n, float(t), self.delay, self.max_extrapolation,
+                               self.max_gap)
 
     def use_storage(self, t, p, q):
         """Keep the history in the given arrays ``(max_samples,)``, ``(max_samples, 3)``,
@@ -464,7 +478,8 @@ class HeadEstimatorBank:
         # A tick asks for the same instant more than once (the frame's end, the markers'
         # colliders): the last answer holds while no history or setting changed.
         key = (float(t), [e._version for e in ests], [e.delay for e in ests],
-               [e.max_extrapolation for e in ests], e0.window, e0.degree, e0.min_samples)
+               [e.max_extrapolation for e in ests], e0.window, e0.degree, e0.min_samples,
+               e0.max_gap)
         if self._last is not None and self._last[0] == key:
             return self._last[1]
         ns = np.array([e._n for e in ests], dtype=np.int64)
@@ -472,8 +487,8 @@ class HeadEstimatorBank:
         extrapolations = np.array(key[3], dtype=float)
         out = np.zeros((len(ests), FIT_SIZE))
         # (the fit times and the fits in one compiled call: bit for bit each state_at)
-        states_fit(self._t, self._p, self._q, ns, float(t), delays, extrapolations, e0.window,
-                   e0.degree, e0.min_samples, out)
+        states_fit(self._t, self._p, self._q, ns, float(t), delays, extrapolations, e0.max_gap,
+                   e0.window, e0.degree, e0.min_samples, out)
         out.flags.writeable = False           # (shared by the callers of the same instant)
         state = fit_state(out)
         self._last = (key, state)

@@ -289,17 +289,43 @@ def _brake_warp(x):
 
 
 @njit(cache=True)
-def fit_time(ts, n, t, delay, max_extrapolation):
+def _return_warp(y):
+    """The return to the newest sample, ``y`` clipped to [0, 1]: ``f = 1 - S(y)`` with ``S``
+    the quintic smoothstep (``f(0) = 1``, ``f(1) = 0``, ``f'`` and ``f''`` zero at both
+    ends). Returns ``(f, f', f'')``."""
+    y = min(max(y, 0.0), 1.0)
+    u = 1.0 - y
+    return (1.0 - y * y * y * (10.0 - 15.0 * y + 6.0 * y * y), -30.0 * y * y * u * u,
+            -60.0 * y * u * (1.0 - 2.0 * y))
+
+
+@njit(cache=True)
+def fit_time(ts, n, t, delay, max_extrapolation, max_gap):
     """``HeadEstimator.fit_time``: ``(te, rate, rate_d)`` of the fit of the first ``n`` ≥ 2
     stamps ``ts`` asked at ``t`` (s): ``t - delay`` within the history; past the newest stamp
-    warped (full-speed extrapolation for half of ``max_extrapolation``, then a C² brake)."""
+    warped (full-speed extrapolation for half of ``max_extrapolation``, then a C² brake; from
+    ``max_gap`` after it, a gap, a C² return over ``max_extrapolation`` to the newest stamp,
+    held there: the last pose the stream gave, not the braked extrapolation); before the
+    oldest, the oldest held (rate 0: the body at rest there, as a head held across a gap
+    before its stream resumed)."""
     te = t - delay
+    if te < ts[0]:
+        return ts[0], 0.0, 0.0
     t_last = ts[n - 1]
     rate, rate_d = 1.0, 0.0
     s = te - t_last
     if s > 0.0:
         half = 0.5 * max_extrapolation
-        if s > half:
+        gap = max(max_gap, max_extrapolation)
+        if s > gap:
+            if max_extrapolation > 0.0:
+                f, fd, fdd = _return_warp((s - gap) / max_extrapolation)
+                held = 1.5 * half               # (where the brake stops: half + half g(1))
+                s, rate = held * f, held * fd / max_extrapolation
+                rate_d = held * fdd / (max_extrapolation * max_extrapolation)
+            else:
+                s, rate = 0.0, 0.0
+        elif s > half:
             if half > 0.0:
                 g, gd, gdd = _brake_warp((s - half) / half)
                 s, rate, rate_d = half + half * g, gd, gdd / half
@@ -310,8 +336,8 @@ def fit_time(ts, n, t, delay, max_extrapolation):
 
 
 @njit(cache=True)
-def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, min_samples,
-               out):
+def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, max_gap, window, degree,
+               min_samples, out):
     """Every body's ``HeadEstimator.state_at(t)`` numbers into the rows of ``out`` ``(K,
     FIT_SIZE)`` (zeros on entry): ``K`` bodies' histories in the rows of ``ts`` ``(K, M)``,
     ``ps`` ``(K, M, 3)``, ``qs`` ``(K, M, 4)`` (the first ``ns[k]`` samples), each body's fit time
@@ -320,7 +346,7 @@ def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, mi
     for k in range(ns.shape[0]):
         n = ns[k]
         if n >= 2:
-            te, rate, rate_d = fit_time(ts[k], n, t, delays[k], max_extrapolations[k])
+            te, rate, rate_d = fit_time(ts[k], n, t, delays[k], max_extrapolations[k], max_gap)
             loess_fit(ts[k], ps[k], qs[k], n, te, window, degree, min_samples, rate, rate_d,
                       out[k])
         else:
@@ -333,12 +359,13 @@ def states_fit(ts, ps, qs, ns, t, delays, max_extrapolations, window, degree, mi
 
 
 @njit(cache=True)
-def fits_at(ts, ps, qs, n, times, delay, max_extrapolation, window, degree, min_samples, out):
+def fits_at(ts, ps, qs, n, times, delay, max_extrapolation, max_gap, window, degree,
+            min_samples, out):
     """One body's ``HeadEstimator.state_at`` numbers at every time of ``times`` ``(T,)`` into
     the rows of ``out`` ``(T, FIT_SIZE)``: for each, its fit time (``fit_time``) and the fit
     (``loess_fit``) of the first ``n`` ≥ 2 samples, as one call each would give them."""
     for r in range(times.shape[0]):
-        te, rate, rate_d = fit_time(ts, n, times[r], delay, max_extrapolation)
+        te, rate, rate_d = fit_time(ts, n, times[r], delay, max_extrapolation, max_gap)
         loess_fit(ts, ps, qs, n, te, window, degree, min_samples, rate, rate_d, out[r])
 
 

@@ -32,7 +32,8 @@ local fit above.
 
 The spline changes (slightly, with weights decaying geometrically per sample) as samples are
 added; the look-ahead replay evaluates it only ``LOOK_AHEAD_SAMPLES`` poses behind the newest
-one. Before the oldest sample it is evaluated at the oldest; past the newest the base class's
+one. Before the oldest sample the oldest pose is held, at rest (the base class); past the
+newest the base class's
 local fit extrapolates and brakes (the spline is not extrapolated). With fewer than ``k + 1``
 samples the base class's fit is used.
 
@@ -104,11 +105,12 @@ class SplineHeadEstimator(HeadEstimator):
         te = float(t) - self.delay
         if n < self.spline_degree + 1 or te > self._t[n - 1]:
             return super()._state_at(t)
+        held = te < self._t[0]          # (before the oldest: held there, at rest)
         te = max(te, self._t[0])
         ts = self._t[:n]
         inside = (int(np.searchsorted(ts, te + self.window, 'left'))
                   - int(np.searchsorted(ts, te - self.window, 'right')))
-        if inside > self.min_samples:
+        if inside > self.min_samples or held:
             # Dense poses: the local least-squares fit smooths over more samples than it has
             # coefficients (float and stamp rounding averaged out), which an interpolating
             # spline would amplify instead.

@@ -158,6 +158,12 @@ def _parser():
                    help='node parameters (default: the recorded ones, else the package config)')
     p.add_argument('--head-topic', help='head pose topic (default: the recorded node\'s, '
                                         'else /head_pose)')
+    p.add_argument('--head-frame', metavar='FRAME',
+                   help='take the head from the bag\'s /tf and /tf_static: the TF frame of the '
+                        'head (the parameter head_frame, over --params and the recorded one)')
+    p.add_argument('--fixed-frame', metavar='FRAME',
+                   help='with --head-frame: the inertial frame the chain is simulated in '
+                        '(the parameter fixed_frame; default as the parameters say, world)')
     p.add_argument('--ticks', choices=('auto', 'recorded', 'nominal'), default='auto',
                    help='tick at the node\'s recorded tick times or every 1/rate s (default '
                         'auto: recorded when available and the rate is unchanged)')
@@ -295,7 +301,8 @@ def _main_compare(args, parser, error) -> int:
 def _replay_options(args) -> dict:
     return dict(params_file=args.params, head_topic=args.head_topic, ticks=args.ticks,
                 overwrite=args.overwrite, stamp_source=args.stamp_source, tf=not args.no_tf,
-                tf_prefix=args.tf_prefix, look_ahead=args.look_ahead)
+                tf_prefix=args.tf_prefix, look_ahead=args.look_ahead,
+                head_frame=args.head_frame, fixed_frame=args.fixed_frame)
 
 
 def _main_replay(args, warn, error, parser) -> int:

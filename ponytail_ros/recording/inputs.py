@@ -13,13 +13,16 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 import numpy as np
 import yaml
 
+from ponytail_ros.app.messages import TF_TOPIC
 from ponytail_ros.app.parameters import frame_names
+from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
 from ponytail_ros.app.wire import pose_stamped_fields
 from rclpy.serialization import deserialize_message
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
 from .bag.msgdefs import _message_class
 from .recorder import HEAD_TYPES, RECORDING_METADATA, RunLayout, resolve_topic, stamp_ns
+from .tf import TFMESSAGE_TYPE
 
 __all__ = ['ReplayError', 'ReplayInput', 'head_pose', 'head_stamps', 'foreign_clock',
            'partial_note', 'recorded_value', 'used_frame_names', 'event_values', 'FOREIGN_CLOCK_S']
@@ -33,10 +36,12 @@ class ReplayInput:
     """An input recording: its topics, metadata, the head topic and what the node recorded.
 
     Raises:
-        ReplayError: not readable, not MCAP, no head topic, or the head topic is not a pose.
+        ReplayError: not readable, not MCAP, no head topic, or the head topic is not a pose
+            (with ``head_required`` false, the last two are kept in :attr:`head_error` for
+            :meth:`require_head`: the head may come from TF, ``use_tf_head``).
     """
 
-    def __init__(self, path, head_topic: Optional[str] = None):
+    def __init__(self, path, head_topic: Optional[str] = None, head_required: bool = True):
         self.path = Path(path)
         try:
             self.reader = BagReader(self.path)
@@ -73,18 +78,58 @@ class ReplayInput:
                     self.note = f'using {heads[0]}, the only head pose topic in {self.path}'
                     head_topic = heads[0]
         self.head_topic = head_topic
+        #: Why the head topic cannot be read (None: it can).
+        self.head_error = self._head_error(head_topic)
+        self.head_type = self.topics.get(head_topic, HEAD_TYPES[0])
+        if head_required:
+            self.require_head()
+
+    def _head_error(self, head_topic: str) -> Optional[ReplayError]:
+        """Why ``head_topic`` cannot be read as the head (None: it can)."""
         if head_topic not in self.topics:
             recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
             if self.truncated:
-                raise ReplayError(
+                return ReplayError(
                     f'{self.path} is {self.truncation or "truncated (no footer)"}; the part '
                     f'that can be read has no topic {head_topic} (recorded: {recorded or "none"})')
-            raise ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
-                              f'{recorded or "none"}); choose one with --head-topic')
-        self.head_type = self.topics[head_topic]
-        if self.head_type not in HEAD_TYPES:
-            raise ReplayError(f'{self.path}: topic {head_topic} holds {self.head_type}, not a '
-                              f'head pose ({" or ".join(HEAD_TYPES)})')
+            hint = (' or, for a head on /tf, head_frame (and fixed_frame) in the params file'
+                    if TF_TOPIC in self.topics else '')
+            return ReplayError(f'{self.path} has no topic {head_topic} (recorded: '
+                               f'{recorded or "none"}); choose one with --head-topic{hint}')
+        head_type = self.topics[head_topic]
+        if head_type not in HEAD_TYPES:
+            hint = ('; a head on TF needs head_frame (and fixed_frame) in the params file'
+                    if head_type == TFMESSAGE_TYPE else '')
+            return ReplayError(f'{self.path}: topic {head_topic} holds {head_type}, not a '
+                               f'head pose ({" or ".join(HEAD_TYPES)}){hint}')
+        return None
+
+    def require_head(self) -> None:
+        """Raise the reason the head topic cannot be read, if any."""
+        if self.head_error is not None:
+            raise self.head_error
+
+    def use_tf_head(self, values) -> bool:
+        """Take the head from the input's ``/tf`` and ``/tf_static`` (``head_frame`` set, and
+        this is not a node recording holding the head it composed: that is replayed from its
+        head topic). Then the composed poses are recorded on the node's ``head_pose``
+        (:attr:`head_topic`, ``PoseStamped``). Raises ``ReplayError`` when the head can be read
+        neither way."""
+        if not values.get('head_frame') or (self.layout is not None
+                                            and self.layout.head_topic in self.topics):
+            self.require_head()
+            return False
+        if TF_TOPIC not in self.topics:
+            raise ReplayError(f'{self.path} has no topic {TF_TOPIC} for the head from TF '
+                              f'({values["fixed_frame"]} -> {values["head_frame"]}, head_frame)')
+        for topic in (TF_TOPIC, TF_STATIC_TOPIC):
+            if topic in self.topics and self.topics[topic] != TFMESSAGE_TYPE:
+                raise ReplayError(f'{self.path}: topic {topic} holds {self.topics[topic]}, not '
+                                  f'{TFMESSAGE_TYPE}')
+        self.head_topic = resolve_topic(self.node, 'head_pose')
+        self.head_type = HEAD_TYPES[0]
+        self.head_error = None
+        return True
 
     def messages(self, topics, raw=False):
         """``BagReader.messages`` in this input's order (:attr:`order`); ``raw``: as CDR

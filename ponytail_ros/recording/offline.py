@@ -23,6 +23,8 @@ from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values,
                                            values_from_params_file)
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.parameters import ParameterError, frame_names
+from ponytail_ros.app.tf_input import TF_STATIC_TOPIC, TF_TOPIC, tf_frames
+from ponytail_ros.app.wire import tf_message_fields
 from ponytail_ros.app.parameters import frame_topics as topics_of
 
 from .bag import BagError
@@ -31,6 +33,7 @@ from .inputs import (ReplayError, ReplayInput, event_values, foreign_clock, head
 from .recorder import (FRAMES_TYPE, HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder,
                        stamp_ns)
 from .replay_node import ReplayNode
+from .tf import TFMESSAGE_TYPE
 
 __all__ = ['replay', 'ReplayResult', 'Progress', 'LOOK_AHEAD_SAMPLES', 'LOOK_AHEAD_SPAN_NS',
            'LOOK_AHEAD_VALUES', 'LOOK_AHEAD_SPLINE_DEGREE']
@@ -168,7 +171,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
            progress: Optional[Callable[..., None]] = None,
            warn: Optional[Callable[[str], None]] = None,
            stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: Optional[str] = None, stop: Any = None) -> ReplayResult:
+           tf_prefix: Optional[str] = None, stop: Any = None,
+           head_frame: Optional[str] = None,
+           fixed_frame: Optional[str] = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -185,6 +190,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
             (head stamps on another clock than the log times need ``'receive'``).
         tf, tf_prefix: record the segments on ``/tf`` (``recorder.py``), their frames named
             ``<tf_prefix><chain>/<i>`` (default: the input's recorded prefix, else none).
+        head_frame, fixed_frame: the parameters ``head_frame`` / ``fixed_frame`` over the
+            params file's and the recorded ones (the head from the bag's ``/tf``).
         stop: checked between input messages (``interrupt.StopRequest``): once true (its
             ``name`` the signal's), the replay ends there, its output finalised and marked
             partial (``ReplayResult.interrupted``).
@@ -204,7 +211,9 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     result = ReplayResult(output=output_path, truncated=inp.truncated)
     values, result.parameters_from = _resolve_parameters(inp, params_file, stamp_source,
                                                          look_ahead, warn)
-    stamps = head_stamps(inp)
+    _frames_given(values, head_frame, fixed_frame)
+    tf_head = inp.use_tf_head(values)
+    stamps = [] if tf_head else head_stamps(inp)
     clock_note = foreign_clock(inp, stamps, values['stamp_source'])
     if clock_note:
         if not _header_stamps_asked(inp, params_file, stamp_source):
@@ -227,9 +236,11 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
                                         and any(stamp for stamp, _ in stamps)))
     if look_ahead:
         _use_spline_estimators(node.runner)
+    node.core.on_notice = lambda key, text: warn(f'{inp.path}: {text}')   # sparse head, gaps
     loop = _OfflineLoop(inp, node, result, values, mode=mode, tick_topic=tick_topic,
                         events_topic=events_topic, frame_topics=frame_topics,
-                        frame_types=frame_types, look_ahead=look_ahead, progress=progress)
+                        frame_types=frame_types, look_ahead=look_ahead, progress=progress,
+                        tf_head=tf_head)
     try:
         loop.run()
         if inp.stopped:
@@ -241,6 +252,8 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
         raise ReplayError(str(exc)) from None
     finally:
         recorder.close()
+    if tf_head:
+        _tf_finish(inp, node, result, output_path, warn)
     _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
@@ -282,7 +295,11 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
     itself says about it warned)."""
     if ticks not in ('auto', 'recorded', 'nominal'):
         raise ReplayError(f'--ticks must be auto, recorded or nominal, not {ticks!r}')
-    inp = ReplayInput(input_path, head_topic)
+    # (the head topic is checked once the parameters say whether the head comes from TF,
+    # when it can: the input has /tf)
+    inp = ReplayInput(input_path, head_topic, head_required=False)
+    if TF_TOPIC not in inp.topics:
+        inp.require_head()
     output_path = Path(output_path)
     if output_path.exists() and output_path.resolve() == inp.path.resolve():
         raise ReplayError(f'{output_path}: the output would overwrite the input')
@@ -331,6 +348,16 @@ def _resolve_parameters(inp: ReplayInput, params_file, stamp_source, look_ahead,
     return values, parameters_from
 
 
+def _frames_given(values, head_frame: Optional[str], fixed_frame: Optional[str]) -> None:
+    """``--head-frame`` / ``--fixed-frame`` over the parameters' ``head_frame`` /
+    ``fixed_frame``."""
+    if fixed_frame is not None and not fixed_frame.strip('/'):
+        raise ReplayError(f'--fixed-frame must name a frame (e.g. world), not {fixed_frame!r}')
+    for name, value in (('head_frame', head_frame), ('fixed_frame', fixed_frame)):
+        if value is not None:
+            values[name] = value
+
+
 def _tick_mode(inp: ReplayInput, ticks: str, values) -> Tuple[str, Optional[str]]:
     """``'recorded'`` (the node's own tick times, on the returned topic) or ``'nominal'``."""
     tick_topic = inp.tick_topic()
@@ -371,7 +398,10 @@ def _frame_inputs(inp: ReplayInput, values, warn) -> Tuple[tuple, tuple, List[st
     frames = tuple(frame_names(values))
     frame_topics = tuple(inp.frame_topic(f, t) for f, t in zip(frames, topics_of(values)))
     used = used_frame_names(values)
-    for f, topic in zip(frames, frame_topics):
+    from_tf = tf_frames(values) if inp.use_tf_head(values) else {}
+    for i, (f, topic) in enumerate(zip(frames, frame_topics)):
+        if i in from_tf:
+            continue                    # its poses come from TF (recorded on its topic)
         if topic not in inp.topics:
             if f in used:
                 raise ReplayError(f'{inp.path} has no topic {topic} (the poses of frame {f}, '
@@ -380,7 +410,9 @@ def _frame_inputs(inp: ReplayInput, values, warn) -> Tuple[tuple, tuple, List[st
         elif inp.topics[topic] not in (*HEAD_TYPES, FRAMES_TYPE):
             raise ReplayError(f'{inp.path}: topic {topic} (frame {f}) holds {inp.topics[topic]}, '
                               f'not a pose ({" or ".join((*HEAD_TYPES, FRAMES_TYPE))})')
-    return frames, frame_topics, [inp.topics.get(topic, HEAD_TYPES[0]) for topic in frame_topics]
+    return frames, frame_topics, [HEAD_TYPES[0] if i in from_tf
+                                  else inp.topics.get(topic, HEAD_TYPES[0])
+                                  for i, topic in enumerate(frame_topics)]
 
 
 def _output_layout(inp: ReplayInput, values, frames, frame_topics) -> RunLayout:
@@ -442,7 +474,7 @@ class _OfflineLoop:
     def __init__(self, inp: ReplayInput, node: ReplayNode, result: ReplayResult, values, *,
                  mode: str, tick_topic: Optional[str], events_topic: Optional[str],
                  frame_topics, frame_types, look_ahead: bool,
-                 progress: Optional[Callable[..., None]]):
+                 progress: Optional[Callable[..., None]], tf_head: bool = False):
         self.inp, self.node, self.result = inp, node, result
         self.mode, self.events_topic = mode, events_topic
         self.look_ahead, self.progress = look_ahead, progress
@@ -450,9 +482,19 @@ class _OfflineLoop:
         self.t_start = span[0] if span else None
         self.total_s = (span[1] - span[0]) * 1e-9 if span else None
         self.wanted = {inp.head_topic: inp.head_type}
+        #: With the head from TF: the TF topics (read with ``wire.tf_message_fields``; their
+        #: composed poses go the way of head and frame poses), else empty.
+        self.tf_topics: Dict[str, bool] = {}
+        tf_sources = node.core.tf.sources if tf_head and node.core.tf is not None else {}
+        if tf_head:
+            del self.wanted[inp.head_topic]
+            self.tf_topics = {t: t == TF_STATIC_TOPIC for t in (TF_TOPIC, TF_STATIC_TOPIC)
+                              if t in inp.topics}
         #: topic -> the frames (indices) whose poses it carries
         self.frame_index: Dict[str, List[int]] = {}
         for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types)):
+            if i in tf_sources:
+                continue
             if topic in inp.topics and topic != inp.head_topic:
                 self.wanted[topic] = type_name
                 self.frame_index.setdefault(topic, []).append(i)
@@ -493,12 +535,13 @@ class _OfflineLoop:
 
     def run(self) -> None:
         decode = self._decoders()
-        for topic, _, data, log_ns in self.inp.messages(self.wanted, raw=True):
+        wanted = {**self.wanted, **{t: TFMESSAGE_TYPE for t in self.tf_topics}}
+        for topic, _, data, log_ns in self.inp.messages(wanted, raw=True):
+            if topic in self.tf_topics:
+                self._tf(topic, data, log_ns)
+                continue
             msg = decode[topic](data)
-            if self.mode == 'nominal' and self.next_tick is not None:
-                while self.next_tick < log_ns:
-                    self._schedule_tick(self.next_tick)
-                    self.next_tick += self.period_ns
+            self._ticks_before(log_ns)
             if topic == self.inp.head_topic:
                 self._head(msg, log_ns)
             elif topic in self.frame_index:
@@ -516,6 +559,13 @@ class _OfflineLoop:
         if self.result.last_tick_ns is not None:
             self.node.final_diagnostics(self.result.last_tick_ns)
 
+    def _ticks_before(self, log_ns: int) -> None:
+        """Nominal ticks: those due before a message logged at ``log_ns``."""
+        if self.mode == 'nominal' and self.next_tick is not None:
+            while self.next_tick < log_ns:
+                self._schedule_tick(self.next_tick)
+                self.next_tick += self.period_ns
+
     # -- the messages ----------------------------------------------------------------------
     def _head(self, msg, log_ns: int) -> None:
         self.node.head(msg, log_ns)
@@ -524,6 +574,24 @@ class _OfflineLoop:
         self._run_due()
         self.result.head_samples += 1
         self._input_seen(log_ns)
+
+    def _tf(self, topic: str, data: bytes, log_ns: int) -> None:
+        """A ``TFMessage``: the head (and frames) now due from TF, as poses on their topics
+        (the ticks due before this message first, as for any input)."""
+        self._ticks_before(log_ns)
+        tf_in = self.node.core.tf
+        try:
+            transforms = tf_message_fields(data)
+        except ValueError as err:
+            tf_in.bad_message(f'{topic} at log time {log_ns}: {err}')
+            return
+        for source, pose in tf_in.add(transforms, self.tf_topics[topic]):
+            if source == 'head':
+                self._head(pose, log_ns)
+            else:
+                self.node.frame(int(source), pose, log_ns)
+                self.result.frame_samples += 1
+                self._input_seen(log_ns)
 
     def _frame(self, topic: str, msg, log_ns: int) -> None:
         if isinstance(msg, ReceivedPoses):       # (frames_topic: every frame in one message)
@@ -587,6 +655,28 @@ class _OfflineLoop:
                                      <= self.newest_head)):
             _, fn, args = pending.pop(0)
             fn(*args)
+
+
+def _tf_finish(inp: ReplayInput, node: ReplayNode, result: ReplayResult, output_path: Path,
+               warn) -> None:
+    """The head from TF: none at all is an error naming the frames; transforms held past
+    their samples, late stamps and bad messages are warned."""
+    tf_in = node.core.tf
+    if tf_in is None:
+        return
+    for source, src in tf_in.sources.items():
+        what = f'{tf_in.name(source)} pose from TF ({tf_in.fixed_frame} -> {src.frame})'
+        if src.last_ns is None:
+            output_path.unlink(missing_ok=True)
+            raise ReplayError(f'{inp.path}: no {what}: '
+                              f'{src.error or "no moving transform on the way between them"}')
+        if src.extrapolated:
+            held = ', '.join(f'{edge} {n} times' for edge, n in sorted(src.extrapolated.items()))
+            stale = sum(src.stale.values())
+            warn(f'{inp.path}: the {what} held transforms past their samples: {held}'
+                 + (f' ({stale} by more than stale_timeout)' if stale else ''))
+    if tf_in.bad_messages:
+        warn(f'{inp.path}: {tf_in.bad_messages} TF messages ignored ({tf_in.last_bad})')
 
 
 def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,

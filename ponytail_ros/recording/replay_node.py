@@ -52,7 +52,8 @@ class ReplayNode:
         stamp, frame_id, p, q = _fields(msg, self._head_type)
         if (self._zero_stamp_valid and stamp.sec == 0 and stamp.nanosec == 0
                 and self.core.stamp_source == 'header'):
-            self.runner.push(0.0, p, q, frame_id)  # NodeCore would take "no stamp"
+            # (NodeCore would take "no stamp")
+            self.runner.push(self.runner.seconds(0), p, q, frame_id)
             return
         self.core.push_head(stamp, log_time_ns, p, q, frame_id)
 

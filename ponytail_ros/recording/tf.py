@@ -2,8 +2,10 @@
 
 Downstream users attach meshes (hair cards, a sword) to frames, the way ``robot_state_publisher``
 feeds RViz and Foxglove. Each chain's ``PoseArray`` becomes one ``TFMessage``: one
-``TransformStamped`` per segment, parent ``header.frame_id`` of the ``PoseArray`` (the head
-pose's frame), child ``<prefix><chain>/<i>`` (``i`` from 0 at the root), stamp the tick's,
+``TransformStamped`` per segment, parent ``header.frame_id`` of the ``PoseArray`` (the outputs'
+frame: ``fixed_frame`` with the head from TF, else the head poses'), child
+``<prefix><chain>/<i>`` (``i`` from 0 at the root; the node's prefix defaults to its namespace,
+``docs/tf.md``), stamp the tick's,
 translation and rotation the segment pose's -- so Foxglove and RViz show a frame tree from a
 recording alone.
 

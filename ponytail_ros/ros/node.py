@@ -32,11 +32,20 @@ Topics (all relative, so a namespace per character scales out; no global state):
   none, stale or ok).
   ``/diagnostics`` is absolute by ROS convention (one aggregator for all characters); the status
   name carries the namespace;
-* publishes ``/tf`` (``tf2_msgs/TFMessage``) when ``tf2_msgs`` is importable (a sourced ROS 2
-  workspace; the PyPI wheels lack it) and ``tf.publish`` (default true): each segment as the frame
-  ``<tf.prefix><chain>/<i>``, child of the head pose's frame, every tick. Without ``tf2_msgs``
-  nothing is published (said once if ``tf.publish`` was set explicitly); recordings hold ``/tf``
-  either way.
+* publishes ``/tf`` (``tf2_msgs/TFMessage``, reliable, volatile, depth 100: tf2's broadcaster
+  QoS) when ``tf2_msgs`` is importable (a sourced ROS 2 workspace, or built into the venv; the
+  PyPI wheels lack it) and ``tf.publish`` (default true): each segment as the frame
+  ``<tf.prefix><chain>/<i>``, child of the outputs' frame (``fixed_frame`` with the head from
+  TF), every tick. ``tf.prefix`` defaults to the namespace (``/alice`` -> ``alice/``, so
+  ``alice/ponytail/3``; the root namespace -> none). Without ``tf2_msgs`` nothing is published
+  and the node says so once at start-up; recordings hold ``/tf`` either way (the same bytes);
+* with ``head_frame`` set, subscribes ``/tf`` (reliable, volatile, depth 100) and ``/tf_static``
+  (reliable, transient local, depth 100), tf2's listener QoS, instead of ``head_pose``: the head
+  pose is ``fixed_frame -> head_frame`` composed along the TF tree at the stamps of the moving
+  transforms, interpolated (``app/tf_input.py``); likewise each frame with ``<frame>.tf_frame``.
+  Missing frames, extrapolated and stale transforms are counted in ``/diagnostics`` and said on
+  the terminal (throttled), naming the frames. It needs ``tf2_msgs`` (refused at start-up
+  without it).
 
 Start-up says on the terminal: parameter-file or ``-p`` names that are no parameter of the node
 (with the closest known name), ``tf.publish`` without ``tf2_msgs``, another node with the same
@@ -76,16 +85,27 @@ from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, Rec
 from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
 from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
-                                         FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
+                                         FRAME_PARAMS, GLOBAL_PARAMS, NODE_PARAMS,
+                                         ParameterError,
                                          chain_param_name, check_names, definition)
 from ponytail_ros.app.sink import HEAD, Sinks
+from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
+from ponytail_ros.app.wire import tf_message_fields
 from .spin import run_node, timer_callback
 
-__all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS']
+__all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS', 'TF_QOS',
+           'TF_STATIC_QOS', 'tf_prefix_of']
 
 #: ``head_pose`` and frame subscriptions: the sensor-data preset (best effort, volatile, keep
 #: last 5).
 INPUT_QOS = qos_profile_sensor_data
+#: ``/tf`` in and out: tf2's ``DynamicListenerQoS``/``DynamicBroadcasterQoS``.
+TF_QOS = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+#: ``/tf_static`` in: tf2's ``StaticListenerQoS`` (late joiners get the latched transforms).
+TF_STATIC_QOS = QoSProfile(depth=TF_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                           history=HistoryPolicy.KEEP_LAST)
 #: ``segment_poses`` and ``segment_markers``: reliable, volatile, keep last 10.
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
@@ -144,6 +164,24 @@ def _coerce(param, kind):
     if kind == 'int' and t == Parameter.Type.DOUBLE and float(v).is_integer():
         return Parameter(param.name, Parameter.Type.INTEGER, int(v))
     return param
+
+
+def tf_prefix_of(namespace: str) -> str:
+    """``tf.prefix``'s default: the namespace as a frame prefix (``/alice`` -> ``alice/``,
+    ``/a/b`` -> ``a/b/``, ``/`` -> ``''``), so that characters in namespaces never share a
+    frame name."""
+    ns = namespace.strip('/')
+    return f'{ns}/' if ns else ''
+
+
+class _Input:
+    """In place of a subscription for an input taken from TF: its topic name, as the recorder
+    records the composed poses on it (a ``PoseStamped`` each)."""
+
+    msg_type = None
+
+    def __init__(self, topic_name):
+        self.topic_name = topic_name
 
 
 def _received(data: bytes):
@@ -249,10 +287,15 @@ class PonytailNode(Node):
         # Compile (or load) the step now, saying so, rather than stalling the first tick.
         report_compile(self.get_logger().info)
         self.core.runner.on_drop = self._on_drop
+        # A sparse head stream, a gap in it (NodeCore throttles them on the node clock).
+        self.core.on_notice = lambda key, text: self._log_throttled(f'notice:{key}', 0.0,
+                                                                    'warning', text)
         self._check_input_topics()
         #: Warnings said at start-up about the parameters given (unknown names; tf).
         self.startup_warnings = []
         self._declare_tf_parameters()
+        if self.core.tf is not None:      # (its own segments come back on /tf: not inputs)
+            self.core.tf.ignore_prefixes = tuple(f'{self._tf_prefix}{c}/' for c in self._chains)
         self._warn_unknown_overrides()
 
         if len(self._chains) == 1:
@@ -264,8 +307,15 @@ class PonytailNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Inputs taken raw (CDR bytes) and decoded with struct: rclpy's conversion of each
         # message into Python objects costs more than the rest of handling it.
-        self._head_sub = self.create_subscription(PoseStamped, 'head_pose', self._on_head_cdr,
-                                                  INPUT_QOS, raw=True)
+        tf_in = self.core.tf
+        if tf_in is not None:
+            self._head_sub = _Input(self.resolve_topic_name('head_pose'))
+            self._tf_subs = self._make_tf_subscriptions()
+        else:
+            self._head_sub = self.create_subscription(PoseStamped, 'head_pose',
+                                                      self._on_head_cdr, INPUT_QOS, raw=True)
+        #: The first head pose's frame is checked against fixed_frame (said once).
+        self._head_frame_checked = tf_in is not None
         if self.core.frames_topic and self._frames:
             # All the frames in one PoseArray: one subscription (one callback per input period
             # however many frames), the same one for every frame.
@@ -273,7 +323,9 @@ class PonytailNode(Node):
                                              self._on_frames_cdr, INPUT_QOS, raw=True)
             self._frame_subs = [batch] * len(self._frames)
         else:
+            from_tf = tf_in.sources if tf_in is not None else {}
             self._frame_subs = [
+                _Input(self.resolve_topic_name(topic)) if i in from_tf else
                 self.create_subscription(
                     PoseStamped, topic, lambda data, i=i: self._on_frame_pose(i, _received(data)),
                     INPUT_QOS, raw=True)
@@ -282,6 +334,12 @@ class PonytailNode(Node):
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
                                  for f, sub in zip(self._frames, self._frame_subs)}}
+        tf_frames = set()
+        if tf_in is not None:
+            for source in tf_in.sources:
+                name = 'head' if source == 'head' else self._frames[source]
+                self._input_topics[name] = tf_in.describe(source)
+                tf_frames.add(name)
         if self._frame_subs:
             self._input_topics['frames'] = self._frame_subs[0].topic_name
         #: /tf live (tf2_msgs importable and tf.publish), else None.
@@ -316,7 +374,10 @@ class PonytailNode(Node):
                     tf_prefix=self._tf_prefix)
         self._sinks = Sinks([s for s in (self._recorder, self._publisher_sink) if s is not None])
         scene = self.core.scene
-        inputs = ', '.join(['head_pose'] + list(dict.fromkeys(self.core.frame_topics)))
+        inputs = ', '.join([tf_in.describe('head') if tf_in is not None else 'head_pose']
+                           + list(dict.fromkeys(self._input_topics[f] if f in tf_frames else t
+                                                for f, t in zip(self._frames,
+                                                                self.core.frame_topics))))
         #: Set (and logged once) when another node with this node's name is in the graph.
         self.duplicate_name_warning = None
         self._name_checks = 0
@@ -329,14 +390,14 @@ class PonytailNode(Node):
     # -- start-up checks ------------------------------------------------------------------
     def _declare_tf_parameters(self):
         """``tf.publish`` / ``tf.prefix``: the segments as TF frames ``<prefix><chain>/<i>``
-        (children of the head pose's frame) on ``/tf`` live, when ``tf2_msgs`` is importable, and
+        (children of the outputs' frame) on ``/tf`` live, when ``tf2_msgs`` is importable, and
         always in recordings. Node-only (they do not change the simulation)."""
-        self.declare_parameter('tf.publish', True, ParameterDescriptor(
-            description='Publish every segment as a TF frame on /tf (needs tf2_msgs: a sourced '
-                        'ROS 2 workspace; recordings hold /tf regardless)', read_only=True))
-        self.declare_parameter('tf.prefix', '', ParameterDescriptor(
-            description='TF frames of the segments are <tf.prefix><chain>/<i> (i from 0 at the '
-                        'root), children of the head pose frame', read_only=True))
+        publish, prefix = NODE_PARAMS
+        self.declare_parameter('tf.publish', publish.default, ParameterDescriptor(
+            description=publish.description, read_only=True))
+        self.declare_parameter('tf.prefix', tf_prefix_of(self.get_namespace()),
+                               ParameterDescriptor(description=prefix.description,
+                                                   read_only=True))
         self._tf_prefix = str(self.get_parameter('tf.prefix').value)
 
     def _make_tf_publisher(self):
@@ -345,13 +406,31 @@ class PonytailNode(Node):
         try:
             from tf2_msgs.msg import TFMessage
         except ImportError:
-            if 'tf.publish' in self._parameter_overrides:   # asked for explicitly
-                self._startup_warning(
-                    'tf.publish is true but tf2_msgs is not installed (the ROS 2 PyPI wheels do '
-                    'not ship it): the segments are not published on /tf. Source a ROS 2 '
-                    'workspace that has tf2_msgs; recordings (record_path) hold /tf regardless')
+            self._startup_warning(
+                'Live TF is off: tf2_msgs is not installed (the ROS 2 PyPI wheels do not ship '
+                'it), so the segments are not published on /tf. Source a ROS 2 workspace that '
+                'has tf2_msgs (or build it into this Python environment); recordings '
+                '(record_path) hold /tf regardless. tf.publish:=false silences this')
             return None
-        return self.create_publisher(TFMessage, TF_TOPIC, QoSProfile(depth=TF_QOS_DEPTH))
+        return self.create_publisher(TFMessage, TF_TOPIC, TF_QOS)
+
+    def _make_tf_subscriptions(self):
+        """``/tf`` and ``/tf_static`` (raw bytes, read with ``wire.tf_message_fields``) for the
+        head from TF; refused without ``tf2_msgs`` (the subscription needs its type)."""
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            raise ParameterError('head_frame', f'head_frame = {self.core.values["head_frame"]!r}'
+                                 f' needs tf2_msgs to subscribe /tf and /tf_static, and it is '
+                                 f'not installed (the ROS 2 PyPI wheels do not ship it): source '
+                                 f'a ROS 2 workspace that has it, or give the head on head_pose '
+                                 f'(head_frame:="")') from None
+        self._tf_message = TFMessage
+        return [self.create_subscription(TFMessage, TF_TOPIC,
+                                         lambda data: self._on_tf(data, False), TF_QOS, raw=True),
+                self.create_subscription(TFMessage, TF_STATIC_TOPIC,
+                                         lambda data: self._on_tf(data, True), TF_STATIC_QOS,
+                                         raw=True)]
 
     def _startup_warning(self, text):
         self.startup_warnings.append(text)
@@ -519,10 +598,51 @@ class PonytailNode(Node):
     def _on_head_cdr(self, data):
         self._on_head_pose(_received(data))
 
+    def _on_tf(self, data, static):
+        """A ``TFMessage`` on ``/tf`` (or ``/tf_static``): the head (and frames) now due from
+        TF go the way of poses on their topics."""
+        tf_in = self.core.tf
+        try:
+            transforms = tf_message_fields(data)
+        except ValueError:
+            msg = deserialize_message(data, self._tf_message)
+            transforms = [(t.header.stamp.sec, t.header.stamp.nanosec, t.header.frame_id,
+                           t.child_frame_id,
+                           (t.transform.translation.x, t.transform.translation.y,
+                            t.transform.translation.z),
+                           (t.transform.rotation.x, t.transform.rotation.y,
+                            t.transform.rotation.z, t.transform.rotation.w))
+                          for t in msg.transforms]
+        for source, pose in tf_in.add(transforms, static):
+            if source == 'head':
+                self._on_head_pose(pose)
+            else:
+                self._on_frame_pose(source, pose)
+        for key, text in tf_in.news():
+            self._log_throttled(key, 5.0, 'warning', text)
+
+    def _check_head_frame(self, frame_id):
+        """Said once: head poses whose frame is empty (taken as ``fixed_frame``) or another
+        than ``fixed_frame`` (the simulation then runs in theirs)."""
+        self._head_frame_checked = True
+        fixed = self.core.values['fixed_frame']
+        topic = self._input_topics['head']
+        if not frame_id:
+            self.get_logger().info(f'Head poses on {topic} have an empty header.frame_id: taken '
+                                   f'as fixed_frame {fixed!r}')
+        elif frame_id != fixed and not self.core.values['frame_id']:
+            self.get_logger().warning(
+                f'Head poses on {topic} are in frame {frame_id!r}, not fixed_frame {fixed!r}: '
+                f'the simulation (gravity, wind) runs in {frame_id!r}, which must be inertial, '
+                f'and the segments are published in it. Set fixed_frame:={frame_id} to say so')
+
     def _on_head_pose(self, msg):
         """A head pose: a ``PoseStamped`` or a ``ReceivedPose`` (the same fields)."""
         now_ns = self.get_clock().now().nanoseconds  # the receive time (recorded as log time)
         self._sinks.on_input(HEAD, msg, now_ns)
+        if not self._head_frame_checked:
+            self._check_head_frame(msg.frame_id if isinstance(msg, ReceivedPose)
+                                   else msg.header.frame_id)
         if isinstance(msg, ReceivedPose):
             self.core.push_head(msg.stamp, now_ns, msg.position, msg.orientation, msg.frame_id)
             return
