@@ -30,6 +30,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from . import collision, contact_kernels, lanes, step_unilateral
+from . import compile as kernels_compile
 from . import step as compiled
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
                    KinematicState, point_table, stack_anchors)
@@ -156,6 +157,8 @@ class Simulator:
         self._needs_bodies = bool(m.has_colliders and np.any(m.collider_body >= 0))
         # A crowd of equal chains steps in SIMD lanes when its terms allow (``lanes``).
         self._crowd = lanes.crowd_layout(m)
+        # The kernels this scene runs, compiled now and said (if an entry point asked).
+        kernels_compile.prepare(self)
         if head is None:
             head = KinematicState.still(np.zeros((scene.n_kinematic_bodies, 3)))
         if isinstance(head, HeadMotion):
@@ -747,7 +750,8 @@ class Simulator:
                 static_pose, uni.model_args, uni.detector_args, uni.split_args,
                 np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
-                self._kernel(M) is lanes.advance_lanes, self._contact_workspace(static_pose))
+                True if self._kernel(M) is lanes.advance_lanes else None,
+                self._contact_workspace(static_pose))
         t0 = time.perf_counter()
         status, k, tables, ids = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0

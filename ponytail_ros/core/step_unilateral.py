@@ -33,8 +33,10 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
                        static_pose, umodel, det, split, q_rest, has_colliders, stats,
                        substep_angle, max_substeps, profile, in_lanes, cws):
     """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
-    chain by chain, or if ``in_lanes`` (``lanes.crowd_layout`` and ``lanes.supports`` allow
-    it) in the SIMD lanes of ``lanes.step_blocks``, the same bits; then its contacts and
+    chain by chain (``in_lanes`` None), or if ``in_lanes`` is True (``lanes.crowd_layout``
+    and ``lanes.supports`` allow it) in the SIMD lanes of ``lanes.step_blocks``, the same bits
+    (None, not False: numba prunes the lanes' branches from a version compiled for None, so a
+    scene without a crowd does not compile them); then its contacts and
     limits are resolved chain by chain (``contact_kernels.resolve_chains_into``; ``split``:
     ``collision.Unilateral.split_args``) at the step's end, the colliders
     posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
@@ -54,8 +56,9 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
-    # The lanes' record, allocated here, where their loops are inlined (``lanes``).
-    RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
+    if in_lanes is not None:
+        # The lanes' record, allocated here, where their loops are inlined (``lanes``).
+        RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
     # The step's positions before the contact stage, for all the steps.
     x0, q0 = np.empty_like(x), np.empty_like(q)
     # The moving colliders' pose, posed into these arrays at every step.
@@ -70,12 +73,12 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             status, done = SUBSTEPS, k
             break
         t0 = _cycles()
-        if in_lanes:
-            status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
-                                       ML)
-        else:
+        if in_lanes is None:
             status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
                                    starts, ends)
+        else:
+            status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
+                                       ML)
         t1 = _cycles()
         profile[0] += t1 - t0
         if status != OK:

@@ -103,7 +103,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.compile import say_compiles
 
 from .compare import compare, format_comparison, plot_comparison
 from .inputs import ReplayError
@@ -268,7 +268,8 @@ def _main_compare(args, parser, error) -> int:
 def _main_replay(args, warn) -> int:
     """``INPUT -o OUTPUT``: the offline replay, with a progress bar on a terminal."""
     progress = Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
-    report_compile((lambda m: None) if args.quiet else None)   # before the first tick, said
+    # The kernels the scene uses compile before the first tick, said.
+    say_compiles((lambda m: None) if args.quiet else None, progress=not args.quiet)
     try:
         result = replay(args.inputs[0], args.output, params_file=args.params,
                         head_topic=args.head_topic, ticks=args.ticks, overwrite=args.overwrite,
