@@ -10,7 +10,7 @@ import pytest
 
 from ponytail_ros.core import compile as kernels_compile
 from ponytail_ros.core import step_unilateral
-from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene
+from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
 
@@ -50,7 +50,7 @@ def test_the_child_compile_entry_runs_and_reports_its_misses():
     """The child's command, as a cold start runs it: with the session's cache warm it loads
     the contact stages and prints 0 compiled kernels."""
     out = subprocess.run([sys.executable, '-c', kernels_compile._CHILD,
-                          'contact step,crowd contacts'], capture_output=True, text=True,
+                          *kernels_compile._CHILD_STAGES], capture_output=True, text=True,
                          timeout=300, check=True)
     assert out.stdout.strip() == '0'
 
@@ -69,9 +69,9 @@ def test_the_two_process_warm_up_loads_what_is_cached(monkeypatch, fresh):
     monkeypatch.setattr(kernels_compile.subprocess, 'Popen', spy)
     assert kernels_compile._run(kernels_compile.STAGES, None, False)[1] is False
     assert started == [[sys.executable, '-c', kernels_compile._CHILD,
-                        'contact step,crowd contacts']]
-    assert fresh == ['free step', 'crowd lanes', 'head fit', 'markers', 'contact step',
-                     'crowd contacts']
+                        *kernels_compile._CHILD_STAGES]]
+    assert fresh == ['free step', 'other integrators', 'crowd lanes', 'head fit', 'markers',
+                     *kernels_compile._CHILD_STAGES]
 
 
 def test_one_compile_job_starts_no_child(monkeypatch, fresh):
@@ -100,13 +100,20 @@ _SKULL = ColliderSpec.sphere(center=(0.0, 0.0, 0.0), radius=0.1)
      ('free step', 'contact step', 'head fit', 'markers')),
     (Scene(chains=[ChainSpec(n_segments=4, swing_limit=1.0)]),
      ('free step', 'contact step', 'head fit', 'markers')),
+    (Scene(chains=[ChainSpec(n_segments=4)], solver=SolverSpec(integrator='rattle')),
+     ('free step', 'other integrators', 'head fit', 'markers')),
+    (Scene(chains=[ChainSpec(n_segments=4)], colliders=[_SKULL],
+           solver=SolverSpec(integrator='symplectic_euler')),
+     ('free step', 'other integrators', 'contact step (other integrators)', 'head fit',
+      'markers')),
     (Scene(chains=[ChainSpec(n_segments=4, damping=0.0)] * 8),
      ('free step', 'crowd lanes', 'head fit', 'markers')),
     (Scene(chains=[ChainSpec(n_segments=4, damping=0.0)] * 8, colliders=[_SKULL]),
      ('free step', 'crowd lanes', 'crowd contacts', 'head fit', 'markers')),
 ])
 def test_a_scene_compiles_only_the_stages_it_uses(scene, stages):
-    """No contact stage without colliders or limits; no lanes for one chain."""
+    """No contact stage without colliders or limits; no lanes for one chain; no other
+    integrator for RK4."""
     assert kernels_compile.stages_for(scene) == stages
 
 

@@ -24,6 +24,16 @@ def test_cache_dir_under_numba_cache_dir_is_numbas_own(monkeypatch, tmp_path):
     assert numbas in kernel_cache._cache_dirs(here)
 
 
+def test_numbas_user_wide_cache_dir_is_checked_too(monkeypatch, tmp_path):
+    """numba's user-wide fallback (used when neither ``NUMBA_CACHE_DIR`` nor ``__pycache__``
+    can be written) is among the directories ``ensure_fresh`` clears: a stale cache there is
+    not run after an upgrade."""
+    from numba.core.caching import UserWideCacheLocator
+    here = Path(step.__file__).resolve().parent
+    numbas = Path(UserWideCacheLocator(step.advance.py_func, step.__file__).get_cache_path())
+    assert numbas in kernel_cache._cache_dirs(here)
+
+
 def test_stale_cache_files_are_deleted_and_the_stamp_written(monkeypatch, tmp_path):
     monkeypatch.setenv('NUMBA_CACHE_DIR', str(tmp_path))
     monkeypatch.setattr(kernel_cache, '_checked', False)

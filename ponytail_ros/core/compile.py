@@ -5,17 +5,22 @@ numba compiles a kernel at its first call, or loads it from its on-disk cache
 after an install) would stall a node's first tick, or a replay's, without a word. So the
 kernels are compiled in stages (``STAGES``), each by running a small scene through it:
 
-* ``free step``: the chains' own step (``step.advance``; also every scene's sub-steps), the
-  anchor tracks and the per-tick queries (guard, published poses);
+* ``free step``: the chains' own RK4 step (``step.advance_rk4``; also every scene's
+  sub-steps), the anchor tracks and the per-tick queries (guard, published poses);
+* ``other integrators``: the step of any integrator (``step.advance``: symplectic Euler,
+  RATTLE);
 * ``crowd lanes``: a crowd's step in SIMD lanes (``lanes.advance_lanes``);
-* ``contact step``: the step with contacts and limits (``step_unilateral``), one chain at a
-  time, and the depth and joint-angle queries;
-* ``crowd contacts``: the same step with a crowd's chains in lanes;
+* ``contact step``: the RK4 step with contacts and limits (``step_unilateral``), one chain at
+  a time, and the depth and joint-angle queries;
+* ``contact step (other integrators)``: the same with any integrator;
+* ``crowd contacts``: the same with a crowd's chains in lanes;
 * ``head fit``: the head pose's fit (``head_kernels``);
 * ``markers``: the display markers' numbers.
 
 ``stages_for`` says which a scene uses: a scene without colliders or joint limits compiles
-no contact stage, one of fewer than ``lanes.MIN_CHAINS`` equal chains no lanes.
+no contact stage, one of fewer than ``lanes.MIN_CHAINS`` equal chains no lanes, an RK4 scene
+no other integrator (numba prunes the branches a scene does not take from the versions it
+compiles: ``None`` arguments, ``step._chain_steps``).
 
 Before compiling, one line says so, with an estimate from the stages whose kernels are not in
 the cache; then each stage's progress: on a terminal (stderr a TTY) one line updated in
@@ -50,13 +55,15 @@ from . import kernel_cache
 __all__ = ['STAGES', 'compile_kernels', 'prepare', 'report_compile', 'say_compiles',
            'stages_for']
 
-STAGES = ('free step', 'crowd lanes', 'contact step', 'crowd contacts', 'head fit', 'markers')
+STAGES = ('free step', 'other integrators', 'crowd lanes', 'contact step',
+          'contact step (other integrators)', 'crowd contacts', 'head fit', 'markers')
 #: The stages compiled in the child process on two cores.
-_CHILD_STAGES = ('contact step', 'crowd contacts')
+_CHILD_STAGES = ('contact step', 'contact step (other integrators)', 'crowd contacts')
 #: Rough compile cost of each stage on one core of a small machine, s: for the estimate said
 #: before compiling only (``bench.compile_cost`` measures them).
-_ROUGH_SECONDS = {'free step': 30.0, 'crowd lanes': 25.0, 'contact step': 60.0,
-                  'crowd contacts': 80.0, 'head fit': 20.0, 'markers': 3.0}
+_ROUGH_SECONDS = {'free step': 45.0, 'other integrators': 30.0, 'crowd lanes': 40.0,
+                  'contact step': 60.0, 'contact step (other integrators)': 20.0,
+                  'crowd contacts': 40.0, 'head fit': 6.0, 'markers': 1.0}
 
 #: Wall time (s) of each stage of the last compile in this process, in its order: what a
 #: cold compile spends where (``bench.compile_cost``). On two cores a child stage is this
@@ -66,7 +73,7 @@ STAGE_SECONDS: dict = {}
 #: steadier figure (one process: the compile's cost; two: the child's is not in it).
 STAGE_CPU: dict = {}
 
-# The child's part, run as ``python -c _CHILD <stage>,...``; it prints its cache misses.
+# The child's part, run as ``python -c _CHILD <stage> ...``; it prints its cache misses.
 _CHILD = 'from ponytail_ros.core.compile import _child; _child()'
 
 _done: set = set()          # stages run in this process
@@ -104,23 +111,36 @@ def _far_floor():
     return ColliderSpec.plane(point=(0.0, 0.0, -10.0), normal=(0.0, 0.0, 1.0))
 
 
+def _warm_other_integrators():
+    from .head import KinematicState
+    from .scene import ChainSpec, Scene, SolverSpec
+    from .simulator import Simulator
+    Simulator(Scene(chains=[ChainSpec(n_segments=2)],
+                    solver=SolverSpec(integrator='symplectic_euler', dt=0.01))).advance_frame(
+        0.02, KinematicState.still())
+
+
 def _warm_crowd():
     from .head import KinematicState
     from .simulator import Simulator
     Simulator(_crowd_scene()).advance_frame(0.02, KinematicState.still())
 
 
-def _warm_contacts():
+def _warm_contacts(integrator='rk4'):
     from .head import KinematicState
     from .scene import ChainSpec, Scene, SolverSpec
     from .simulator import Simulator
     # A far floor (never touched) and a cone limit: the contacts-and-limits loop runs.
     bounded = Simulator(Scene(chains=[ChainSpec(n_segments=2, swing_limit=1.0)],
                               colliders=[_far_floor()],
-                              solver=SolverSpec(integrator='rk4', dt=0.01)))
+                              solver=SolverSpec(integrator=integrator, dt=0.01)))
     bounded.advance_frame(0.02, KinematicState.still())
     bounded.contact_depths()
     bounded.joint_angles()
+
+
+def _warm_contacts_other_integrators():
+    _warm_contacts('symplectic_euler')
 
 
 def _warm_crowd_contacts():
@@ -159,15 +179,18 @@ def _warm_markers():
                                     np.empty(1, dtype=np.bool_))
 
 
-_WARM = {'free step': _warm_free, 'crowd lanes': _warm_crowd, 'contact step': _warm_contacts,
+_WARM = {'free step': _warm_free, 'other integrators': _warm_other_integrators,
+         'crowd lanes': _warm_crowd, 'contact step': _warm_contacts,
+         'contact step (other integrators)': _warm_contacts_other_integrators,
          'crowd contacts': _warm_crowd_contacts, 'head fit': _warm_head,
          'markers': _warm_markers}
 
 
 # -- what is compiled, what is cached ---------------------------------------------------
-def _in_lanes_is(kind):
-    """A signature test of ``advance_unilateral``: its ``in_lanes`` argument's type."""
-    return lambda sig: str(sig[24]) == kind
+def _unilateral_is(in_lanes, constrained):
+    """A signature test of ``advance_unilateral``: its ``in_lanes`` and ``constrained``
+    arguments' types."""
+    return lambda sig: (str(sig[24]), str(sig[26])) == (in_lanes, constrained)
 
 
 def _stage_kernels(stage):
@@ -176,13 +199,15 @@ def _stage_kernels(stage):
                    state_kernels, step, step_unilateral)
     uni = step_unilateral.advance_unilateral
     kernels = {
-        'free step': [step.advance, state_kernels.guard_measures, state_kernels.segment_poses,
-                      head_kernels.track_table, head_kernels.point_kinematics,
-                      head_kernels.frame_tables],
+        'free step': [step.advance_rk4, state_kernels.guard_measures,
+                      state_kernels.segment_poses, head_kernels.track_table,
+                      head_kernels.point_kinematics, head_kernels.frame_tables],
+        'other integrators': [step.advance],
         'crowd lanes': [lanes.advance_lanes],
-        'contact step': [(uni, _in_lanes_is('none')), contact_kernels.resolve_workspace,
-                         limit_kernels.joint_angles],
-        'crowd contacts': [(uni, _in_lanes_is('bool'))],
+        'contact step': [(uni, _unilateral_is('none', 'none')),
+                         contact_kernels.resolve_workspace, limit_kernels.joint_angles],
+        'contact step (other integrators)': [(uni, _unilateral_is('none', 'bool'))],
+        'crowd contacts': [(uni, _unilateral_is('bool', 'none'))],
         'head fit': [head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,
                      head_kernels.add_samples, head_kernels.longest_median_interval,
                      head_kernels.median_interval, head_kernels.fits_at],
@@ -221,7 +246,8 @@ def _missing(stage):
 def stages_for(scene):
     """The stages (``STAGES``, in order) a ``Simulator`` of ``scene`` runs, with the head fit
     and the markers of a node or replay: contacts only with colliders or joint limits, lanes
-    only for a crowd that ``lanes`` steps."""
+    only for a crowd that ``lanes`` steps, the other integrators only for a scene using
+    one."""
     from .simulator import Simulator
     _guard = _busy_set(True)
     try:
@@ -232,14 +258,19 @@ def stages_for(scene):
 
 
 def _stages_of(sim):
-    from . import lanes
-    crowd = sim._crowd is not None and lanes.supports(sim._step_model())
+    from . import lanes, step
+    M = sim._step_model()
+    crowd = sim._crowd is not None and lanes.supports(M)
+    rk4 = M.integrator == step.RK4
     contact = sim.unilateral is not None
     need = {'free step', 'head fit', 'markers'}
     if crowd:
         need.add('crowd lanes')
+    if not rk4:
+        need.add('other integrators')
     if contact:
-        need.add('crowd contacts' if crowd else 'contact step')
+        need.add('crowd contacts' if crowd else
+                 'contact step' if rk4 else 'contact step (other integrators)')
     return tuple(s for s in STAGES if s in need)
 
 
@@ -270,10 +301,9 @@ def _jobs():
 
 
 def _child():
-    """The child's part of a cold compile (the stages named in ``sys.argv[1]``, default the
-    contact step); prints its cache misses."""
-    stages = sys.argv[1].split(',') if len(sys.argv) > 1 else ['contact step']
-    for stage in stages:
+    """The child's part of a cold compile (the stages named in its arguments); prints its
+    cache misses."""
+    for stage in sys.argv[1:]:
         _WARM[stage]()
     print(_misses(), flush=True)
 
@@ -346,7 +376,7 @@ def _start_child(stages):
     if not stages:
         return None
     try:
-        return subprocess.Popen([sys.executable, '-c', _CHILD, ','.join(stages)],
+        return subprocess.Popen([sys.executable, '-c', _CHILD, *stages],
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     except OSError:
         return None
@@ -370,7 +400,7 @@ def _run(stages, log, progress):
     jobs = _jobs() if kernel_cache.cache_location() is not None else 1
     bar = _announce(missing, jobs, log, progress) if missing and log is not None else None
     child = _start_child([s for s in missing if s in _CHILD_STAGES] if jobs > 1 else [])
-    to_child = child.args[-1].split(',') if child is not None else []
+    to_child = child.args[3:] if child is not None else []
     misses0, child_misses = _misses(), 0
     _busy = True
     try:

@@ -564,7 +564,8 @@ class Simulator:
 
     def _kernel(self, model):
         """The compiled step for ``model`` (a ``StepModel``): ``lanes.advance_lanes`` for a
-        crowd whose terms it covers, else ``step.advance`` (the same results bit for bit)."""
+        crowd whose terms it covers, else ``step.advance_rk4`` or ``step.advance`` (the same
+        results bit for bit; ``lanes.kernel_for``)."""
         return lanes.kernel_for(model, self._crowd)
 
     def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
@@ -751,7 +752,8 @@ class Simulator:
                 np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
                 True if self._kernel(M) is lanes.advance_lanes else None,
-                self._contact_workspace(static_pose))
+                self._contact_workspace(static_pose),
+                None if M.integrator == compiled.RK4 else True)
         t0 = time.perf_counter()
         status, k, tables, ids = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0

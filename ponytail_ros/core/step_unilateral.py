@@ -31,7 +31,7 @@ __all__ = ['advance_unilateral']
 @nb.njit(cache=True, nogil=True, error_model='numpy')
 def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
                        static_pose, umodel, det, split, q_rest, has_colliders, stats,
-                       substep_angle, max_substeps, profile, in_lanes, cws):
+                       substep_angle, max_substeps, profile, in_lanes, cws, constrained):
     """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
     chain by chain (``in_lanes`` None), or if ``in_lanes`` is True (``lanes.crowd_layout``
     and ``lanes.supports`` allow it) in the SIMD lanes of ``lanes.step_blocks``, the same bits
@@ -52,7 +52,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
     ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
     whole call, then in each of ``step.CONTACT_STAGES``, to ``profile``
-    ``(step.PROFILE_SIZE,)`` int64."""
+    ``(step.PROFILE_SIZE,)`` int64. ``constrained``: None for RK4 (the other integrators
+    pruned, as in ``step.advance_rk4``), True for the model's integrator."""
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
@@ -75,7 +76,7 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         t0 = _cycles()
         if in_lanes is None:
             status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
-                                   starts, ends)
+                                   starts, ends, constrained)
         else:
             status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
                                        ML)
