@@ -364,10 +364,11 @@ def _say(msg):
 def _announce(missing, jobs, log, progress):
     """The line said before compiling ``missing``; returns its ``_Progress``."""
     where = kernel_cache.cache_location()
-    cache = f'cache: {where}' if where else 'no cache: at every start'
     estimate = _estimate(missing, jobs)
-    log(f'ponytail_ros: compiling the simulation kernels once after install, about '
-        f'{estimate:.0f} s ({", ".join(missing)}; {cache})...')
+    when = ' once after install' if where else ''
+    cache = f'cache: {where}' if where else 'no cache: at every start'
+    log(f'ponytail_ros: compiling the simulation kernels{when}, about {estimate:.0f} s '
+        f'({", ".join(missing)}; {cache})...')
     return _Progress(log, len(missing), estimate, progress and sys.stderr.isatty())
 
 
@@ -428,8 +429,9 @@ def _run(stages, log, progress):
     seconds = time.perf_counter() - t_start
     compiled = _misses() - misses0 + child_misses > 0
     if compiled and log is not None:
-        log(f'ponytail_ros: compiled the simulation kernels in {seconds:.1f} s (once after '
-            'install; later starts load them from the cache)')
+        log(f'ponytail_ros: compiled the simulation kernels in {seconds:.1f} s'
+            + (' (once after install; later starts load them from the cache)'
+               if kernel_cache.cache_location() else ''))
     return seconds, compiled
 
 

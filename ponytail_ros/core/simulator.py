@@ -30,7 +30,6 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from . import collision, contact_kernels, lanes, step_unilateral
-from . import compile as kernels_compile
 from . import step as compiled
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
                    KinematicState, point_table, stack_anchors)
@@ -158,6 +157,8 @@ class Simulator:
         # A crowd of equal chains steps in SIMD lanes when its terms allow (``lanes``).
         self._crowd = lanes.crowd_layout(m)
         # The kernels this scene runs, compiled now and said (if an entry point asked).
+        # (Imported here: ``python -m ponytail_ros.core.compile`` runs it as __main__.)
+        from . import compile as kernels_compile
         kernels_compile.prepare(self)
         if head is None:
             head = KinematicState.still(np.zeros((scene.n_kinematic_bodies, 3)))
