@@ -110,8 +110,9 @@ def read_only_install():
             e = {k: v for k, v in os.environ.items()
                  if k not in ('NUMBA_CACHE_DIR', 'XDG_CACHE_HOME')}
             e.update(PYTHONPATH=str(site), HOME=str(ro / 'home'), **env)
+            # (cwd: not the checkout, whose package ``-c`` would import first)
             return subprocess.run([*prefix, sys.executable, '-c', prelude + _RUN], env=e,
-                                  capture_output=True, text=True, timeout=600)
+                                  capture_output=True, text=True, timeout=600, cwd=tmp)
         yield run, tmp
     finally:
         for d, _, _ in os.walk(tmp):
