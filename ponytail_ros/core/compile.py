@@ -61,9 +61,9 @@ STAGES = ('free step', 'other integrators', 'crowd lanes', 'contact step',
 _CHILD_STAGES = ('contact step', 'contact step (other integrators)', 'crowd contacts')
 #: Rough compile cost of each stage on one core of a small machine, s: for the estimate said
 #: before compiling only (``bench.compile_cost`` measures them).
-_ROUGH_SECONDS = {'free step': 45.0, 'other integrators': 30.0, 'crowd lanes': 40.0,
-                  'contact step': 60.0, 'contact step (other integrators)': 20.0,
-                  'crowd contacts': 40.0, 'head fit': 6.0, 'markers': 1.0}
+_ROUGH_SECONDS = {'free step': 35.0, 'other integrators': 25.0, 'crowd lanes': 35.0,
+                  'contact step': 130.0, 'contact step (other integrators)': 15.0,
+                  'crowd contacts': 35.0, 'head fit': 6.0, 'markers': 2.0}
 
 #: Wall time (s) of each stage of the last compile in this process, in its order: what a
 #: cold compile spends where (``bench.compile_cost``). On two cores a child stage is this
