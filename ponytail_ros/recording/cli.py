@@ -123,7 +123,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.compile import say_compiles
 
 from .compare import compare, format_comparison, plot_comparison
 from .inputs import ReplayError
@@ -318,7 +318,8 @@ def _main_replay(args, warn, error, parser) -> int:
         from .many import bag_name
         output = output / f'{bag_name(bags[0])}.mcap'
     progress = Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
-    report_compile((lambda m: None) if args.quiet else None)   # before the first tick, said
+    # The kernels the scene uses compile before the first tick, said.
+    say_compiles((lambda m: None) if args.quiet else None, progress=not args.quiet)
     try:
         with StopRequest() as stop:
             result = replay(bags[0], output, progress=progress,
