@@ -19,7 +19,7 @@ defines it, not the files its callees live in: after a change to ``chain_solve.p
 upgrade that installs a new ``chain_solve.py`` beside an unchanged ``step.py``) the cached
 ``step.advance`` would still run the old solve. So the cache of all kernel modules is keyed
 on one digest of their sources: when it differs from the digest stored beside the cache,
-their cache files are deleted (numba then compiles once, and ``compile.report_compile`` says
+their cache files are deleted (numba then compiles once, and ``compile`` says
 so). Checked in every place numba may keep them: ``__pycache__``, ``NUMBA_CACHE_DIR`` (set by
 the user or by ``choose_cache_dir``) and numba's user-wide directory.
 """

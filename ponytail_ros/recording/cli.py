@@ -341,7 +341,8 @@ def _main_replay_many(args, bags, out_dir: Path, error) -> int:
     from .many import output_paths, replay_many
     outputs = output_paths(bags, out_dir)
     jobs = args.jobs or os.cpu_count() or 1
-    report_compile(lambda m: None)    # loaded once here: the forked workers inherit it
+    # each worker compiles (or loads) the stages its bag's scene uses, and says so
+    say_compiles((lambda m: None) if args.quiet else None, progress=False)
     codes: list = []
 
     def report(outcome) -> None:
