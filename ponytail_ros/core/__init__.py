@@ -4,6 +4,8 @@ Stages, one module each: ``scene`` (description and validation) → ``model`` (a
 ``head`` (kinematic bodies) → ``forces`` (applied) → ``solver`` (constraint forces, A f_c = b)
 → ``integrators`` → ``stabilization``; ``simulator`` runs them in fixed steps.
 """
+# First: where numba caches the kernels, decided before any of them is defined.
+from . import kernel_cache  # noqa: F401
 from .head import AnchorKinematics, HeadMotion, KinematicState, StillMotion, SwayYawMotion
 from .scene import ChainSpec, ColliderSpec, Scene, SceneError, SolverSpec
 from .simulator import Simulator, StepReport, TUNABLE_PARAMETERS

@@ -754,9 +754,11 @@ def supports(M):
 
 def kernel_for(M, layout):
     """The compiled step for the ``StepModel`` ``M`` of a model of ``crowd_layout``
-    ``layout``: ``advance_lanes`` if it runs it, else ``step.advance`` (same arguments, same
-    results)."""
-    return advance_lanes if layout is not None and supports(M) else step.advance
+    ``layout``: ``advance_lanes`` if it runs it, else ``step.advance_rk4`` (RK4) or
+    ``step.advance`` (same arguments, same results)."""
+    if layout is not None and supports(M):
+        return advance_lanes
+    return step.advance_rk4 if M.integrator == RK4 else step.advance
 
 
 def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, layout):

@@ -156,6 +156,10 @@ class Simulator:
         self._needs_bodies = bool(m.has_colliders and np.any(m.collider_body >= 0))
         # A crowd of equal chains steps in SIMD lanes when its terms allow (``lanes``).
         self._crowd = lanes.crowd_layout(m)
+        # The kernels this scene runs, compiled now and said (if an entry point asked).
+        # (Imported here: ``python -m ponytail_ros.core.compile`` runs it as __main__.)
+        from . import compile as kernels_compile
+        kernels_compile.prepare(self)
         if head is None:
             head = KinematicState.still(np.zeros((scene.n_kinematic_bodies, 3)))
         if isinstance(head, HeadMotion):
@@ -561,7 +565,8 @@ class Simulator:
 
     def _kernel(self, model):
         """The compiled step for ``model`` (a ``StepModel``): ``lanes.advance_lanes`` for a
-        crowd whose terms it covers, else ``step.advance`` (the same results bit for bit)."""
+        crowd whose terms it covers, else ``step.advance_rk4`` or ``step.advance`` (the same
+        results bit for bit; ``lanes.kernel_for``)."""
         return lanes.kernel_for(model, self._crowd)
 
     def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
@@ -747,7 +752,9 @@ class Simulator:
                 static_pose, uni.model_args, uni.detector_args, uni.split_args,
                 np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
-                self._kernel(M) is lanes.advance_lanes, self._contact_workspace(static_pose))
+                True if self._kernel(M) is lanes.advance_lanes else None,
+                self._contact_workspace(static_pose),
+                None if M.integrator == compiled.RK4 else True)
         t0 = time.perf_counter()
         status, k, tables, ids = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0

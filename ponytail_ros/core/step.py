@@ -1170,11 +1170,12 @@ def _chain_model(M, s, e):
 
 
 @_borrow
-def _chain_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws):
+def _chain_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, ws, rws, constrained):
     """Steps ``k0 .. k0 + n_steps - 1`` of the table of one chain (or any set of whole
-    chains)."""
+    chains). ``constrained`` None: RK4 only (numba prunes the other integrators from that
+    version: an RK4 scene does not compile them); True: the model's integrator."""
     for k in range(k0, k0 + n_steps):
-        if M.integrator == RK4:
+        if constrained is None or M.integrator == RK4:
             ok = _rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c)
         else:
             ok = _constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c,
@@ -1203,19 +1204,31 @@ def advance(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
     return _chains_steps(M, A, 0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
-                         ends)
+                         ends, True)
+
+
+@nb.njit(cache=True, nogil=True)
+def advance_rk4(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c):
+    """``advance`` for a model whose integrator is RK4 (the same results bit for bit),
+    compiled without the other integrators."""
+    starts, ends = _chain_starts(M, x.shape[0])
+    W, R = _workspaces(starts, ends)
+    return _chains_steps(M, A, 0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts,
+                         ends, None)
 
 
 @_borrow
-def _chains_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends):
+def _chains_steps(M, A, k0, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, W, R, starts, ends,
+                  constrained):
     """Steps ``k0 .. k0 + n_steps - 1`` of the table, chain by chain, each chain through all
     of them (its working set stays in the cache; its views borrowed: no reference counts
-    however many chains there are)."""
+    however many chains there are). ``constrained``: as ``_chain_steps``."""
     for c in range(starts.shape[0]):
         s, e = starts[c], ends[c]
         ws, rws = _chain_views(W, R, e - s)
         status = _chain_steps(_chain_model(M, s, e), A, k0, n_steps, h, x[s:e], q[s:e],
-                              v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws)
+                              v[s:e], w[s:e], ext_F[s:e], ext_T[s:e], f_c[s:e], ws, rws,
+                              constrained)
         if status != OK:
             return status
     return OK

@@ -31,10 +31,12 @@ __all__ = ['advance_unilateral']
 @nb.njit(cache=True, nogil=True, error_model='numpy')
 def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, moving, cols,
                        static_pose, umodel, det, split, q_rest, has_colliders, stats,
-                       substep_angle, max_substeps, profile, in_lanes, cws):
+                       substep_angle, max_substeps, profile, in_lanes, cws, constrained):
     """``step.advance`` for scenes with colliders or joint limits: each step is integrated,
-    chain by chain, or if ``in_lanes`` (``lanes.crowd_layout`` and ``lanes.supports`` allow
-    it) in the SIMD lanes of ``lanes.step_blocks``, the same bits; then its contacts and
+    chain by chain (``in_lanes`` None), or if ``in_lanes`` is True (``lanes.crowd_layout``
+    and ``lanes.supports`` allow it) in the SIMD lanes of ``lanes.step_blocks``, the same bits
+    (None, not False: numba prunes the lanes' branches from a version compiled for None, so a
+    scene without a crowd does not compile them); then its contacts and
     limits are resolved chain by chain (``contact_kernels.resolve_chains_into``; ``split``:
     ``collision.Unilateral.split_args``) at the step's end, the colliders
     posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
@@ -50,12 +52,14 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
     ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
     whole call, then in each of ``step.CONTACT_STAGES``, to ``profile``
-    ``(step.PROFILE_SIZE,)`` int64."""
+    ``(step.PROFILE_SIZE,)`` int64. ``constrained``: None for RK4 (the other integrators
+    pruned, as in ``step.advance_rk4``), True for the model's integrator."""
     t_call = _cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
-    # The lanes' record, allocated here, where their loops are inlined (``lanes``).
-    RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
+    if in_lanes is not None:
+        # The lanes' record, allocated here, where their loops are inlined (``lanes``).
+        RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
     # The step's positions before the contact stage, for all the steps.
     x0, q0 = np.empty_like(x), np.empty_like(q)
     # The moving colliders' pose, posed into these arrays at every step.
@@ -70,12 +74,12 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             status, done = SUBSTEPS, k
             break
         t0 = _cycles()
-        if in_lanes:
+        if in_lanes is None:
+            status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
+                                   starts, ends, constrained)
+        else:
             status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
                                        ML)
-        else:
-            status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
-                                   starts, ends)
         t1 = _cycles()
         profile[0] += t1 - t0
         if status != OK:

@@ -123,7 +123,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.compile import say_compiles
 
 from .compare import compare, format_comparison, plot_comparison
 from .inputs import ReplayError
@@ -318,7 +318,8 @@ def _main_replay(args, warn, error, parser) -> int:
         from .many import bag_name
         output = output / f'{bag_name(bags[0])}.mcap'
     progress = Progress(sys.stderr) if not args.quiet and sys.stderr.isatty() else None
-    report_compile((lambda m: None) if args.quiet else None)   # before the first tick, said
+    # The kernels the scene uses compile before the first tick, said.
+    say_compiles((lambda m: None) if args.quiet else None, progress=not args.quiet)
     try:
         with StopRequest() as stop:
             result = replay(bags[0], output, progress=progress,
@@ -340,7 +341,8 @@ def _main_replay_many(args, bags, out_dir: Path, error) -> int:
     from .many import output_paths, replay_many
     outputs = output_paths(bags, out_dir)
     jobs = args.jobs or os.cpu_count() or 1
-    report_compile(lambda m: None)    # loaded once here: the forked workers inherit it
+    # each worker compiles (or loads) the stages its bag's scene uses, and says so
+    say_compiles((lambda m: None) if args.quiet else None, progress=False)
     codes: list = []
 
     def report(outcome) -> None:

@@ -78,7 +78,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.compile import say_compiles
 from ponytail_ros.core.step import CONTACT_STAGES
 from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
                                        tf_cdr)
@@ -282,10 +282,11 @@ class PonytailNode(Node):
         super().__init__(node_name, context=context, **kwargs)
         self._declare_parameters()
         values = {name: self._value(name) for name in self._param_names}
+        # The simulators compile (or load) the kernels their scenes use when built, saying
+        # so, rather than stalling the first tick.
+        say_compiles(self.get_logger().info)
         #: What the node does, without rclpy (shared with ``ponytail_replay``).
         self.core = NodeCore(values)
-        # Compile (or load) the step now, saying so, rather than stalling the first tick.
-        report_compile(self.get_logger().info)
         self.core.runner.on_drop = self._on_drop
         # A sparse head stream, a gap in it (NodeCore throttles them on the node clock).
         self.core.on_notice = lambda key, text: self._log_throttled(f'notice:{key}', 0.0,
