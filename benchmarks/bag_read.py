@@ -1,4 +1,4 @@
-"""``python -m ponytail_ros.bench.bag_read``: how fast a 300 s head bag is read, by this
+"""``python benchmarks/bag_read.py``: how fast a 300 s head bag is read, by this
 package's ``BagReader`` (every MCAP record framed and CRC-checked, ``mcap_scan.py``) and by
 ``rosbags``' ``Reader``, each on the same messages written two ways: by this package's
 ``BagWriter`` (64 kB chunks) and by the ``rosbags`` writer (a bag folder). Prints the wall
@@ -10,7 +10,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .head_bag import make_head_recording
+from ponytail_ros.bench.head_bag import make_head_recording
 
 
 def _best(fn, repeat):
@@ -37,7 +37,7 @@ def _rosbags_copy(src: Path, folder: Path) -> Path:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='python -m ponytail_ros.bench.bag_read',
+    p = argparse.ArgumentParser(prog="benchmarks/bag_read.py",
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--seconds', type=float, default=300.0, help='s of 100 Hz head poses')
     p.add_argument('--repeat', type=int, default=5)
