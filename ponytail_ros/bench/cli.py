@@ -34,7 +34,9 @@ Measurements of the product as it runs (each its own options; ``ponytail_bench <
 ``node``     ``ponytail_node``'s CPU share beside the head demo (``--floor``: rclpy's own floor;
              ``--characters``: a crowd in one node)
 ``replay``   ``ponytail_replay`` of a 300 s head bag, and where its time goes
-``compile``  the cold compile of every kernel, on two cores and one
+``compile``  the cold and warm compile of a scene's kernels, per stage
+``many``     a folder of head bags replayed with ``-j 1`` and ``-j 2`` (``ponytail_replay -j``)
+``scale``    N characters as one node and as several in their namespaces: tick rate and CPU
 ``head``     the head pose fit's accuracy and cost
 
 Profiles: ``--quick`` (the default; ~2–3 min on one core), ``--full`` (all of it; ~30–40 min),
@@ -98,7 +100,10 @@ TOOLS: dict[str, tuple[str, str, tuple[str, ...]]] = {
                ('--characters', '1', '10', '100', '250')),
     'node': ('node_cpu', "ponytail_node's CPU share beside the head demo", ()),
     'replay': ('replay_cost', 'ponytail_replay of a 300 s head bag, and where it goes', ()),
-    'compile': ('compile_cost', 'the cold compile of every kernel, two cores and one', ()),
+    'compile': ('compile_cost', 'the cold and warm compile of a scene\'s kernels, per stage',
+                ()),
+    'many': ('replay_many', 'a folder of head bags replayed with -j 1 and -j 2', ()),
+    'scale': ('scale_out', 'N characters as one node and as several, tick rate and CPU', ()),
     'head': ('head_estimation_bench', "the head pose fit's accuracy and cost", ()),
 }
 #: What ``all`` (the default) runs, before ``report``.
