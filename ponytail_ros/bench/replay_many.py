@@ -9,6 +9,7 @@ over it (how many cores it kept busy: ~1 at ``-j 1``, up to ``-j`` when that man
 free), the machine's load average before each run, and the wall times' ratio.
 """
 import argparse
+import json
 import os
 import resource
 import subprocess
@@ -42,7 +43,9 @@ def main(argv=None):
     p.add_argument('--bags', type=int, default=8, help='how many bags')
     p.add_argument('--seconds', type=float, default=30.0, help='simulated seconds per bag')
     p.add_argument('--jobs', type=int, nargs='+', default=[1, 2], help='-j values to time')
+    p.add_argument('--json', help='write the results to this file')
     args = p.parse_args(argv)
+    runs = []
     with tempfile.TemporaryDirectory() as tmp:
         bags = Path(tmp) / 'bags'
         bags.mkdir()
@@ -57,10 +60,15 @@ def main(argv=None):
                   f'({args.bags * args.seconds / walls[jobs]:.1f}x real time overall), '
                   f'{cpu:.1f} s CPU = {cpu / walls[jobs]:.2f} cores busy (load average '
                   f'{load:.1f} before)', flush=True)
+            runs.append({'jobs': jobs, 'wall_s': walls[jobs], 'cpu_s': cpu, 'load_before': load})
     first = walls[args.jobs[0]]
     for jobs in args.jobs[1:]:
         print(f'-j {jobs} / -j {args.jobs[0]}: {walls[jobs] / first:.2f} of the wall time '
               f'({os.cpu_count()} cores on this machine)')
+    if args.json:
+        with open(args.json, 'w') as f:
+            json.dump({'bags': args.bags, 'seconds': args.seconds, 'params': args.params,
+                       'cores': os.cpu_count(), 'runs': runs}, f, indent=1)
 
 
 if __name__ == '__main__':
