@@ -132,6 +132,13 @@ def _terms(data: Any) -> Rows:
              f'{r["rows_per_step"]:.2f}'] for r in data['rows']]
 
 
+def _many(data: Any) -> Rows:
+    first = data['runs'][0]['wall_s']
+    return [[str(r['jobs']), f'{r["wall_s"]:.1f}', f'{r["cpu_s"] / r["wall_s"]:.2f}',
+             f'{data["bags"] * data["seconds"] / r["wall_s"]:.1f}×',
+             f'{r["wall_s"] / first:.2f}', f'{r["load_before"]:.1f}'] for r in data['runs']]
+
+
 #: data file -> (title, command, column headers, rows from the file's JSON, note).
 BENCHMARKS: Dict[str, tuple] = {
     'node_cpu.json': (
@@ -193,6 +200,12 @@ BENCHMARKS: Dict[str, tuple] = {
         'ponytail_bench terms',
         ['configuration', 'CPU ms per simulated s', 'against gravity alone',
          'contact/limit rows per step'], _terms, ''),
+    'replay_many.json': (
+        'Many bags: `ponytail_replay BAGS -o DIR -j N` over 8 head bags of 30 s, '
+        '`config/ponytail.yaml`, one command each, its start included',
+        'ponytail_bench many --json docs/bench/replay_many.json',
+        ['-j', 'wall s', 'cores busy', 'simulated / wall', 'of -j 1\'s wall time',
+         'load average before'], _many, ''),
     'compile_cost.json': (
         'The cold compile of every kernel (an empty `NUMBA_CACHE_DIR` each run)',
         'ponytail_bench compile',
