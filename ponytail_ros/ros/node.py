@@ -78,7 +78,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.core.compile import say_compiles
+from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
 from ponytail_ros.core.step import CONTACT_STAGES
 from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
                                        tf_cdr)
@@ -288,6 +288,9 @@ class PonytailNode(Node):
         #: What the node does, without rclpy (shared with ``ponytail_replay``).
         self.core = NodeCore(values)
         self.core.runner.on_drop = self._on_drop
+        # The runner builds its Simulator at the first head pose: its stages are loaded (or
+        # compiled) now, or that first tick would stall and drop simulated time.
+        compile_kernels(stages_for(self.core.runner.scene), self.get_logger().info)
         # A sparse head stream, a gap in it (NodeCore throttles them on the node clock).
         self.core.on_notice = lambda key, text: self._log_throttled(f'notice:{key}', 0.0,
                                                                     'warning', text)
