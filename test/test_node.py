@@ -444,3 +444,22 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
             # pass, and its check alone rounds to 0.000 ms)
             assert contact > 0.0 and parts[0] > 0.0 and parts[2] > 0.0
         h.close()
+
+
+def test_the_node_loads_its_scenes_kernels_before_the_first_head_pose(ros_context,
+                                                                       monkeypatch):
+    """The runner builds its Simulator at the first head pose; the kernels of its scene's
+    stages are loaded when the node is built, so that first tick does not stall (and drop
+    simulated time) loading them."""
+    from ponytail_ros.core import compile as kernels
+    from ponytail_ros.ros.node import PonytailNode
+    monkeypatch.setattr(kernels, '_done', set())     # (as in a fresh process)
+    node = PonytailNode(context=ros_context, parameter_overrides=overrides(
+        colliders=['skull'], skull__kind='sphere', skull__radius=0.1))
+    try:
+        assert node.core.runner.sim is None                   # no head pose yet
+        stages = kernels.stages_for(node.core.runner.scene)
+        assert 'contact step' in stages
+        assert set(stages) <= kernels._done
+    finally:
+        node.destroy_node()
