@@ -31,7 +31,7 @@ CORE = ['numpy>=1.24', 'scipy>=1.10', 'mcap>=1.1', 'PyYAML', 'numba>=0.60',
 
 setup(
     name=package_name,
-    version='0.1.0',
+    version='0.2.0',
     packages=find_packages(exclude=['test']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
