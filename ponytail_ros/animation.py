@@ -89,6 +89,9 @@ def load_run(path) -> RecordedRun:
     if not head:
         raise ValueError(f'{path}: no head poses recorded on {head_topic}')
     h = np.array(head)
+    h = h[np.isfinite(h).all(axis=1)]     # (the input as received: the node dropped these)
+    if not len(h):
+        raise ValueError(f'{path}: no finite head pose recorded on {head_topic}')
     t0 = h[0, 0]
     out = {}
     for c, rows in seg.items():

@@ -27,6 +27,9 @@ def test_a_recorded_run_is_read_as_joint_points(live_run):
         # Segments of a tick equally long (the length split equally): the joints closed.
         assert np.allclose(lengths, lengths[0], rtol=1e-6)
     assert run.head_t.size > 10 and run.head_q.shape == (run.head_t.size, 4)
+    # the run was sent a NaN head pose (recorded as received, dropped by the node): not drawn
+    assert any(not np.isfinite(m.pose.position.x) for m in live_run.sent)
+    assert np.isfinite(run.head_p).all() and np.isfinite(run.head_q).all()
 
 
 def test_the_gif_has_one_frame_per_instant(live_run, tmp_path):
