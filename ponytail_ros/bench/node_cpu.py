@@ -27,27 +27,36 @@ import numpy as np
 
 _TICK = os.sysconf('SC_CLK_TCK')
 
-# A third process: the node's /diagnostics windows (1 s each), their tick-time p99 and max.
-_LISTEN = """
+# A listener process: every node's /diagnostics window (1 s each) as one JSON line
+# [status name, {key: value}] (``diagnostics_windows`` reads them back).
+DIAGNOSTICS_LISTENER = """
 import json, rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 rclpy.init()
-node = rclpy.create_node('node_cpu_listener')
+node = rclpy.create_node('ponytail_bench_listener')
 def on_diagnostics(msg):
     for status in msg.status:
         kv = {v.key: v.value for v in status.values}
-        if 'tick time p99 (ms)' in kv:
-            print(json.dumps([float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)']),
-                              float(kv['ticks per s']), float(kv['dropped time (s)']),
-                              float(kv['integrate time mean (ms)'])
-                              + float(kv['contact time mean (ms)'])]),
-                  flush=True)
-node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+        if 'ticks per s' in kv:
+            print(json.dumps([status.name, kv]), flush=True)
+node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 100)
 try:
     rclpy.spin(node)
 except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
     pass
 """
+
+
+def diagnostics_windows(out: str):
+    """``(status name, {key: value})`` of each window the listener printed."""
+    return [tuple(json.loads(line)) for line in out.splitlines() if line.startswith('[')]
+
+
+def _window(kv):
+    """[tick p99 ms, tick max ms, ticks per s, dropped s, the compiled step's mean ms]."""
+    return [float(kv['tick time p99 (ms)']), float(kv['tick time max (ms)']),
+            float(kv['ticks per s']), float(kv['dropped time (s)']),
+            float(kv['integrate time mean (ms)']) + float(kv['contact time mean (ms)'])]
 
 
 def _cpu_seconds(pid):
@@ -77,8 +86,9 @@ def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=F
     try:
         time.sleep(warmup)
         if not floor:
-            listener = subprocess.Popen([sys.executable, '-c', _LISTEN], env=env, text=True,
-                                        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+            listener = subprocess.Popen(
+                [sys.executable, '-c', DIAGNOSTICS_LISTENER], env=env, text=True,
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         c0, t0 = _cpu_seconds(node.pid), time.monotonic()
         time.sleep(seconds)
         c1, t1 = _cpu_seconds(node.pid), time.monotonic()
@@ -88,7 +98,8 @@ def measure(params, seconds=15.0, warmup=8.0, extra=(), head_rate=120.0, floor=F
         if listener is not None:
             listener.send_signal(signal.SIGINT)
             out, _ = listener.communicate(timeout=10)
-            windows = [json.loads(line) for line in out.splitlines() if line.startswith('[')]
+            windows = [_window(kv) for _, kv in diagnostics_windows(out)
+                       if 'tick time p99 (ms)' in kv]
         return (c1 - c0) / (t1 - t0), windows
     finally:
         for p in [q for q in (node, head, listener) if q is not None]:

@@ -27,28 +27,8 @@ from typing import Any, Dict, List, Sequence
 
 import numpy as np
 
-from ponytail_ros.bench.node_cpu import _cpu_seconds
+from ponytail_ros.bench.node_cpu import DIAGNOSTICS_LISTENER, _cpu_seconds, diagnostics_windows
 
-# A listener process: each node's /diagnostics window as one JSON line [node, tick rate, ...].
-_LISTEN = """
-import json, rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-rclpy.init()
-node = rclpy.create_node('scale_out_listener')
-def on_diagnostics(msg):
-    for status in msg.status:
-        kv = {v.key: v.value for v in status.values}
-        if 'tick rate (Hz)' in kv:
-            rate = kv['tick rate (Hz)']
-            print(json.dumps([status.name, None if rate == 'n/a' else float(rate),
-                              float(kv['ticks per s']), float(kv['dropped time (s)'])]),
-                  flush=True)
-node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 100)
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-    pass
-"""
 
 
 def split(characters: int, nodes: int) -> List[int]:
@@ -106,8 +86,9 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
                       dict(role='head demo', namespace=ns, characters=n, proc=head)]
         load_before = os.getloadavg()[0]
         time.sleep(warmup)
-        listener = subprocess.Popen([sys.executable, '-c', _LISTEN], env=env, text=True,
-                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        listener = subprocess.Popen(
+                [sys.executable, '-c', DIAGNOSTICS_LISTENER], env=env, text=True,
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         all_procs.append(listener)
         c0 = [_cpu_seconds(p['proc'].pid) for p in procs]
         t0 = time.monotonic()
@@ -123,10 +104,12 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
     finally:
         _stop(all_procs)
     windows: Dict[str, List[List[Any]]] = {}
-    for line in out.splitlines():
-        if line.startswith('['):
-            name, *values = json.loads(line)
-            windows.setdefault(name, []).append(values)
+    for name, kv in diagnostics_windows(out):
+        if 'tick rate (Hz)' in kv:
+            rate = kv['tick rate (Hz)']
+            windows.setdefault(name, []).append([None if rate == 'n/a' else float(rate),
+                                                 float(kv['ticks per s']),
+                                                 float(kv['dropped time (s)'])])
     rows = []
     for p, a, b in zip(procs, c0, c1):
         row = {k: p[k] for k in ('role', 'namespace', 'characters')}
