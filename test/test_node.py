@@ -421,7 +421,7 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
     with a skull collider both stages take time and fit within the solve time, and the
     contact stage's parts (rows, positions, velocities) within it; without colliders there
     is no contact stage."""
-    from ponytail_ros.core.step import HAS_CYCLE_COUNTER
+    from ponytail_ros.core.stages import HAS_CYCLE_COUNTER
     skull = overrides(colliders=['skull'], skull__kind='sphere', skull__radius=0.09,
                       skull__friction=0.3)
     for params, colliding in ((skull, True), (overrides(), False)):

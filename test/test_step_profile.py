@@ -4,7 +4,7 @@ cycle counter."""
 import numpy as np
 import pytest
 
-from ponytail_ros.core import step as compiled
+from ponytail_ros.core import stages
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
@@ -26,7 +26,7 @@ def test_a_free_chain_spends_its_compiled_time_integrating():
         assert 0.0 < t['integrate'] <= t['steps']
 
 
-@pytest.mark.skipif(not compiled.HAS_CYCLE_COUNTER, reason='no cycle counter on this CPU')
+@pytest.mark.skipif(not stages.HAS_CYCLE_COUNTER, reason='no cycle counter on this CPU')
 def test_a_chain_on_a_collider_reports_its_contact_stage():
     """A chain rooted on a sphere it rests against: both stages take time, and together they
     are the compiled call's time, within the steps' own (anchor tables included)."""
@@ -43,7 +43,7 @@ def test_a_chain_on_a_collider_reports_its_contact_stage():
     # sphere (rows built, a position check, velocities), and together they are within it
     # (the rest: the sphere posed, the positions kept, the call into the chain's stages);
     # the cycles are split in proportion, so exactly.
-    parts = np.array([[r.timings[f'contact_{name}'] for name in compiled.CONTACT_STAGES]
+    parts = np.array([[r.timings[f'contact_{name}'] for name in stages.CONTACT_STAGES]
                       for r in reports])
     assert np.all(parts > 0.0)
     assert np.all(parts.sum(axis=1) <= contacts)
@@ -53,4 +53,4 @@ def test_the_contact_parts_are_zero_without_colliders_or_limits():
     reports = _reports(Scene(chains=[ChainSpec(n_segments=12)], solver=SOLVER))
     for r in reports:
         assert all(r.timings.get(f'contact_{name}', 0.0) == 0.0
-                   for name in compiled.CONTACT_STAGES)
+                   for name in stages.CONTACT_STAGES)

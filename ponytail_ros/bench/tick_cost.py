@@ -35,14 +35,14 @@ from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.head import KinematicState, SwayYawMotion
 from ponytail_ros.core.scene import Scene
 from ponytail_ros.core.simulator import Simulator
-from ponytail_ros.core.step import CONTACT_STAGES
+from ponytail_ros.core.stages import CONTACT_STAGES
 from ponytail_ros.testing import load_config
 
 __all__ = ['measure', 'main']
 
 
 STAGES = ('integrate', 'contacts')
-#: ``contacts``' parts (``step.CONTACT_STAGES``), printed after it.
+#: ``contacts``' parts (``stages.CONTACT_STAGES``), printed after it.
 PARTS = tuple(f'contact_{name}' for name in CONTACT_STAGES)
 
 

@@ -39,7 +39,7 @@ from .chain_solve import solve_from
 from .chain_solve import store_factors as _store_factors
 from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
                             qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
-from .step import PROFILE_POSITIONS, PROFILE_ROWS, PROFILE_VELOCITIES, _cycles
+from .stages import PROFILE_POSITIONS, PROFILE_ROWS, PROFILE_VELOCITIES, cycles
 
 POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
 POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this
@@ -1920,10 +1920,10 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     workspace ``ws``). The cycles of its row builds are added to ``profile``'s rows."""
     length = model[LENGTH]
     h, inv_I, C, Lo = factors(ws, q.shape[0])
-    t0 = _cycles()
+    t0 = cycles()
     fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders,
                                  dt, ws)
-    profile[PROFILE_ROWS] += _cycles() - t0
+    profile[PROFILE_ROWS] += cycles() - t0
     if not fits:
         return NO_ROOM, False, R, I
     moved = False
@@ -1966,10 +1966,10 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
                     dx[i, a] = x[i, a] - x_old[i, a]
             moved_rows(R, I, dx, dth)
             break
-        t0 = _cycles()
+        t0 = cycles()
         fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
                                      has_colliders, dt, ws)
-        profile[PROFILE_ROWS] += _cycles() - t0
+        profile[PROFILE_ROWS] += cycles() - t0
         if not fits:
             return NO_ROOM, moved, R, I
     return OK, moved, R, I
@@ -2058,8 +2058,8 @@ def resolve_chains_into(x0, q0, x, q, v, w, anchor, pose, model, det, split, q_r
     ``ROW_COLLIDERS`` colliders), that chain is restored to its entry state and the caller
     resolves again from it (``first``) with ``grown(ws)``, kept for the next steps.
     ``first`` 0 starts a step (the stats and the broad phase's setup). ``profile``: the
-    step's profile (``step.PROFILE_SIZE`` int64), whose contact stages (``step.CONTACT_STAGES``)
-    get the cycles of each chain's rows, positions and velocities.
+    step's profile (``stages.PROFILE_SIZE`` int64), whose contact stages
+    (``stages.CONTACT_STAGES``) get the cycles of each chain's rows, positions and velocities.
 
     It allocates nothing and borrows every array (``_nrt=False``): entering a function
     that counts references costs an atomic increment of each of its arrays (the model's, the
@@ -2106,10 +2106,10 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
                     project, dt, stats, ws, profile):
     """One chain's stages (``resolve``), in order, borrowing every array (no reference
     counting); ``NO_ROOM`` if the row tables overflow. Their cycles go to ``profile``'s
-    contact stages (``step.CONTACT_STAGES``)."""
+    contact stages (``stages.CONTACT_STAGES``)."""
     stats[:] = 0
     h, inv_I, C, Lo = factors(ws, q.shape[0])
-    t0 = _cycles()
+    t0 = cycles()
     rows0 = profile[PROFILE_ROWS]
     status, moved, R, I = position_stage(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws, stats, profile)
@@ -2128,15 +2128,15 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
         joint_projection(v, w, anchor[1], h, inv_I, C, Lo, model, vec(ws, V_N0, n),
                          vec(ws, V_N2, n), vec(ws, V_N3, n))
         if stale:
-            t = _cycles()
+            t = cycles()
             fits, R, I = build_rows_into(x, q, v, w, anchor, q_rest, pose, model, det,
                                          has_colliders, dt, ws)
-            profile[PROFILE_ROWS] += _cycles() - t
+            profile[PROFILE_ROWS] += cycles() - t
             if not fits:
                 return NO_ROOM
         else:
             refresh_sep(R, I, v, w, anchor[3], model[CHAIN_OF])
-    t1 = _cycles()
+    t1 = cycles()
     profile[PROFILE_POSITIONS] += (t1 - t0) - (profile[PROFILE_ROWS] - rows0)
     if R.shape[0]:
         status = velocity_stage(R, I, q, v, w, anchor, model, project, dt, moved, ws, stats)
@@ -2145,7 +2145,7 @@ def _resolve_stages(x0, q0, x, q, v, w, anchor, pose, model, det, q_rest, has_co
     if moved and project:
         half_vectors(model[LENGTH], q, h)
         project_velocities(anchor[1], w, h, model, v)
-    profile[PROFILE_VELOCITIES] += _cycles() - t1
+    profile[PROFILE_VELOCITIES] += cycles() - t1
     return OK
 
 

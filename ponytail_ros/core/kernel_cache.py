@@ -31,8 +31,9 @@ from pathlib import Path
 
 __all__ = ['KERNEL_MODULES', 'cache_location', 'choose_cache_dir', 'ensure_fresh']
 
-KERNEL_MODULES = ('chain_solve', 'step', 'contact_kernels', 'limit_kernels', 'head_kernels',
-                  'state_kernels', 'lanes', 'step_unilateral', 'marker_kernels')
+#: The sources whose edits invalidate the cache: every module of ``core`` (numba's own check
+#: sees only the file of the function it loads, not an edited callee in another file).
+KERNEL_MODULES = tuple(sorted(p.stem for p in Path(__file__).resolve().parent.glob('*.py')))
 _STAMP = 'ponytail_kernels.sha256'
 _HERE = Path(__file__).resolve().parent
 _checked = False
@@ -173,9 +174,8 @@ def ensure_fresh():
             if d != used and not d.is_dir():
                 continue                        # not used, nothing cached there
             d.mkdir(parents=True, exist_ok=True)
-            for name in KERNEL_MODULES:
-                for f in list(d.glob(f'{name}.*.nbi')) + list(d.glob(f'{name}.*.nbc')):
-                    f.unlink(missing_ok=True)
+            for f in list(d.glob('*.nbi')) + list(d.glob('*.nbc')):
+                f.unlink(missing_ok=True)
             stamp.write_text(digest + '\n')
         except OSError:
             pass                    # not ours to write (a read-only directory): not used

@@ -30,6 +30,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from . import collision, contact_kernels, lanes, step_unilateral
+from . import stages
 from . import step as compiled
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
                    KinematicState, point_table, stack_anchors)
@@ -83,9 +84,9 @@ class StepReport:
     compiled step ran, also the split of its calls' time into ``integrate`` (the chains' own
     steps: forces, joint solves, integration, projection) and ``contacts`` (the contact and
     limit stage; 0 without colliders and limits), by the CPU's cycle counter
-    (``step.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time),
+    (``stages.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time),
     and of ``contacts`` into ``contact_rows``, ``contact_positions`` and
-    ``contact_velocities`` (``step.CONTACT_STAGES``; the rest of ``contacts``: the
+    ``contact_velocities`` (``stages.CONTACT_STAGES``; the rest of ``contacts``: the
     colliders posed, the positions kept, the call into each chain's stages).
     """
 
@@ -143,11 +144,11 @@ class Simulator:
         self.external = None
         self._step_model_cache = None
         # The compiled calls of the current ``advance``: the free step's wall time and the
-        # contact step's (s), and the cycles of the latter's stages (``step.PROFILE_STAGES``,
+        # contact step's (s), and the cycles of the latter's stages (``stages.PROFILE_STAGES``,
         # then its calls' total).
         self._call_wall = 0.0
         self._uni_wall = 0.0
-        self._profile = np.zeros(compiled.PROFILE_SIZE, dtype=np.int64)
+        self._profile = np.zeros(stages.PROFILE_SIZE, dtype=np.int64)
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
         m = self.model
@@ -653,7 +654,7 @@ class Simulator:
         else:
             report.timings['integrate'] = free + uni
             report.timings['contacts'] = 0.0
-        for name, cycles in zip(compiled.CONTACT_STAGES, parts):
+        for name, cycles in zip(stages.CONTACT_STAGES, parts):
             report.timings[f'contact_{name}'] = uni * (cycles / total) if total > 0 else 0.0
 
     def _end_call(self, report, anchor, failure, head_at):

@@ -9,7 +9,7 @@ step in sub-steps), ``integrate`` (applied forces, the joint solves, RK4 or the 
 integrators, projection), the colliders posed at the step's end (moving bodies), and
 ``contacts`` (detection, rows, the exact complementarity solve per touching chain,
 friction, position passes). The cycles of ``integrate`` and ``contacts`` are counted
-(``step.PROFILE_STAGES``), and those of the contact stage's parts (``step.CONTACT_STAGES``:
+(``stages.PROFILE_STAGES``), and those of the contact stage's parts (``stages.CONTACT_STAGES``:
 rows, positions, velocities), like Box2D's ``b2Profile``.
 
 Frames and units: world frame (REP 103), SI; the arrays are ``step.advance``'s.
@@ -19,7 +19,8 @@ import numpy as np
 
 from . import contact_kernels, lanes
 from .kernel_cache import ensure_fresh
-from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, _chain_starts, _chains_steps, _cycles,
+from .stages import cycles
+from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, _chain_starts, _chains_steps,
                    _workspaces, substeps)
 
 ensure_fresh()
@@ -50,11 +51,11 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     them in its workspace; handing back the whole workspace cost a boxed array each of its
     twenty at every call): status ``SUBSTEPS`` when the next step needs sub-steps
     (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
-    ``step.advance``. Adds the cycles spent in each of ``step.PROFILE_STAGES``, then in the
-    whole call, then in each of ``step.CONTACT_STAGES``, to ``profile``
+    ``step.advance``. Adds the cycles spent in each of ``stages.PROFILE_STAGES``, then in the
+    whole call, then in each of ``stages.CONTACT_STAGES``, to ``profile``
     ``(step.PROFILE_SIZE,)`` int64. ``constrained``: None for RK4 (the other integrators
     pruned, as in ``step.advance_rk4``), True for the model's integrator."""
-    t_call = _cycles()
+    t_call = cycles()
     starts, ends = _chain_starts(M, x.shape[0])
     W, R = _workspaces(starts, ends)
     if in_lanes is not None:
@@ -73,14 +74,14 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         if substeps(M, A, 2 * k, w, h, substep_angle, max_substeps) > 1:
             status, done = SUBSTEPS, k
             break
-        t0 = _cycles()
+        t0 = cycles()
         if in_lanes is None:
             status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
                                    starts, ends, constrained)
         else:
             status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
                                        ML)
-        t1 = _cycles()
+        t1 = cycles()
         profile[0] += t1 - t0
         if status != OK:
             done = k
@@ -103,11 +104,11 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             resolved, c = contact_kernels.resolve_chains_into(
                 x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
                 M.projection, h, stats, own, cws, c, profile)
-        profile[1] += _cycles() - t1
+        profile[1] += cycles() - t1
         if resolved != contact_kernels.OK:
             status, done = JOINT_SOLVE_FAILED, k
             break
-    profile[2] += _cycles() - t_call
+    profile[2] += cycles() - t_call
     return status, done, cws[contact_kernels.WS_TABLES], cws[contact_kernels.WS_IDS]
 
 

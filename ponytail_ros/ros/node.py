@@ -79,7 +79,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
 from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
-from ponytail_ros.core.step import CONTACT_STAGES
+from ponytail_ros.core.stages import CONTACT_STAGES
 from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
                                        tf_cdr)
 from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
@@ -199,7 +199,7 @@ class _Timing:
         # the compiled step's stages per tick (``StepReport.timings``)
         self.integrate = []
         self.contacts = []
-        # the contact stage's parts (``step.CONTACT_STAGES``): rows, positions, velocities
+        # the contact stage's parts (``stages.CONTACT_STAGES``): rows, positions, velocities
         self.contact_parts = {name: [] for name in CONTACT_STAGES}
         self.tick_wall = []
         self.lateness = 0.0
