@@ -22,9 +22,8 @@ import argparse
 import os
 import re
 
-from ponytail_ros.core.compile import report_compile
-
 from ponytail_ros.bench.tick_cost import crowd_runner
+from ponytail_ros.core.compile import report_compile
 
 __all__ = ['compiled_functions', 'write_map']
 

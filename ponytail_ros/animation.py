@@ -14,7 +14,6 @@ import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -42,7 +41,7 @@ class RecordedRun:
     head_t: np.ndarray
     head_p: np.ndarray
     head_q: np.ndarray
-    chains: Dict[str, tuple]
+    chains: dict[str, tuple]
     head_radius: float
 
 
@@ -72,11 +71,11 @@ def load_run(path) -> RecordedRun:
     layout = RunLayout.from_metadata(reader.metadata()[RECORDING_METADATA])
     head_topic = layout.head_topic
     topics = {head_topic: 'geometry_msgs/msg/PoseStamped'}
-    chains: List[str] = list(layout.chains)
+    chains: list[str] = list(layout.chains)
     pose_topic = dict(zip(layout.pose_topics, chains))
     topics.update({t: 'geometry_msgs/msg/PoseArray' for t in pose_topic})
-    head: List[tuple] = []
-    seg: Dict[str, List[tuple]] = {c: [] for c in chains}
+    head: list[tuple] = []
+    seg: dict[str, list[tuple]] = {c: [] for c in chains}
     for topic, _, msg, _ in reader.messages(topics):
         if topic == head_topic:
             p, q = msg.pose.position, msg.pose.orientation
@@ -113,7 +112,7 @@ def _sphere(radius: float, n: int = 14):
             radius * np.cos(v))
 
 
-def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] = None,
+def render(run: RecordedRun, path, start: float = 0.0, seconds: float | None = None,
            fps: float = 15.0, size: float = 3.2, dpi: int = 80) -> Path:
     """Write ``path`` (a GIF): ``seconds`` of the run from ``start`` (s), at ``fps`` frames a
     second of run time, ``size`` inches square at ``dpi``; the view follows the head."""

@@ -62,13 +62,21 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.optimize import nnls
 
-import _oracle_limits as limits
 from ponytail_ros.core.head import AnchorKinematics
 from ponytail_ros.core.model import Model
-from ponytail_ros.core.rotations import (cross, quat_axis_x, quat_integrate, quat_normalize,
-                                         quat_rotate, quat_to_matrix, skew)
+from ponytail_ros.core.rotations import (
+    cross,
+    quat_axis_x,
+    quat_integrate,
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+    skew,
+)
 from ponytail_ros.core.stabilization import project_positions, project_velocities
 from ponytail_ros.core.state import half_vectors
+
+import _oracle_limits as limits
 
 __all__ = ['Unilateral', 'segment_depths', 'POSITION_TOLERANCE', 'POSITION_ITERATIONS',
            'SPECULATIVE_STEPS']

@@ -24,6 +24,7 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap.writer import CompressionType, Writer as McapWriter  # noqa: E402
 
 from ponytail_ros.recording.bag import BagError, BagReader, message_definition  # noqa: E402
+
 from ros_helpers import HEAD, N_POSES, PERIOD_NS, T0_NS, head_samples, rosbags_bag, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -296,8 +297,9 @@ def test_a_sigkilled_recording_is_repaired_into_a_file_rosbags_and_mcap_index_re
     assert summary is not None and summary.chunk_indexes
     assert summary.statistics.message_count == len(readable)
     ours_raw = []
-    from ponytail_ros.recording.mcap_scan import McapScan
     from mcap.records import Channel, Message
+
+    from ponytail_ros.recording.mcap_scan import McapScan
     channels = {}
     for _, r in McapScan(killed).records():
         if isinstance(r, Channel):

@@ -12,12 +12,12 @@ import yaml
 pytest.importorskip('rclpy')
 pytest.importorskip('rosbags.rosbag2')
 
-from ponytail_ros.recording.bag import BagError, BagReader  # noqa: E402
-from ros_helpers import HEAD, N_POSES, head_samples, run  # noqa: E402
-
-from rosbags.rosbag2 import (CompressionFormat, CompressionMode, StoragePlugin,  # noqa: E402
-                             Writer)
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from ponytail_ros.recording.bag import BagError, BagReader  # noqa: E402
+
+from ros_helpers import HEAD, N_POSES, head_samples, run  # noqa: E402
 
 STORE = get_typestore(Stores.ROS2_KILTED)
 
@@ -247,6 +247,7 @@ def test_an_mcap_file_of_another_profile_is_read_as_rosbags_would_refuse_it(tmp_
     """rosbags refuses an MCAP file whose profile is not ``ros2``; the same messages with
     another profile read here as with it."""
     from mcap.writer import Writer as McapWriter
+
     from ponytail_ros.recording.bag import message_definition
     samples = head_samples(50)
     paths = {}

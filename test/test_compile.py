@@ -8,8 +8,7 @@ import sys
 
 import pytest
 
-from ponytail_ros.core import compile as kernels_compile
-from ponytail_ros.core import step_unilateral
+from ponytail_ros.core import compile as kernels_compile, step_unilateral
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 

@@ -12,16 +12,25 @@ and inner joints, several chains, a non-axisymmetric inertia and a run without p
 import numpy as np
 import pytest
 
-import _oracle_collision
-import _oracle_limits
-from ponytail_ros.core import ChainSpec, KinematicState, Scene, Simulator, StillMotion
-from ponytail_ros.core import collision, contact_kernels, limits, step
+from ponytail_ros.app.motions import ShakeNodHead as ShakeMotion
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    Simulator,
+    StillMotion,
+    collision,
+    contact_kernels,
+    limits,
+    step,
+)
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.state import half_vectors
 
+import _oracle_collision
+import _oracle_limits
 from helpers import TwoBodies
-from ponytail_ros.app.motions import ShakeNodHead as ShakeMotion
 
 DT = 1.0 / 240.0
 AGREE = 1e-11   # relative; most scenes agree to ~1e-13. Friction on a nearly stuck contact

@@ -3,8 +3,16 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator, SolverSpec,
-                               StillMotion, SwayYawMotion)
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    SolverSpec,
+    StillMotion,
+    SwayYawMotion,
+)
 
 ANCHOR = np.array([0.0, 0.0, 1.0])
 G = 9.81

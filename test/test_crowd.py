@@ -8,10 +8,18 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from ponytail_ros.app.crowd import (CHARACTER_PHASE, CHARACTER_SPACING, crowd_offsets,
-                                    crowd_values, main as crowd_main)
-from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
-                                           values_from_params_file)
+from ponytail_ros.app.crowd import (
+    CHARACTER_PHASE,
+    CHARACTER_SPACING,
+    crowd_offsets,
+    crowd_values,
+    main as crowd_main,
+)
+from ponytail_ros.app.param_values import (
+    complete_values,
+    scene_and_settings,
+    values_from_params_file,
+)
 from ponytail_ros.app.parameters import ParameterError
 from ponytail_ros.app.wire import pose_array_fields, pose_array_layout
 from ponytail_ros.resources import config_path

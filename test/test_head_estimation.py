@@ -26,7 +26,11 @@ from hypothesis import given, settings, strategies as st
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
 from ponytail_ros.core.rotations import (
-    quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec)
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_to_rotvec,
+)
 
 KEYS = ('linear_velocity', 'linear_acceleration', 'angular_velocity', 'angular_acceleration')
 SWAY_OMEGA = 2.0 * math.pi * 1.5

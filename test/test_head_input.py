@@ -144,6 +144,7 @@ def test_the_node_says_a_sparse_stream_once_and_gaps_with_their_stamps_throttled
     its stamps, the second is held back (one notice per 10 s of node clock), the third is said
     with the count of the one held back."""
     from builtin_interfaces.msg import Time
+
     from ponytail_ros.app.node_core import NodeCore
     from ponytail_ros.app.param_values import complete_values
     core = NodeCore(complete_values({'chains': ['ponytail'], 'markers': {'style': 'off'}}))

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from ponytail_ros.app.motions import crowd_motion
-from ponytail_ros.core import lanes
-from ponytail_ros.core import step as compiled
+from ponytail_ros.core import lanes, step as compiled
 from ponytail_ros.core.head import point_table
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator

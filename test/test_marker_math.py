@@ -7,8 +7,13 @@ import pytest
 pytest.importorskip('rclpy', reason='rclpy (ROS 2 wheels or a sourced workspace) is not installed')
 
 from ponytail_ros.app import messages as m  # noqa: E402
-from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors,  # noqa: E402
-                                         quat_multiply, quat_normalize, quat_rotate)
+from ponytail_ros.core.rotations import (  # noqa: E402
+    quat_axis_x,
+    quat_from_two_vectors,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 
 
 def _quats(rng, n):

@@ -21,21 +21,21 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
+import yaml  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from mcap.exceptions import EndOfFile  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap.records import Chunk, Message  # noqa: E402
 from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
-import yaml  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 
-from ros_helpers import (CHANGES, P_HEAD, TIMEOUT_SCALE, TYPES, head_at, overrides,  # noqa: E402
-                         plain, pose_msg)
-from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
 from ponytail_ros.app.param_values import values_from_metadata  # noqa: E402
-from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
+from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
+
+from ros_helpers import CHANGES, P_HEAD, TIMEOUT_SCALE, TYPES, head_at, overrides, plain, pose_msg  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

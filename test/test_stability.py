@@ -53,14 +53,22 @@ import warnings
 import numpy as np
 import pytest
 
-from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, SceneError, Simulator,
-                               SolverSpec, StillMotion)
+from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
+from ponytail_ros.core import (
+    ChainSpec,
+    ChainState,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    SolverSpec,
+    StillMotion,
+)
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
-from helpers import chain_sim, reference_ponytail
-from helpers import total_energy as energy
+
+from helpers import chain_sim, reference_ponytail, total_energy as energy
 
 hypothesis = pytest.importorskip('hypothesis')
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
@@ -586,8 +594,8 @@ def test_a_hitch_carries_the_chain_with_the_head(integrator):
 def test_carry_with_anchors_keeps_the_chain_relative_to_its_anchor():
     """The carry itself: the chain's positions, orientations and velocities seen from the anchor
     body are the same before and after, so closed joints stay closed (position and velocity)."""
-    from ponytail_ros.core.simulator import carry_with_anchors
     from ponytail_ros.core.rotations import quat_conjugate, quat_multiply, quat_rotate
+    from ponytail_ros.core.simulator import carry_with_anchors
     motion = reference_motion()
     sim = make_sim(ponytail(), motion, RK4, 1 / 240)
     sim.advance_to(0.7, motion)

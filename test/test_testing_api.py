@@ -17,11 +17,23 @@ import pytest
 
 import ponytail_ros
 from ponytail_ros.app.runner import START_SAMPLES
+from ponytail_ros.testing import (
+    CheckFailed,
+    PoseSample,
+    assert_energy_does_not_grow,
+    assert_joints_closed,
+    assert_no_penetration,
+    assert_no_resets,
+    assert_tips_close,
+    assert_within_joint_limits,
+    joint_gaps,
+    load_config,
+    n_ticks,
+    run_offline,
+    still,
+    tick_period_ns,
+)
 from ponytail_ros.testing.motion import stamp_ns
-from ponytail_ros.testing import (CheckFailed, PoseSample, assert_energy_does_not_grow,
-                                  assert_joints_closed, assert_no_penetration, assert_no_resets,
-                                  assert_tips_close, assert_within_joint_limits, joint_gaps,
-                                  load_config, n_ticks, run_offline, still, tick_period_ns)
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = ROOT / 'examples' / 'my_character.yaml'
@@ -285,8 +297,9 @@ def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path)
     harness and ``run_offline`` exactly as the same poses given as a list from t = 0."""
     pytest.importorskip('rclpy')
     rosbag2 = pytest.importorskip('rosbags.rosbag2')
-    from rosbags.typesys import Stores, get_typestore
     from rclpy.serialization import serialize_message
+    from rosbags.typesys import Stores, get_typestore
+
     from ponytail_ros.testing import bag_samples, sample_motion
     from ponytail_ros.testing.harness import HarnessError, pose_msg
     t0_ns = 1_700_000_000_123_456_789

@@ -10,9 +10,9 @@ pytest.importorskip('rclpy')
 highlevel = pytest.importorskip('rosbags.highlevel')
 typesys = pytest.importorskip('rosbags.typesys')
 
+from ponytail_ros.recording.tf import TFMESSAGE_TYPE, tf_message_cdr, tfmessage_type_hash  # noqa: E402
+
 from ros_helpers import head_samples, rosbags_bag, run  # noqa: E402
-from ponytail_ros.recording.tf import (TFMESSAGE_TYPE, tf_message_cdr,  # noqa: E402
-                                       tfmessage_type_hash)
 
 STORE = typesys.get_typestore(typesys.Stores.ROS2_KILTED)
 

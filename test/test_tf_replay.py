@@ -9,9 +9,10 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip('rclpy')
 
-from ros_helpers import poses_by_stamp  # noqa: E402
 from ponytail_ros.recording.inputs import ReplayError  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
+
+from ros_helpers import poses_by_stamp  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -16,13 +16,12 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 pytest.importorskip('rclpy')
-from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
+from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from ponytail_ros.app.messages import SegmentPoses, segment_frame, tf_cdr  # noqa: E402
-from ponytail_ros.app.wire import (pose_array_cdr, pose_array_layout, pose_block,  # noqa: E402
-                                   tf_layout)
+from ponytail_ros.app.wire import pose_array_cdr, pose_array_layout, pose_block, tf_layout  # noqa: E402
 from ponytail_ros.recording.cdr import serialize_canonical  # noqa: E402
 from ponytail_ros.recording.tf import TFMESSAGE_TYPE, tf_message_cdr  # noqa: E402
 
@@ -231,6 +230,7 @@ def test_marker_array_is_serialize_messages_bytes(params, overrides, changes):
 @given(data=st.data(), frame_id=FRAMES, sec=SEC, nanosec=NANOSEC)
 def test_received_pose_is_what_rclpy_deserialises(data, frame_id, sec, nanosec):
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.messages import ReceivedPose
     from ponytail_ros.app.wire import pose_stamped_fields
     row = data.draw(poses_of(1, FLOATS))[0].tolist()
@@ -254,6 +254,7 @@ def test_received_pose_is_what_rclpy_deserialises(data, frame_id, sec, nanosec):
 
 def test_what_the_decoder_leaves_to_rclpy():
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.wire import pose_stamped_fields
     msg = PoseStamped()
     msg.header.frame_id = 'world'
@@ -273,6 +274,7 @@ def test_received_pose_canonical_cdr_normalises_what_is_not():
     """Bytes that are canonical already are recorded as they are; encapsulation options, a
     set alignment gap or slack after the data are normalised away."""
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.messages import ReceivedPose
     from ponytail_ros.app.wire import is_canonical_pose_stamped
     msg = PoseStamped()

@@ -25,21 +25,29 @@ namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as 
 a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Dict, NamedTuple, Optional, Sequence, Tuple
+from typing import NamedTuple, Optional
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
 from visualization_msgs.msg import Marker, MarkerArray
 
-import numpy as np
-
 from ponytail_ros.core.marker_kernels import chain_numbers, collider_numbers
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
-from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
-                   pose_array_fields, pose_array_layout, pose_block, pose_stamped_cdr,
-                   pose_stamped_fields)
+from .wire import (
+    MarkerArrayLayout,
+    MarkerSpec,
+    TFLayout,
+    is_canonical_pose_stamped,
+    pose_array_fields,
+    pose_array_layout,
+    pose_block,
+    pose_stamped_cdr,
+    pose_stamped_fields,
+)
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'ReceivedPoses', 'Stamp', 'tf_cdr',
            'ChainMessages', 'ChainsMarkerNumbers', 'ColliderMarkers', 'DELETE_ALL',
@@ -85,7 +93,7 @@ def _axis_x(q: np.ndarray) -> np.ndarray:
     return e
 
 
-def _times_constant(b) -> Tuple[np.ndarray, ...]:
+def _times_constant(b) -> tuple[np.ndarray, ...]:
     """``quat_multiply(a, b)`` for a constant ``b`` as ``((aw K0 + ax K1) + ay K2) + az K3``:
     the four ``K`` (``(4,)``, the signed components of ``b`` in each term of the product)."""
     bx, by, bz, bw = (float(v) for v in b)
@@ -161,8 +169,8 @@ class SegmentPoses:
         sec, nanosec = self.stamp
         #: The ``PoseArray``'s CDR (encapsulation header included, padding zeroed).
         self.cdr: bytes = self._layout.encode(sec, nanosec, pose_block(origins, quats))
-        self._message: Optional[PoseArray] = None
-        self._tf: Dict[str, bytes] = {}
+        self._message: PoseArray | None = None
+        self._tf: dict[str, bytes] = {}
 
     @property
     def n(self) -> int:
@@ -228,7 +236,7 @@ def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
 
 
 @lru_cache(maxsize=256)
-def _tf_layout(frame_id: str, prefix: str, chains: Tuple[Tuple[str, int], ...]) -> TFLayout:
+def _tf_layout(frame_id: str, prefix: str, chains: tuple[tuple[str, int], ...]) -> TFLayout:
     """The ``TFLayout`` of the segments of ``chains`` (``(name, n_segments)``) under
     ``frame_id`` (the frame names built once, not every tick)."""
     return TFLayout(frame_id, [segment_frame(prefix, c, i) for c, n in chains for i in range(n)])
@@ -257,7 +265,7 @@ class ReceivedPose:
         self.frame_id = frame_id
         self.position = position
         self.orientation = orientation
-        self._message: Optional[PoseStamped] = None
+        self._message: PoseStamped | None = None
 
     @classmethod
     def decode(cls, cdr: bytes) -> Optional['ReceivedPose']:
@@ -301,7 +309,7 @@ class ReceivedPoses:
         self.stamp = stamp
         self.frame_id = frame_id
         self.poses = poses
-        self._message: Optional[PoseArray] = None
+        self._message: PoseArray | None = None
 
     @classmethod
     def decode(cls, cdr: bytes) -> Optional['ReceivedPoses']:
@@ -367,7 +375,7 @@ class SegmentMarkers:
         sec, nanosec = self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
         #: The ``MarkerArray``'s CDR (encapsulation header included, padding zeroed).
         self.cdr: bytes = layout.encode(sec, nanosec, poses, points)
-        self._message: Optional[MarkerArray] = None
+        self._message: MarkerArray | None = None
 
     @property
     def wire(self) -> bytes:

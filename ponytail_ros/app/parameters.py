@@ -47,15 +47,27 @@ Live or not (``ParamDef.live``):
 
 This module does not import rclpy (the descriptors are built by the node).
 """
-from dataclasses import dataclass, replace
 import math
 import re
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DAMPING_METHODS,
-                                     INTEGRATORS, LINEAR_SOLVERS, MAX_COLLIDERS, MAX_LIMIT,
-                                     MAX_SEGMENTS, Scene, SceneError, SolverSpec)
+from ponytail_ros.core.scene import (
+    COLLIDER_KINDS,
+    DAMPING_METHODS,
+    INTEGRATORS,
+    LINEAR_SOLVERS,
+    MAX_COLLIDERS,
+    MAX_LIMIT,
+    MAX_SEGMENTS,
+    ChainSpec,
+    ColliderSpec,
+    Scene,
+    SceneError,
+    SolverSpec,
+)
+
 from .runner import OUTPUT_STAMPS, RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',

@@ -115,8 +115,12 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ponytail_ros.core.head import KinematicState
-from ponytail_ros.core.head_estimation import (REJECT_REASONS, RESTARTED, HeadEstimator,
-                                              HeadEstimatorBank)
+from ponytail_ros.core.head_estimation import (
+    REJECT_REASONS,
+    RESTARTED,
+    HeadEstimator,
+    HeadEstimatorBank,
+)
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',

@@ -31,10 +31,9 @@ import time
 
 import numpy as np
 
+from ponytail_ros.app.motions import SinusoidHead
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.rotations import quat_from_two_vectors
-
-from ponytail_ros.app.motions import SinusoidHead
 
 try:  # optional dependency
     import mujoco

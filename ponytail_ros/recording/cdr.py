@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import importlib
 import struct
-from functools import lru_cache
+from functools import cache
 
 __all__ = ['zero_padding', 'serialize_canonical']
 
@@ -51,7 +51,7 @@ class _Unsupported(Exception):
 #   ('a', n, ops):      a fixed array of a type that is not a plain primitive run.
 
 
-@lru_cache(maxsize=None)
+@cache
 def _ops_of_class(cls) -> tuple:
     ops = []
     for t in cls.SLOT_TYPES:

@@ -39,19 +39,27 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Union
+from typing import Any
 
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_parameter_events
 
-from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of_text
-from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
-                 tfmessage_type_hash)
-from .cdr import serialize_canonical
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.param_values import metadata_from_values
+
+from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of_text
+from .cdr import serialize_canonical
+from .tf import (
+    TF_QOS_DEPTH,
+    TF_TOPIC,
+    TFMESSAGE_MSG,
+    TFMESSAGE_TYPE,
+    tf_from_pose_array,
+    tfmessage_type_hash,
+)
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
            'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'FRAMES_TYPE', 'stamp_ns', 'expand_record_path',
@@ -128,8 +136,8 @@ class RunLayout:
 
     @classmethod
     def for_node(cls, node_fqn: str, chains: Sequence[str],
-                 head_topic: Optional[str] = None, frames: Sequence[str] = (),
-                 frame_topics: Sequence[str] = ()) -> 'RunLayout':
+                 head_topic: str | None = None, frames: Sequence[str] = (),
+                 frame_topics: Sequence[str] = ()) -> RunLayout:
         """The topics of a ``PonytailNode`` named ``node_fqn`` (relative names resolved in its
         namespace, as the node does); ``frame_topics`` as configured (``<frame>.topic``)."""
         namespace = node_fqn.rsplit('/', 1)[0]
@@ -143,7 +151,7 @@ class RunLayout:
                    marker_topic=f'{namespace}/segment_markers', frames=tuple(frames),
                    frame_topics=tuple(resolve_topic(node_fqn, t) for t in frame_topics))
 
-    def to_metadata(self) -> Dict[str, str]:
+    def to_metadata(self) -> dict[str, str]:
         meta = {'node': self.node, 'chains': json.dumps(list(self.chains)),
                 'head_topic': self.head_topic, 'pose_topics': json.dumps(list(self.pose_topics)),
                 'tick_topic': self.pose_topics[0], 'marker_topic': self.marker_topic,
@@ -155,7 +163,7 @@ class RunLayout:
         return meta
 
     @classmethod
-    def from_metadata(cls, record: Mapping[str, str]) -> 'RunLayout':
+    def from_metadata(cls, record: Mapping[str, str]) -> RunLayout:
         """Inverse of :meth:`to_metadata` (raises ``KeyError``/``ValueError`` if malformed); a
         recording without frames (older ones too) has none."""
         frames = tuple(json.loads(record.get('frames', '[]')))
@@ -214,12 +222,12 @@ class RunRecorder:
         BagError: the file cannot be created (exists, folder missing, not writable).
     """
 
-    def __init__(self, path: Union[str, os.PathLike], layout: RunLayout,
+    def __init__(self, path: str | os.PathLike, layout: RunLayout,
                  parameters: Mapping[str, Any], *, head_type: str = HEAD_TYPES[0],
-                 frame_types: Optional[Sequence[str]] = None,
-                 qos: Optional[Mapping[str, QoSProfile]] = None,
-                 info: Optional[Mapping[str, str]] = None,
-                 on_error: Optional[Callable[[str], None]] = None,
+                 frame_types: Sequence[str] | None = None,
+                 qos: Mapping[str, QoSProfile] | None = None,
+                 info: Mapping[str, str] | None = None,
+                 on_error: Callable[[str], None] | None = None,
                  canonical: bool = True, overwrite: bool = False, chunk_size: int = 64 * 1024,
                  chunk_duration_ns: int = 500_000_000, tf: bool = True, tf_prefix: str = '',
                  background: bool = True):
@@ -279,7 +287,7 @@ class RunRecorder:
 
     # -- writing -------------------------------------------------------------------------------
     @property
-    def error(self) -> Optional[BagError]:
+    def error(self) -> BagError | None:
         """The I/O error that stopped recording, or None."""
         return self._writer.error
 
@@ -364,8 +372,8 @@ class RunRecorder:
 
     def parameters_changed(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
         """An accepted live change (name -> new plain value), as a ``ParameterEvent``."""
-        from rcl_interfaces.msg import ParameterEvent
         from builtin_interfaces.msg import Time
+        from rcl_interfaces.msg import ParameterEvent
         event = ParameterEvent(node=self.layout.node)
         event.stamp = Time(sec=log_time_ns // 1_000_000_000, nanosec=log_time_ns % 1_000_000_000)
         event.changed_parameters = [Parameter(name, value=value).to_parameter_msg()
@@ -373,7 +381,7 @@ class RunRecorder:
         self.write(self.layout.parameter_events_topic, event, log_time_ns)
 
     # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
-    def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
+    def on_input(self, source: int | None, msg: Any, log_time_ns: int) -> None:
         """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
         a ``ReceivedPose``: recorded from its fields)."""
         if source is None:
@@ -400,7 +408,7 @@ class RunRecorder:
     def on_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
         self.parameters_changed(changed, log_time_ns)
 
-    def mark_partial(self, reason: str, until_ns: Optional[int]) -> None:
+    def mark_partial(self, reason: str, until_ns: int | None) -> None:
         """Say in the file that it holds only part of the run: ``reason`` (e.g. "interrupted by
         SIGINT") and the log time (ns) up to which it is complete. Written as a new
         ``ponytail_ros/recording`` record (the last of a name wins) with ``partial: true``,
@@ -426,7 +434,7 @@ class RunRecorder:
         if self._writer.error is not None:
             self._report_error()
 
-    def _report_error(self, text: Optional[str] = None) -> None:
+    def _report_error(self, text: str | None = None) -> None:
         if self._error_reported:
             return
         self._error_reported = True
@@ -438,7 +446,7 @@ class RunRecorder:
     def for_node(cls, node, record_path: str, chains: Sequence[str], head_subscription,
                  pose_publishers: Sequence[Any], marker_publisher, diagnostics_publisher,
                  frames: Sequence[str] = (), frame_subscriptions: Sequence[Any] = (),
-                 tf_prefix: str = '') -> Optional['RunRecorder']:
+                 tf_prefix: str = '') -> RunRecorder | None:
         """A recorder for a running ``PonytailNode``, or None (error logged) if the file cannot
         be created; the node then goes on without recording.
 

@@ -2,7 +2,8 @@
 through a ``TickSink`` (``app/sink.py``), the recorder of the offline replay."""
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.node_core import NodeCore, time_msg

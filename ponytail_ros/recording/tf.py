@@ -23,8 +23,8 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
-from functools import lru_cache
-from typing import Iterable, Sequence, Tuple
+from collections.abc import Iterable, Sequence
+from functools import cache
 
 from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
 
@@ -50,7 +50,7 @@ def _string(out: bytearray, text: str) -> None:
     out += _U32.pack(len(data)) + data
 
 
-def tf_message_cdr(transforms: Iterable[Tuple[int, int, str, str, Sequence[float],
+def tf_message_cdr(transforms: Iterable[tuple[int, int, str, str, Sequence[float],
                                               Sequence[float]]]) -> bytes:
     """CDR of a ``TFMessage`` holding ``(sec, nanosec, frame_id, child_frame_id, (x, y, z),
     (qx, qy, qz, qw))`` transforms. Alignment is relative to the end of the 4-byte
@@ -122,7 +122,7 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     return 'RIHS01_' + hashlib.sha256(text.encode('utf-8')).hexdigest()
 
 
-@lru_cache(maxsize=None)
+@cache
 def tfmessage_type_hash() -> str:
     """The ``RIHS01`` hash of ``tf2_msgs/msg/TFMessage``."""
     return type_description_hash(TFMESSAGE_TYPE, [{

@@ -64,33 +64,50 @@ callback only if the parameter's annotation *is* the class.
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from rclpy.serialization import deserialize_message
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
 from rclpy.timer import TimerInfo
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
-from ponytail_ros.core.stages import CONTACT_STAGES
-from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
-                                       tf_cdr)
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses, tf_cdr
 from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
-from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
-                                         FRAME_PARAMS, GLOBAL_PARAMS, NODE_PARAMS,
-                                         ParameterError,
-                                         chain_param_name, check_names, definition)
+from ponytail_ros.app.parameters import (
+    CHAIN_PARAMS,
+    COLLIDER_PARAMS,
+    DEFAULT_COLORS,
+    FRAME_PARAMS,
+    GLOBAL_PARAMS,
+    NODE_PARAMS,
+    ParameterError,
+    chain_param_name,
+    check_names,
+    definition,
+)
 from ponytail_ros.app.sink import HEAD, Sinks
 from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
 from ponytail_ros.app.wire import tf_message_fields
+from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
+from ponytail_ros.core.stages import CONTACT_STAGES
+
 from .spin import run_node, timer_callback
 
 __all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS', 'TF_QOS',
