@@ -72,7 +72,7 @@ def load_run(path) -> RecordedRun:
     head_topic = layout.head_topic
     topics = {head_topic: 'geometry_msgs/msg/PoseStamped'}
     chains: list[str] = list(layout.chains)
-    pose_topic = dict(zip(layout.pose_topics, chains))
+    pose_topic = dict(zip(layout.pose_topics, chains, strict=True))
     topics.update({t: 'geometry_msgs/msg/PoseArray' for t in pose_topic})
     head: list[tuple] = []
     seg: dict[str, list[tuple]] = {c: [] for c in chains}

@@ -448,7 +448,7 @@ class Unilateral:
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
         for sl, row, uni in self._each(anchor):
             got = uni.resolve(x[sl], q[sl], v[sl], w[sl], row, pose, project, self.dt)
-            for o, g in zip(out, got):
+            for o, g in zip(out, got, strict=True):
                 o[sl] = g
             self.last['contacts'] += uni.last['contacts']
             self.last['limits'] += uni.last['limits']

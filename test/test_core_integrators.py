@@ -5,6 +5,7 @@ Measured figures quoted in the docstrings come from these very scenes (10-segmen
 """
 import dataclasses
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -285,7 +286,7 @@ def test_rattle_is_second_order(case):
         _end_positions(chain, 'rattle', 1 / hz, motion, **solver) - ref, axis=1))
         for hz in (480, 960, 1920)]
     assert errors[0] < 1e-4
-    for coarse, fine in zip(errors, errors[1:]):
+    for coarse, fine in pairwise(errors):
         assert 3.5 < coarse / fine < 4.6
 
 

@@ -71,7 +71,7 @@ def test_the_chain_is_the_same_whatever_the_epoch_of_the_stamps(rate):
     _, sim, _ = run(motion, rate, 1.0, epoch_ns=SIM_NS)
     _, wall, _ = run(motion, rate, 1.0, epoch_ns=WALL_NS)
     assert len(sim) == len(wall) > 80
-    worst = max(float(np.abs(a.origins - b.origins).max()) for a, b in zip(sim, wall))
+    worst = max(float(np.abs(a.origins - b.origins).max()) for a, b in zip(sim, wall, strict=True))
     assert worst <= 1e-9
     assert [o.t for o in sim] == [o.t for o in wall]
 

@@ -440,7 +440,7 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
     for params, colliding in ((skull, True), (overrides(), False)):
         h = harness(params)
         h.head = still()
-        assert h.spin_until(lambda: len(h.poses['segment_poses']) >= 10, 5.0)
+        assert h.spin_until(lambda h=h: len(h.poses['segment_poses']) >= 10, 5.0)
         d = h.fresh_diagnostics(3.0)
         integrate, contact = (float(d[k]) for k in ('integrate time mean (ms)',
                                                      'contact time mean (ms)'))

@@ -203,7 +203,7 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
         t = tester.get_clock().now().nanoseconds * 1e-9
         p, q = state.position[0], state.orientation[0]
         head_pub.publish(pose_msg(t, p, q))
-        for f, pub in zip(frames, frame_pubs):     # each frame carried by the head
+        for f, pub in zip(frames, frame_pubs, strict=True):     # each frame carried by the head
             offset, rotation = FRAME_OFFSETS[f]
             pub.publish(pose_msg(t, p + quat_rotate(q, offset), quat_multiply(q, rotation)))
     if needs_head:
@@ -224,7 +224,7 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
     assert resets['guard'] == 0
     assert needs_head == (name != 'rope.yaml')
 
-    for c, (tp, spec) in enumerate(zip(topics, scene.chains)):
+    for tp, spec in zip(topics, scene.chains, strict=True):
         lengths = spec.lengths()
         for msg in got[tp]:
             assert msg.header.frame_id == 'world' and len(msg.poses) == spec.n_segments

@@ -49,6 +49,7 @@ import math
 import os
 import time
 import warnings
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -609,7 +610,8 @@ def test_carry_with_anchors_keeps_the_chain_relative_to_its_anchor():
         return (quat_rotate(qc, r), quat_multiply(qc, q),
                 quat_rotate(qc, v - a.velocity[0] - np.cross(a.angular_velocity[0], r)),
                 quat_rotate(qc, w - a.angular_velocity[0]))
-    for before, after in zip(seen_from(a0, st.x, st.q, st.v, st.w), seen_from(a1, x, q, v, w)):
+    for before, after in zip(seen_from(a0, st.x, st.q, st.v, st.w), seen_from(a1, x, q, v, w),
+                             strict=True):
         assert np.allclose(before, after, rtol=0, atol=1e-12)
     sim.reset(motion.state_at(2.3), 2.3, state=ChainState(x, q, v, w))
     assert np.max(sim.joint_gaps()) < 1e-12
@@ -731,5 +733,5 @@ def test_one_hour_at_120_hz_on_the_moving_head():
     assert abs(sim.t - n / 120.0) <= sim.dt
     assert gap_max < 1e-12
     assert len(resets) <= max(3, int(3 * SOAK_SECONDS / 3600))
-    assert all(b[0] - a[0] > 10.0 for a, b in zip(resets, resets[1:])), 'no reset storms'
+    assert all(b[0] - a[0] > 10.0 for a, b in pairwise(resets)), 'no reset storms'
     assert np.percentile(kes, 99.9) < 2.0   # typical 0.1 J, whips to ~0.5 J; a runaway is more

@@ -210,7 +210,7 @@ def test_harness_is_driven_by_sim_time_and_publishes_what_the_offline_path_compu
     offline = run_offline(PARAMS, walk, 1.0)
     assert np.array_equal(run.origins, offline.origins)
     assert np.array_equal(run.orientations, offline.orientations)
-    assert all(a == b for a, b in zip(got, offline.poses['segment_poses']))
+    assert all(a == b for a, b in zip(got, offline.poses['segment_poses'], strict=True))
     assert h.publish_diagnostics()['resets'] == '0'
 
 
@@ -266,7 +266,7 @@ def _parallel(tmp_path, discovery):
 @pytest.mark.ros
 def test_two_harnesses_in_parallel_on_one_domain_do_not_hear_each_other(tmp_path):
     pytest.importorskip('rclpy')
-    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF')):
+    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF'), strict=True):
         assert 'error' not in r, r['error']
         assert r['n'] == published(1.0, 60.0) and r['resets'] == []
         roots, anchors = np.array(r['roots']), np.array(r['anchors'])
@@ -284,7 +284,7 @@ def test_the_parallel_check_sees_interference_when_both_runs_share_a_localhost_g
     /clock and outputs, and the harness says so (or the run's content shows it)."""
     pytest.importorskip('rclpy')
     disturbed = []
-    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'LOCALHOST')):
+    for r in _parallel(tmp_path, 'LOCALHOST'):
         disturbed.append('error' in r or not r['same_as_offline'] or r['n'] != 60
                          or r['resets'] != [])
     assert any(disturbed)

@@ -151,7 +151,7 @@ def _same_poses(a, b):
     worst = 0.0
     for stamp in pb:
         assert pa[stamp].header.frame_id == pb[stamp].header.frame_id == 'world'
-        for x, y in zip(pa[stamp].poses, pb[stamp].poses):
+        for x, y in zip(pa[stamp].poses, pb[stamp].poses, strict=True):
             worst = max(worst, math.dist((x.position.x, x.position.y, x.position.z),
                                          (y.position.x, y.position.y, y.position.z)))
     assert worst <= 1e-6

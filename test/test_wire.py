@@ -135,7 +135,7 @@ def test_tf_message_is_the_hand_written_and_rosbags_serialisation(data, n, paren
     ours = tf_layout(parent, children).encode(sec, nanosec, block)
     rows = block.tolist()
     assert ours == tf_message_cdr((sec, nanosec, parent, c, r[:3], r[3:])
-                                  for c, r in zip(children, rows))
+                                  for c, r in zip(children, rows, strict=True))
     msg = tm[TFMESSAGE_TYPE](transforms=[
         tm['geometry_msgs/msg/TransformStamped'](
             header=tm['std_msgs/msg/Header'](
@@ -145,7 +145,7 @@ def test_tf_message_is_the_hand_written_and_rosbags_serialisation(data, n, paren
             transform=tm['geometry_msgs/msg/Transform'](
                 translation=tm['geometry_msgs/msg/Vector3'](x=r[0], y=r[1], z=r[2]),
                 rotation=tm['geometry_msgs/msg/Quaternion'](x=r[3], y=r[4], z=r[5], w=r[6])))
-        for c, r in zip(children, rows)])
+        for c, r in zip(children, rows, strict=True)])
     assert ours == bytes(store.serialize_cdr(msg, TFMESSAGE_TYPE))
 
 
@@ -156,9 +156,9 @@ def test_tf_of_several_chains_is_one_message_chain_after_chain():
     rows = np.concatenate([a.poses, b.poses]).tolist()
     names = ['p/left/0', 'p/left/1', 'p/left/2', 'p/right/0', 'p/right/1']
     assert tf_cdr([a, b], 'p/') == tf_message_cdr((0, 7, 'head', c, r[:3], r[3:])
-                                                  for c, r in zip(names, rows))
+                                                  for c, r in zip(names, rows, strict=True))
     assert a.tf_cdr('p/') == tf_message_cdr((0, 7, 'head', c, r[:3], r[3:])
-                                            for c, r in zip(names[:3], rows[:3]))
+                                            for c, r in zip(names[:3], rows[:3], strict=True))
 
 
 # -- MarkerArray -------------------------------------------------------------------------------

@@ -390,7 +390,7 @@ class SegmentMarkers:
                          nanosec=self.stamp_ns % 1_000_000_000)
             markers, k = [], 0
             points = self.points.tolist()
-            for spec, row in zip(self.layout.specs, self.poses.tolist()):
+            for spec, row in zip(self.layout.specs, self.poses.tolist(), strict=True):
                 m = Marker()
                 m.header.frame_id = self.layout.frame_id
                 m.header.stamp = stamp

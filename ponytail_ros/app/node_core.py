@@ -218,7 +218,7 @@ class NodeCore:
     # -- the tick ------------------------------------------------------------------------------
     def _make_chain_messages(self, scene):
         msgs = [ChainMessages(c.name, c.lengths(), c.radius) for c in scene.chains]
-        for m, name in zip(msgs, self.chains):
+        for m, name in zip(msgs, self.chains, strict=True):
             m.set_color(self.values[chain_param_name(name, 'color')])
         return msgs
 
@@ -245,7 +245,7 @@ class NodeCore:
         if scene is not self._msgs_scene:     # (a Scene is frozen: the same one, the same chains)
             if any(m.n != c.n_segments or m.radius != c.radius or
                    not np.array_equal(m.lengths, c.lengths())
-                   for m, c in zip(self._chain_msgs, scene.chains)):
+                   for m, c in zip(self._chain_msgs, scene.chains, strict=True)):
                 self._chain_msgs = self._make_chain_messages(scene)
             self._msgs_scene = scene
         # No frame set and no head pose frame (an empty header.frame_id, or chains hanging
@@ -256,7 +256,7 @@ class NodeCore:
         slices = self._chain_slices()
         origins, orientations = out.origins, out.orientations
         poses = [cm.segment_poses(origins[sl], orientations[sl], frame, stamp_ns)
-                 for sl, cm in zip(slices, self._chain_msgs)]
+                 for sl, cm in zip(slices, self._chain_msgs, strict=True)]
         self.published += 1
         win, rep = self.window, out.report
         win.ticks += 1
@@ -295,7 +295,7 @@ class NodeCore:
         self._last_marker_t = out.t
         delete = False
         chain_specs = []
-        for cm, color_name in zip(self._chain_msgs, self._color_names):
+        for cm, color_name in zip(self._chain_msgs, self._color_names, strict=True):
             specs, changed = cm.marker_specs(style, values[color_name])
             delete = delete or changed
             chain_specs.append(specs)
@@ -396,7 +396,7 @@ class NodeCore:
             flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
                                         f'(clocks differ? use_sim_time / stamp_source)')
         frames = []
-        for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics)):
+        for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics, strict=True)):
             state = ('none' if not r.has_frame(i)
                      else 'stale' if r.frame_stale(i, t) else 'ok')
             frames.append((f'frame {f}', state))
@@ -429,7 +429,7 @@ class NodeCore:
             ('head poses accepted per s', f'{win.accepted / span:.1f}'),
             ('head poses accepted', str(r.accepted_total)),
         ]
-        for (key, state), n in zip(frames, r.frame_accepted_total):
+        for (key, state), n in zip(frames, r.frame_accepted_total, strict=True):
             kv += [(key, state), (f'{key} poses accepted', str(n))]
         kv += tf_kv
         kv += [

@@ -599,7 +599,7 @@ def build_scene(values, chains):
         specs.append(ChainSpec(
             name=c, n_segments=n, length=float(v['length']),
             mass=float(v['mass']), radius=float(v['radius']), **per_segment,
-            inertia=tuple(zip(inertia[0::3], inertia[1::3], inertia[2::3])) or None,
+            inertia=tuple(zip(inertia[0::3], inertia[1::3], inertia[2::3], strict=True)) or None,
             anchor_body=body_of(chain_param_name(c, 'anchor'), v['anchor'], world_body),
             attach=_vector(v['attach']),
             rest_direction=None if not any(rest) else rest,

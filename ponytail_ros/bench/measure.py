@@ -228,7 +228,7 @@ def time_setting(bench, setting, window, repeats=3, sample_dt=0.01):
                 # (``advance_to`` at every sample, bit for bit: the motion evaluated once)
                 sim.rollout(times, bench.motion)
             else:
-                for t, s in zip(times, states):
+                for t, s in zip(times, states, strict=True):
                     sim.advance_frame(t, s)
             cpu.append(time.process_time() - c0)
             wall.append(time.perf_counter() - w0)

@@ -97,7 +97,7 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
     err = {k: [] for k, _ in KEYS}
     if mode == 'look_ahead':
         est, delay = _look_ahead_estimator(), 0.0
-        for t, p, q in zip(ts, ps, qs):
+        for t, p, q in zip(ts, ps, qs, strict=True):
             est.add(t, p, q)
     else:
         kw = {} if mode == 'live' else dict(window=LIVE_INTERP['head.window'],
@@ -140,7 +140,7 @@ def write_bag(path, ts, ps, qs):
     from ponytail_ros.recording.bag import BagWriter
     with BagWriter(path) as writer:
         writer.add_topic('/head_pose', PoseStamped)
-        for t, p, q in zip(ts, ps, qs):
+        for t, p, q in zip(ts, ps, qs, strict=True):
             ns = BAG_T0_NS + int(round(t * 1e9))
             m = PoseStamped()
             m.header.frame_id = 'world'
@@ -281,7 +281,7 @@ def write_rosbags_bag(directory, t0_ns, ns, ps, qs):
     with rosbag2.Writer(directory, version=9,
                         storage_plugin=rosbag2.StoragePlugin.MCAP) as writer:
         conn = writer.add_connection('/head_pose', msgtype, typestore=store)
-        for k, p, q in zip(ns, np.asarray(ps).tolist(), np.asarray(qs).tolist()):
+        for k, p, q in zip(ns, np.asarray(ps).tolist(), np.asarray(qs).tolist(), strict=True):
             stamp = int(t0_ns) + int(k)
             msg = T[msgtype](
                 header=T['std_msgs/msg/Header'](

@@ -111,7 +111,7 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
                                                  float(kv['ticks per s']),
                                                  float(kv['dropped time (s)'])])
     rows = []
-    for p, a, b in zip(procs, c0, c1):
+    for p, a, b in zip(procs, c0, c1, strict=True):
         row = {k: p[k] for k in ('role', 'namespace', 'characters')}
         row['cpu_share'] = (b - a) / (t1 - t0)
         if p['role'] == 'node':

@@ -84,7 +84,7 @@ def print_table(rows: Sequence[Row], cols: Sequence[Column], title: str | None =
         print(f'\n{title}', file=file)
     for j, c in enumerate(cells):
         print('  '.join(s.rjust(w) if j and i else s.ljust(w)
-                        for i, (s, w) in enumerate(zip(c, widths))), file=file)
+                        for i, (s, w) in enumerate(zip(c, widths, strict=True))), file=file)
         if j == 0:
             print('  '.join('-' * w for w in widths), file=file)
     file.flush()

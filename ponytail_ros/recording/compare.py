@@ -120,7 +120,8 @@ def _chain_topics(metadata, topics, values) -> dict[str, str]:
         except (KeyError, ValueError):
             layout = None
     if layout is not None:
-        return {c: t for c, t in zip(layout.chains, layout.pose_topics) if t in topics}
+        return {c: t for c, t in zip(layout.chains, layout.pose_topics, strict=True)
+                if t in topics}
     chains: dict[str, str] = {}
     for t in sorted(t for t, ty in topics.items() if ty == 'geometry_msgs/msg/PoseArray'):
         parts = t.strip('/').split('/')
@@ -224,10 +225,10 @@ def format_comparison(path_a, path_b, comparisons, values_a=None, values_b=None)
              f'{c.t_max:.3f}', f'{1e3 * c.final:.4g}') for c in comparisons]
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines.append('  '.join(h.ljust(w) if i == 0 else h.rjust(w)
-                           for i, (h, w) in enumerate(zip(header, widths))))
+                           for i, (h, w) in enumerate(zip(header, widths, strict=True))))
     for r in rows:
         lines.append('  '.join(v.ljust(w) if i == 0 else v.rjust(w)
-                               for i, (v, w) in enumerate(zip(r, widths))))
+                               for i, (v, w) in enumerate(zip(r, widths, strict=True))))
     for c in comparisons:
         extra = [c.matching]
         if c.only_a or c.only_b:

@@ -74,7 +74,7 @@ def output_paths(bags: Sequence[Path], out_dir: Path) -> list[Path]:
     """
     names = [bag_name(b) for b in bags]
     seen: dict[str, Path] = {}
-    for name, bag in zip(names, bags):
+    for name, bag in zip(names, bags, strict=True):
         if name in seen:
             raise ReplayError(f'{seen[name]} and {bag} would both be replayed into '
                               f'{out_dir / (name + ".mcap")}: replay them into different '
@@ -130,7 +130,7 @@ def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: dict[str
     ``'not started'``."""
     ctx: Any = multiprocessing.get_context(
         'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn')
-    pending = list(zip(bags, outputs))
+    pending = list(zip(bags, outputs, strict=True))
     running: dict[Any, tuple[Any, Path]] = {}       # connection -> (process, bag)
     outcomes: list[BagOutcome] = []
     outcome: BagOutcome

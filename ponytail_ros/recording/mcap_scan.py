@@ -115,7 +115,7 @@ def _parse(opcode: int, content: bytes) -> McapRecord:
         channel_id, size = _INDEX_FIELDS.unpack_from(content)
         if size % 16 == 0 and 6 + size <= len(content):
             flat = struct.unpack_from(f'<{size // 8}Q', content, 6)
-            return MessageIndex(channel_id, list(zip(flat[::2], flat[1::2])))
+            return MessageIndex(channel_id, list(zip(flat[::2], flat[1::2], strict=True)))
     stream = ReadDataStream(BytesIO(content))
     if opcode == Opcode.MESSAGE:
         if len(content) < 22:

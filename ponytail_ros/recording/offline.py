@@ -406,10 +406,11 @@ def _frame_inputs(inp: ReplayInput, values, warn) -> tuple[tuple, tuple, list[st
     """The extra frames, their topics (the recorded node's, else as configured) and types; a
     frame the scene uses must have its topic in the input."""
     frames = tuple(frame_names(values))
-    frame_topics = tuple(inp.frame_topic(f, t) for f, t in zip(frames, topics_of(values)))
+    frame_topics = tuple(inp.frame_topic(f, t)
+                         for f, t in zip(frames, topics_of(values), strict=True))
     used = used_frame_names(values)
     from_tf = tf_frames(values) if inp.use_tf_head(values) else {}
-    for i, (f, topic) in enumerate(zip(frames, frame_topics)):
+    for i, (f, topic) in enumerate(zip(frames, frame_topics, strict=True)):
         if i in from_tf:
             continue                    # its poses come from TF (recorded on its topic)
         if topic not in inp.topics:
@@ -502,7 +503,7 @@ class _OfflineLoop:
                               if t in inp.topics}
         #: topic -> the frames (indices) whose poses it carries
         self.frame_index: dict[str, list[int]] = {}
-        for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types)):
+        for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types, strict=True)):
             if i in tf_sources:
                 continue
             if topic in inp.topics and topic != inp.head_topic:

@@ -170,9 +170,12 @@ class RunLayout:
         frame_topics = tuple(json.loads(record.get('frame_topics', '[]')))
         if len(frame_topics) != len(frames):
             raise ValueError('frames and frame_topics differ in length')
-        return cls(node=record['node'], chains=tuple(json.loads(record['chains'])),
-                   head_topic=record['head_topic'],
-                   pose_topics=tuple(json.loads(record['pose_topics'])),
+        chains = tuple(json.loads(record['chains']))
+        pose_topics = tuple(json.loads(record['pose_topics']))
+        if len(pose_topics) != len(chains):
+            raise ValueError('chains and pose_topics differ in length')
+        return cls(node=record['node'], chains=chains, head_topic=record['head_topic'],
+                   pose_topics=pose_topics,
                    marker_topic=record['marker_topic'],
                    diagnostics_topic=record.get('diagnostics_topic', '/diagnostics'),
                    parameter_events_topic=record.get('parameter_events_topic',
@@ -242,7 +245,7 @@ class RunRecorder:
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
                                  chunk_duration_ns=chunk_duration_ns, background=background)
         #: pose topic -> chain name, for the chains' TF frames (empty without tf)
-        self._tf_chains = dict(zip(layout.pose_topics, layout.chains)) if tf else {}
+        self._tf_chains = dict(zip(layout.pose_topics, layout.chains, strict=True)) if tf else {}
         self._tf_prefix = tf_prefix
         self.path = self._writer.path
         qos = dict(qos or {})
@@ -260,7 +263,7 @@ class RunRecorder:
                                                                          HEAD_QOS))
             types = list(frame_types or [HEAD_TYPES[0]] * len(layout.frame_topics))
             added = {layout.head_topic}
-            for topic, type_name in zip(layout.frame_topics, types):
+            for topic, type_name in zip(layout.frame_topics, types, strict=True):
                 if topic not in added:        # (two inputs on one topic: one channel)
                     added.add(topic)
                     self._writer.add_topic(topic, type_name, qos.get(topic, HEAD_QOS))

@@ -264,7 +264,7 @@ class _Publishers:
 
     def on_tick(self, tick, log_time_ns):
         # The poses as encoded by the core (CDR bytes): rclpy publishes them raw.
-        for pub, poses in zip(self.poses, tick.segments):
+        for pub, poses in zip(self.poses, tick.segments, strict=True):
             pub.publish(poses.cdr)
         self.poses_published_at = time.perf_counter()
         if self.tf is not None:
@@ -354,7 +354,7 @@ class PonytailNode(Node):
         #: Input name ('head' or a frame's) -> its resolved topic (log messages).
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
-                                 for f, sub in zip(self._frames, self._frame_subs)}}
+                                 for f, sub in zip(self._frames, self._frame_subs, strict=True)}}
         tf_frames = set()
         if tf_in is not None:
             for source in tf_in.sources:
@@ -398,7 +398,8 @@ class PonytailNode(Node):
         inputs = ', '.join([tf_in.describe('head') if tf_in is not None else 'head_pose']
                            + list(dict.fromkeys(self._input_topics[f] if f in tf_frames else t
                                                 for f, t in zip(self._frames,
-                                                                self.core.frame_topics))))
+                                                                self.core.frame_topics,
+                                                                strict=True))))
         #: Set (and logged once) when another node with this node's name is in the graph.
         self.duplicate_name_warning = None
         self._name_checks = 0
@@ -499,7 +500,7 @@ class PonytailNode(Node):
                                      f'{self.core.frames_topic!r} is not allowed: it resolves '
                                      f'to {resolved}, which the head (head_pose) already reads')
             return
-        for frame, topic in zip(self.core.frames, self.core.frame_topics):
+        for frame, topic in zip(self.core.frames, self.core.frame_topics, strict=True):
             resolved = self.resolve_topic_name(topic)
             name = chain_param_name(frame, 'topic')
             if resolved in seen:

@@ -116,7 +116,7 @@ def pose_array_msg(t: float | Time, positions: Any, orientations: Any,
     m.header.frame_id = frame_id
     poses = []
     for p, q in zip(np.asarray(positions, float).tolist(), np.asarray(orientations,
-                                                                     float).tolist()):
+                                                                     float).tolist(), strict=True):
         pose = Pose()
         pose.position.x, pose.position.y, pose.position.z = p
         pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
@@ -131,7 +131,7 @@ def _batched(frames: Sequence[str], per_frame: list[list[PoseSample]]) -> list[P
     if not per_frame:
         return []
     stamps = [s.t for s in per_frame[0]]
-    for name, rows in zip(frames, per_frame):
+    for name, rows in zip(frames, per_frame, strict=True):
         if [s.t for s in rows] != stamps:
             raise HarnessError(f'with frames_topic every frame needs a pose at the same stamps '
                                f'(frame {name} differs from frame {frames[0]})')
@@ -181,7 +181,8 @@ def bag_samples(path: str | Path, head_topic: str | None = None) -> BagSamples:
         out.append(PoseSample(0.0, p, q))
     if stamps:
         out.start_ns = stamps[0]
-        out[:] = [s._replace(t=(t - out.start_ns) * 1e-9) for s, t in zip(out, stamps)]
+        out[:] = [s._replace(t=(t - out.start_ns) * 1e-9)
+                  for s, t in zip(out, stamps, strict=True)]
     return out
 
 
@@ -435,7 +436,8 @@ class Harness:
             feeds.append((self.frames_pub, 'poses of the frames',
                           window(_batched(self.config.frames, per_frame))))
         else:
-            for name, pub, rows in zip(self.config.frames, self.frame_pubs, per_frame):
+            for name, pub, rows in zip(self.config.frames, self.frame_pubs, per_frame,
+                                       strict=True):
                 feeds.append((pub, f'pose of frame {name}', window(rows)))
         nexts = [0] * len(feeds)
         for k in range(k0 + 1, k0 + n_ticks(duration, self.config.rate) + 1):

@@ -128,7 +128,7 @@ def run_offline(params: Config | str | Path | None, head: HeadInput, duration: f
         if tick is not None:
             builder.record(core.runner, tick.output, tick.frame_id)
             # (each tick's messages are its own: built from its bytes when asked for)
-            for tp, msg in zip(topics, tick.poses):
+            for tp, msg in zip(topics, tick.poses, strict=True):
                 poses[tp].append(msg)
             if keep_markers and tick.markers is not None:
                 markers.append(tick.markers)

@@ -331,7 +331,7 @@ class BagReader:
         if self._topics is None:
             self._file_topics = [f.topics() for f in self.files]
             merged: dict[str, str] = {}
-            for f, topics in zip(self.files, self._file_topics):
+            for f, topics in zip(self.files, self._file_topics, strict=True):
                 for name, type_name in topics.items():
                     if merged.setdefault(name, type_name) != type_name:
                         raise BagError(f'{self.path}: topic {name} holds {merged[name]} in one '
@@ -368,7 +368,7 @@ class BagReader:
             for name in wanted:
                 _message_class(recorded[name])     # (not installed: said before any read)
         streams = []
-        for f, in_file in zip(self.files, self._file_topics):
+        for f, in_file in zip(self.files, self._file_topics, strict=True):
             mine = {name: recorded[name] for name in sorted(wanted) if name in in_file}
             if mine:
                 streams.append(f.messages(mine, order=order, raw=raw))
