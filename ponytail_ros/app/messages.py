@@ -93,7 +93,7 @@ def _axis_x(q: np.ndarray) -> np.ndarray:
     return e
 
 
-def _times_constant(b) -> tuple[np.ndarray, ...]:
+def _times_constant(b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``quat_multiply(a, b)`` for a constant ``b`` as ``((aw K0 + ax K1) + ay K2) + az K3``:
     the four ``K`` (``(4,)``, the signed components of ``b`` in each term of the product)."""
     bx, by, bz, bw = (float(v) for v in b)
@@ -502,26 +502,26 @@ class ChainsMarkerNumbers:
     costs a few NumPy calls instead of a few per chain."""
 
     def __init__(self, counts: Sequence[int], lengths: np.ndarray):
-        counts = np.asarray(counts, dtype=np.int64)
-        c = np.arange(len(counts))
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        chain_of = np.repeat(c, counts)
-        self.n = int(counts.sum())
-        self.n_chains = len(counts)
+        n_seg = np.asarray(counts, dtype=np.int64)     # segments of each chain
+        c = np.arange(len(n_seg))
+        starts = np.concatenate([[0], np.cumsum(n_seg)[:-1]]).astype(np.int64)
+        chain_of = np.repeat(c, n_seg)
+        self.n = int(n_seg.sum())
+        self.n_chains = len(n_seg)
         self._lengths = np.ascontiguousarray(lengths, dtype=float)
-        self._last = starts + counts - 1                 # each chain's tip segment
+        self._last = starts + n_seg - 1                 # each chain's tip segment
         # capsules: chain c's rows in poses: its sphere list (identity), then its segments
         self._identity_rows = starts + c
         self._capsule_rows = np.arange(self.n) + chain_of + 1
         # its n + 1 joints in points: the segments' origins, then the tip
         self._origin_rows = np.arange(self.n) + chain_of
-        self._tip_rows = starts + counts + c
+        self._tip_rows = starts + n_seg + c
         # line: chain c's points are its joints twice (the sphere list's, the strip's)
         joint_rows = np.arange(self.n + self.n_chains)
-        joint_chain = np.repeat(c, counts + 1)
-        first = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
+        joint_chain = np.repeat(c, n_seg + 1)
+        first = np.concatenate([[0], np.cumsum(n_seg + 1)[:-1]])
         self._line_rows = np.concatenate([joint_rows + first[joint_chain],
-                                          joint_rows + first[joint_chain] + counts[joint_chain]
+                                          joint_rows + first[joint_chain] + n_seg[joint_chain]
                                           + 1])
 
     def numbers(self, origins: np.ndarray, quats: np.ndarray, style: str):

@@ -92,7 +92,7 @@ def _changes(p: ParamDef) -> str:
 
 
 def _rows(prefix: str, defs: Iterable[ParamDef]) -> list[tuple[str, ...]]:
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for p in defs:
         unit = UNITS.get(p.name, '') if prefix != '<collider>.' else _COLLIDER_UNITS.get(
             p.name, UNITS.get(p.name, ''))

@@ -113,9 +113,9 @@ class ParamDef:
     default: object
     kind: str
     description: str
-    lo: float = None
-    hi: float = None
-    choices: tuple = None
+    lo: float | None = None
+    hi: float | None = None
+    choices: tuple | None = None
     live: bool = True
     rebuild: bool = False
 

@@ -234,11 +234,11 @@ class TickOutput:
     origins: np.ndarray
     orientations: np.ndarray
     report: StepReport
-    reset_reason: str
+    reset_reason: str | None
     head_stale: bool
     newest_stamp: float
     accepted: int
-    t_state: float = None
+    t_state: float
     frames_reset: tuple = ()
 
 

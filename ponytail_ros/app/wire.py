@@ -229,7 +229,9 @@ class MarkerArrayLayout:
         self.n = len(self.specs)
         self.n_points = sum(s.n_points for s in self.specs)
         body = bytearray(_U32.pack(self.n))
-        stamps, poses, points = [], [], []
+        stamps: list[int] = []
+        poses: list[int] = []
+        points: list[int] = []
         for spec in self.specs:
             _align(body, 4)
             stamps.append(len(body))
