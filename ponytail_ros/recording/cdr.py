@@ -53,7 +53,7 @@ class _Unsupported(Exception):
 
 @cache
 def _ops_of_class(cls) -> tuple:
-    ops = []
+    ops: list[tuple] = []
     for t in cls.SLOT_TYPES:
         ops.extend(_ops_of_type(t))
     return _merge(ops)
@@ -82,7 +82,7 @@ def _ops_of_type(t) -> tuple:
 
 
 def _merge(ops) -> tuple:
-    out = []
+    out: list[tuple] = []
     for op in ops:
         if op[0] == 'h' and out and out[-1][0] == 'h' and out[-1][1] == op[1]:
             out[-1] = ('h', op[1], out[-1][2] + op[2])

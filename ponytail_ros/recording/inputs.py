@@ -201,7 +201,7 @@ def head_stamps(inp: ReplayInput):
             if fields is not None:
                 out.append((fields[0] * 1_000_000_000 + fields[1], log_ns))
             else:
-                msg = deserialize_message(data, _message_class(inp.head_type))
+                msg: Any = deserialize_message(data, _message_class(inp.head_type))
                 out.append((stamp_ns(msg.header.stamp), log_ns))
             if len(out) >= _STAMP_SAMPLE:
                 break
@@ -242,6 +242,8 @@ def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> str | Non
 
 def recorded_value(recorded: Mapping[str, str] | None, name: str, default: Any) -> Any:
     """A parameter's value in a recording's parameters metadata (JSON), else ``default``."""
+    if recorded is None:
+        return default
     try:
         return json.loads(recorded[name])
     except (KeyError, TypeError, ValueError):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 from .bag import BagError
 from .inputs import ReplayError, ReplayInput
@@ -33,6 +34,7 @@ def live_replay(path, *, context=None, head_topic: str | None = None, rate: floa
         ReplayError: bad input (as the offline replay).
     """
     import rclpy
+    from rclpy.publisher import Publisher
     from rclpy.qos import QoSProfile
     from rosgraph_msgs.msg import Clock
 
@@ -44,9 +46,9 @@ def live_replay(path, *, context=None, head_topic: str | None = None, rate: floa
     inp, topics, samples = _live_input(path, head_topic, warn)
     node = rclpy.create_node('ponytail_replay', context=context)
     try:
-        pubs = {topic: node.create_publisher(_message_class(type_name), topic,
-                                             QoSProfile(depth=10))
-                for topic, type_name in topics.items()}
+        pubs: dict[str, Publisher[Any]] = {
+            topic: node.create_publisher(_message_class(type_name), topic, QoSProfile(depth=10))
+            for topic, type_name in topics.items()}
         pub = pubs[inp.head_topic]
         clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) if clock else None
         deadline = time.monotonic() + wait_for_subscribers

@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
@@ -55,7 +55,7 @@ __all__ = ['MAGIC', 'McapScan', 'Problem', 'ScanError', 'is_finished']
 
 MAGIC = b'\x89MCAP0\r\n'
 _FRAME = struct.Struct('<BQ')  # opcode, content length
-_READERS = {
+_READERS: dict[int, Callable[[ReadDataStream], McapRecord]] = {
     Opcode.ATTACHMENT: Attachment.read, Opcode.ATTACHMENT_INDEX: AttachmentIndex.read,
     Opcode.CHANNEL: Channel.read, Opcode.CHUNK: Chunk.read, Opcode.CHUNK_INDEX: ChunkIndex.read,
     Opcode.DATA_END: DataEnd.read, Opcode.FOOTER: Footer.read, Opcode.HEADER: Header.read,
@@ -382,7 +382,7 @@ class McapScan:
             chunk = _parse(opcode, f.read(length))
         except (McapError, struct.error, UnicodeDecodeError, ValueError):
             return False
-        if chunk.uncompressed_crc == 0:
+        if not isinstance(chunk, Chunk) or chunk.uncompressed_crc == 0:
             return False  # no way to tell a real chunk from chance bytes
         probe = McapScan.__new__(McapScan)
         probe.size, probe.damage = self.size, []

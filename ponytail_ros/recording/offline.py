@@ -16,6 +16,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -93,7 +94,7 @@ class ReplayResult:
 
     @property
     def sim_seconds(self) -> float:
-        if self.first_tick_ns is None:
+        if self.first_tick_ns is None or self.last_tick_ns is None:
             return 0.0
         return (self.last_tick_ns - self.first_tick_ns) * 1e-9
 
@@ -267,7 +268,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: str | None 
     _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
-    if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
+    if progress is not None and result.last_tick_ns is not None and loop.t_start is not None:
         progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
     return result
 
@@ -509,7 +510,7 @@ class _OfflineLoop:
             if topic in inp.topics and topic != inp.head_topic:
                 self.wanted[topic] = type_name
                 self.frame_index.setdefault(topic, []).append(i)
-        if mode == 'recorded':
+        if mode == 'recorded' and tick_topic is not None:     # (recorded: there is one)
             self.wanted[tick_topic] = 'geometry_msgs/msg/PoseArray'
         if events_topic is not None:
             self.wanted[events_topic] = 'rcl_interfaces/msg/ParameterEvent'
@@ -530,18 +531,25 @@ class _OfflineLoop:
         from rclpy.serialization import deserialize_message
 
         from .bag.msgdefs import _message_class
+        def pose(cls: type, data: bytes) -> Any:
+            return ReceivedPose.decode(data) or deserialize_message(data, cls)
+
+        def poses(cls: type, data: bytes) -> Any:
+            return (ReceivedPoses.decode(data)
+                    or ReceivedPoses.of_message(deserialize_message(data, cls)))
+
+        def message(cls: type, data: bytes) -> Any:
+            return deserialize_message(data, cls)
+
         out: dict[str, Callable[[bytes], Any]] = {}
         for topic, type_name in self.wanted.items():
             cls = _message_class(type_name)
             if type_name == HEAD_TYPES[0]:
-                out[topic] = lambda data, cls=cls: (ReceivedPose.decode(data)
-                                                    or deserialize_message(data, cls))
+                out[topic] = partial(pose, cls)
             elif type_name == FRAMES_TYPE and topic in self.frame_index:
-                out[topic] = lambda data, cls=cls: (
-                    ReceivedPoses.decode(data)
-                    or ReceivedPoses.of_message(deserialize_message(data, cls)))
+                out[topic] = partial(poses, cls)
             else:
-                out[topic] = lambda data, cls=cls: deserialize_message(data, cls)
+                out[topic] = partial(message, cls)
         return out
 
     def run(self) -> None:
@@ -591,6 +599,7 @@ class _OfflineLoop:
         (the ticks due before this message first, as for any input)."""
         self._ticks_before(log_ns)
         tf_in = self.node.core.tf
+        assert tf_in is not None            # (TF topics are read with the head from TF only)
         try:
             transforms = tf_message_fields(data)
         except ValueError as err:
@@ -622,7 +631,8 @@ class _OfflineLoop:
             self.t_start = log_ns
 
     def _event(self, msg, log_ns: int) -> None:
-        if msg.node != self.inp.layout.node:
+        layout = self.inp.layout            # (there are events to read with a layout only)
+        if layout is None or msg.node != layout.node:
             return
         changed = event_values(msg)
         if not changed:
@@ -662,8 +672,8 @@ class _OfflineLoop:
         full = len(self.recent_heads) == LOOK_AHEAD_SAMPLES
         pending = self.pending
         while pending and (flush or (full and pending[0][0] < self.recent_heads[0]
-                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS
-                                     <= self.newest_head)):
+                                     and (newest := self.newest_head) is not None
+                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS <= newest)):
             _, fn, args = pending.pop(0)
             fn(*args)
 

@@ -142,6 +142,7 @@ class RunLayout:
         namespace, as the node does); ``frame_topics`` as configured (``<frame>.topic``)."""
         namespace = node_fqn.rsplit('/', 1)[0]
         chains = tuple(chains)
+        poses: tuple[str, ...]
         if len(chains) == 1:
             poses = (f'{namespace}/segment_poses',)
         else:

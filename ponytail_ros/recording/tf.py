@@ -25,6 +25,7 @@ import json
 import struct
 from collections.abc import Iterable, Sequence
 from functools import cache
+from typing import Any
 
 from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
 
@@ -88,7 +89,8 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     ``rosidl_generator_type_description.calculate_type_hash`` does. '' if a dependency has no
     type description installed."""
     from .bag.msgdefs import _interface_file
-    described = {type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
+    described: dict[str, dict[str, Any]] = {
+        type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
     pending = [f['type']['nested_type_name'] for f in fields if f['type']['nested_type_name']]
     while pending:
         name = pending.pop()

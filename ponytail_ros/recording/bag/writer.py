@@ -44,7 +44,7 @@ class _Topic:
 
     name: str
     type_name: str
-    msg_class: type
+    msg_class: type | None      # None: a type not installed (written serialised only)
     definition: str
     qos: dict
     type_hash: str
