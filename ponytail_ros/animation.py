@@ -14,6 +14,7 @@ import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -120,6 +121,7 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: float | None = N
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     from matplotlib.animation import PillowWriter
+    from mpl_toolkits.mplot3d import Axes3D
 
     end = run.head_t[-1] if seconds is None else min(run.head_t[-1], start + seconds)
     times = np.arange(start, end, 1.0 / fps)
@@ -127,11 +129,12 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: float | None = N
         raise ValueError(f'no frames between {start:g} s and {end:g} s')
     sx, sy, sz = _sphere(run.head_radius)
     fig = plt.figure(figsize=(size, size), dpi=dpi)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection='3d')
+    ax = cast(Axes3D, fig.add_axes((0.0, 0.0, 1.0, 1.0), projection='3d'))
     half = 0.3
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = PillowWriter(fps=fps)
+    # (matplotlib's stubs say int; a GIF's frame duration, 1000 / fps ms, takes any fps)
+    writer = PillowWriter(fps=fps)  # type: ignore[arg-type]
     with writer.saving(fig, str(path), dpi):
         for t in times:
             i = min(np.searchsorted(run.head_t, t), run.head_t.size - 1)

@@ -717,7 +717,7 @@ class PonytailNode(Node):
             logger.warning(text)
 
     # -- the tick --------------------------------------------------------------------------
-    def _on_tick(self, info: TimerInfo = None) -> None:
+    def _on_tick(self, info: TimerInfo | None = None) -> None:
         wall0 = time.perf_counter()
         timing = self._timing
         if info is not None:

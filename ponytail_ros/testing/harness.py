@@ -29,7 +29,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import rclpy
@@ -44,7 +44,7 @@ from rclpy.qos import QoSProfile
 from rosgraph_msgs.msg import Clock
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.app.node_core import NodeTick, time_msg
+from ponytail_ros.app.node_core import NodeCore, NodeTick, time_msg
 from ponytail_ros.node import PonytailNode
 
 from .config import Config, load_config
@@ -125,7 +125,20 @@ def pose_array_msg(t: float | Time, positions: Any, orientations: Any,
     return m
 
 
-def _batched(frames: Sequence[str], per_frame: list[list[PoseSample]]) -> list[PoseSample]:
+class _FramesSample(NamedTuple):
+    """Every frame's pose at one stamp: ``t`` s, ``position`` ``(F, 3)`` m, ``orientation``
+    ``(F, 4)`` ``(x, y, z, w)``."""
+
+    t: float
+    position: np.ndarray
+    orientation: np.ndarray
+
+
+#: A head or frame sample, or the frames' batched one.
+_Sample = TypeVar('_Sample', PoseSample, _FramesSample)
+
+
+def _batched(frames: Sequence[str], per_frame: list[list[PoseSample]]) -> list[_FramesSample]:
     """The frames' samples as one sample per stamp with ``(F, 3)`` / ``(F, 4)`` poses (what a
     ``frames_topic`` publisher sends): every frame needs a sample at every stamp."""
     if not per_frame:
@@ -135,8 +148,8 @@ def _batched(frames: Sequence[str], per_frame: list[list[PoseSample]]) -> list[P
         if [s.t for s in rows] != stamps:
             raise HarnessError(f'with frames_topic every frame needs a pose at the same stamps '
                                f'(frame {name} differs from frame {frames[0]})')
-    return [PoseSample(t, np.array([rows[k].position for rows in per_frame]),
-                       np.array([rows[k].orientation for rows in per_frame]))
+    return [_FramesSample(t, np.array([rows[k].position for rows in per_frame]),
+                          np.array([rows[k].orientation for rows in per_frame]))
             for k, t in enumerate(stamps)]
 
 
@@ -283,7 +296,7 @@ class Harness:
         self.executor.add_node(self.tester)
         # Instrumentation (in this process, on the node's own objects): what it receives and
         # what every tick publishes, measured with the core's maths.
-        core = self.node.core
+        core: NodeCore = self.node.core
         self._received = 0
         #: Per published tick: (t_ns, per chain (origins, orientations), markers published).
         self._ticks: list[tuple[int, list[tuple[np.ndarray, np.ndarray]], bool]] = []
@@ -425,20 +438,21 @@ class Harness:
         end = stamp_ns(self._clock_ns * 1e-9 + duration)
         after = self._clock_ns if self._clock_ns > 0 else -1
 
-        def window(inputs: list[PoseSample]) -> list[PoseSample]:
+        def window(inputs: list[_Sample]) -> list[_Sample]:
             return [s for s in inputs if after < stamp_ns(s.t) <= end]
         given = head_samples(head, end * 1e-9, input_rate)
         if self._sent == 0:
             check_samples_reach(given, end, 'Harness.run')
-        feeds = [(self.head_pub, 'head pose', window(given))]
+        feeds: list[tuple[Any, str, list[PoseSample] | list[_FramesSample]]] = [
+            (self.head_pub, 'head pose', window(given))]
         per_frame = _frame_samples(self.config, frames, end * 1e-9, input_rate)
         if self.frames_pub is not None:
             feeds.append((self.frames_pub, 'poses of the frames',
                           window(_batched(self.config.frames, per_frame))))
         else:
-            for name, pub, rows in zip(self.config.frames, self.frame_pubs, per_frame,
-                                       strict=True):
-                feeds.append((pub, f'pose of frame {name}', window(rows)))
+            for name, pub, samples in zip(self.config.frames, self.frame_pubs, per_frame,
+                                          strict=True):
+                feeds.append((pub, f'pose of frame {name}', window(samples)))
         nexts = [0] * len(feeds)
         for k in range(k0 + 1, k0 + n_ticks(duration, self.config.rate) + 1):
             t_ns = k * period
@@ -446,7 +460,7 @@ class Harness:
                 while nexts[j] < len(rows) and stamp_ns(rows[nexts[j]].t) <= t_ns:
                     s = rows[nexts[j]]
                     pub.publish(pose_array_msg(s.t, s.position, s.orientation, frame_id)
-                                if pub is self.frames_pub else
+                                if isinstance(s, _FramesSample) else
                                 pose_msg(s.t, s.position, s.orientation, frame_id))
                     self._sent += 1
                     nexts[j] += 1
