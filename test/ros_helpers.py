@@ -12,6 +12,7 @@ import math
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -216,7 +217,7 @@ def head_at(t):
     return p, q
 
 
-_LIVE = {}
+_LIVE: dict[str, Any] = {}
 
 
 def live_recording(tmp_root):
