@@ -72,36 +72,46 @@ def _is_number(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _is_integer(v):
+    return _is_number(v) and float(v).is_integer()
+
+
+def _is_numbers(v):
+    return isinstance(v, (list, tuple)) and all(_is_number(x) for x in v)
+
+
+def _is_strings(v):
+    return isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v)
+
+
+def _floats(v):
+    return [float(x) for x in v]
+
+
+def _same(v):
+    return v
+
+
+#: kind -> (accepts(value), the value converted, what an error says was expected)
+_KINDS = {
+    'double': (_is_number, float, 'a number'),
+    'int': (_is_integer, int, 'an integer'),
+    'bool': (lambda v: isinstance(v, bool), _same, 'true or false'),
+    'string': (lambda v: isinstance(v, str), _same, 'a string'),
+    'double3': (_is_numbers, _floats, 'a list of numbers'),
+    'double4': (_is_numbers, _floats, 'a list of numbers'),
+    'doubles': (_is_numbers, _floats, 'a list of numbers'),
+    'strings': (_is_strings, list, 'a list of strings'),
+}
+
+
 def _coerce(name, kind, value):
     """Type check and conversion as the node's declaration (plus its int→double coercion)
     does; raises ``ParameterError`` naming the parameter."""
-    def bad(expected):
-        return ParameterError(name, f'{name} = {value!r} has the wrong type: expected {expected}')
-    if kind == 'double':
-        if not _is_number(value):
-            raise bad('a number')
-        return float(value)
-    if kind == 'int':
-        if _is_number(value) and float(value).is_integer():
-            return int(value)
-        raise bad('an integer')
-    if kind == 'bool':
-        if not isinstance(value, bool):
-            raise bad('true or false')
-        return value
-    if kind == 'string':
-        if not isinstance(value, str):
-            raise bad('a string')
-        return value
-    if kind in ('double3', 'double4', 'doubles'):
-        if not isinstance(value, (list, tuple)) or not all(_is_number(v) for v in value):
-            raise bad('a list of numbers')
-        return [float(v) for v in value]
-    if kind == 'strings':
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise bad('a list of strings')
-        return list(value)
-    raise bad(kind)  # pragma: no cover - every kind is listed above
+    accepts, converted, expected = _KINDS.get(kind, (lambda v: False, _same, kind))
+    if not accepts(value):
+        raise ParameterError(name, f'{name} = {value!r} has the wrong type: expected {expected}')
+    return converted(value)
 
 
 def complete_values(partial: Mapping[str, Any]) -> dict[str, Any]:

@@ -445,19 +445,25 @@ def check_names(chains, colliders=(), frames=()):
                                        f'allowed')
     groups = (('chains', chains), ('colliders', colliders), ('frames', frames))
     for param, names in groups:
-        for n in names:
-            if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
-                raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
-                                     f'digits, underscores, starting with a letter; not one of '
-                                     f'{", ".join(RESERVED_NAMES)})')
-        if len(set(names)) != len(names):
-            raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
+        _check_group(param, names)
     for i, (pa, a) in enumerate(groups):
         for pb, b in groups[i + 1:]:
             shared = sorted(set(a) & set(b))
             if shared:
                 raise ParameterError((pa, pb), f'{pa} and {pb} share the name(s) {shared}: '
                                                f'every name prefixes its own parameters')
+
+
+def _check_group(param, names):
+    """The names of one list parameter (``chains``, ``colliders``, ``frames``): each valid and
+    not reserved, all distinct."""
+    for n in names:
+        if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
+            raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
+                                 f'digits, underscores, starting with a letter; not one of '
+                                 f'{", ".join(RESERVED_NAMES)})')
+    if len(set(names)) != len(names):
+        raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
 
 
 def _check_frame_topics(values, frames):
