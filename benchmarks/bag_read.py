@@ -26,6 +26,7 @@ def _rosbags_copy(src: Path, folder: Path) -> Path:
     """The messages of ``src`` in a bag folder written by rosbags."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
+
     from ponytail_ros.recording.bag import BagReader
     store = get_typestore(Stores.ROS2_KILTED)
     with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
@@ -43,6 +44,7 @@ def main(argv=None):
     p.add_argument('--repeat', type=int, default=5)
     args = p.parse_args(argv)
     from rosbags.rosbag2 import Reader
+
     from ponytail_ros.recording.bag import BagReader
     with tempfile.TemporaryDirectory() as tmp:
         ours = make_head_recording(Path(tmp) / 'head.mcap', args.seconds)

@@ -15,13 +15,11 @@ import time
 import numpy as np
 from numba import njit
 
-from ponytail_ros.core import contact_kernels as K
-from ponytail_ros.core import scene as scene_module
+from ponytail_ros.bench.tick_cost import crowd_scene
+from ponytail_ros.core import contact_kernels as K, scene as scene_module
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.testing import load_config
-
-from ponytail_ros.bench.tick_cost import crowd_scene
 
 __all__ = ['record', 'replay_cost', 'main']
 

@@ -13,11 +13,10 @@ import time
 
 import numpy as np
 
+from ponytail_ros.bench.tick_cost import crowd_scene
 from ponytail_ros.core import lanes
 from ponytail_ros.core.compile import report_compile
 from ponytail_ros.core.simulator import Simulator
-
-from ponytail_ros.bench.tick_cost import crowd_scene
 
 __all__ = ['TERMS', 'cases', 'measure', 'main']
 

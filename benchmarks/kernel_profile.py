@@ -9,10 +9,9 @@ import argparse
 
 import numpy as np
 
-from ponytail_ros.core.scene import Scene, SolverSpec
-
 from ponytail_ros.bench.scenes import make_scene
 from ponytail_ros.bench.step_cost import DT, kernel_cost
+from ponytail_ros.core.scene import Scene, SolverSpec
 
 
 def cases(segments, crowds, integrator):

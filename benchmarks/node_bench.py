@@ -41,10 +41,10 @@ import time
 
 import numpy as np
 
-from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
-from ponytail_ros.core.scene import ChainSpec, Scene
 from ponytail_ros.app.head_script import HeadScript
 from ponytail_ros.app.runner import ChainRunner, RunnerSettings
+from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
+from ponytail_ros.core.scene import ChainSpec, Scene
 
 CHAIN = dict(n_segments=20, length=0.4, mass=0.12, radius=0.03, attach=(-0.09, 0.0, 0.06),
              damping=1e-3, drag_linear=0.05)
@@ -59,8 +59,8 @@ def _pct(a, q):
 def helper(args):
     """Child process: publish the head, record the arrival of segment_poses; JSON on stdout."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from geometry_msgs.msg import PoseArray, PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     rclpy.init(args=[])
@@ -118,6 +118,7 @@ def ros_case(n_chains, duration, input_rate, domain_id):
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+
     from ponytail_ros.node import PonytailNode
 
     params = [Parameter(name, value=v) for name, v in _node_parameters(n_chains)]

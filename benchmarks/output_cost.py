@@ -11,8 +11,9 @@ import argparse
 import math
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Dict
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from ponytail_ros.testing.config import load_config
 from ponytail_ros.testing.offline import stamp_msg
 
 
-def measure(params: str, ticks: int = 2400) -> Dict[str, float]:
+def measure(params: str, ticks: int = 2400) -> dict[str, float]:
     """Mean main-thread CPU per tick (s): ``messages`` and ``recorder``."""
     config = load_config(params)
     core = NodeCore(config.values)

@@ -22,9 +22,8 @@ import argparse
 import os
 import re
 
-from ponytail_ros.core.compile import report_compile
-
 from ponytail_ros.bench.tick_cost import crowd_runner
+from ponytail_ros.core.compile import report_compile
 
 __all__ = ['compiled_functions', 'write_map']
 
@@ -67,7 +66,7 @@ def write_map(path=None):
     functions = compiled_functions()
     ends = [a for a, _ in functions[1:]] + [functions[-1][0] + 65536] if functions else []
     with open(path, 'w') as f:
-        for (address, name), end in zip(functions, ends):
+        for (address, name), end in zip(functions, ends, strict=True):
             f.write(f'{address:x} {min(end - address, 1 << 20):x} {_short(name)}\n')
     return path, len(functions)
 

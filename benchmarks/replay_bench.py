@@ -54,9 +54,9 @@ def scene_params(n_chains, n_segments=20):
 
 def simulation_only(head_path, values):
     """Wall time of the runner alone over the input (pushes and nominal ticks)."""
-    from ponytail_ros.recording.bag import BagReader
     from ponytail_ros.app.param_values import scene_and_settings
     from ponytail_ros.app.runner import ChainRunner
+    from ponytail_ros.recording.bag import BagReader
     _, scene, settings = scene_and_settings(values)
     samples = []
     for _, _, m, log_ns in BagReader(head_path).messages('/head_pose'):

@@ -9,11 +9,15 @@ time; ``ponytail_offline`` runs the same node logic without ROS (faster, for tun
 from pathlib import Path
 
 import pytest
-
-from ponytail_ros.testing import (assert_energy_does_not_grow, assert_joints_closed,
-                                  assert_no_penetration, assert_no_resets, assert_tips_close)
-
 from walk_cycle import walk, walk_then_stop
+
+from ponytail_ros.testing import (
+    assert_energy_does_not_grow,
+    assert_joints_closed,
+    assert_no_penetration,
+    assert_no_resets,
+    assert_tips_close,
+)
 
 PARAMS = Path(__file__).with_name('my_character.yaml')
 

@@ -16,11 +16,12 @@ graph, so groups can run on several machines of one ``ROS_DOMAIN_ID``: launch
 import os
 import tempfile
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 #: Distance between neighbouring groups, m, along world Y (characters spread along X).
 GROUP_SPACING = 2.0

@@ -7,12 +7,13 @@ The head demo publishes ``<ns>/head_pose``; the node publishes ``<ns>/segment_po
 ``<ns>/<chain>/<i>``, children of ``world``. ``rviz:=true`` opens RViz with
 ``rviz/ponytail.rviz`` (made for the default namespace ``alice``).
 """
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 
 def generate_launch_description():

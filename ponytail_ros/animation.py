@@ -14,7 +14,7 @@ import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import cast
 
 import numpy as np
 
@@ -42,7 +42,7 @@ class RecordedRun:
     head_t: np.ndarray
     head_p: np.ndarray
     head_q: np.ndarray
-    chains: Dict[str, tuple]
+    chains: dict[str, tuple]
     head_radius: float
 
 
@@ -72,11 +72,11 @@ def load_run(path) -> RecordedRun:
     layout = RunLayout.from_metadata(reader.metadata()[RECORDING_METADATA])
     head_topic = layout.head_topic
     topics = {head_topic: 'geometry_msgs/msg/PoseStamped'}
-    chains: List[str] = list(layout.chains)
-    pose_topic = dict(zip(layout.pose_topics, chains))
+    chains: list[str] = list(layout.chains)
+    pose_topic = dict(zip(layout.pose_topics, chains, strict=True))
     topics.update({t: 'geometry_msgs/msg/PoseArray' for t in pose_topic})
-    head: List[tuple] = []
-    seg: Dict[str, List[tuple]] = {c: [] for c in chains}
+    head: list[tuple] = []
+    seg: dict[str, list[tuple]] = {c: [] for c in chains}
     for topic, _, msg, _ in reader.messages(topics):
         if topic == head_topic:
             p, q = msg.pose.position, msg.pose.orientation
@@ -113,7 +113,7 @@ def _sphere(radius: float, n: int = 14):
             radius * np.cos(v))
 
 
-def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] = None,
+def render(run: RecordedRun, path, start: float = 0.0, seconds: float | None = None,
            fps: float = 15.0, size: float = 3.2, dpi: int = 80) -> Path:
     """Write ``path`` (a GIF): ``seconds`` of the run from ``start`` (s), at ``fps`` frames a
     second of run time, ``size`` inches square at ``dpi``; the view follows the head."""
@@ -121,6 +121,7 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] 
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     from matplotlib.animation import PillowWriter
+    from mpl_toolkits.mplot3d import Axes3D
 
     end = run.head_t[-1] if seconds is None else min(run.head_t[-1], start + seconds)
     times = np.arange(start, end, 1.0 / fps)
@@ -128,11 +129,12 @@ def render(run: RecordedRun, path, start: float = 0.0, seconds: Optional[float] 
         raise ValueError(f'no frames between {start:g} s and {end:g} s')
     sx, sy, sz = _sphere(run.head_radius)
     fig = plt.figure(figsize=(size, size), dpi=dpi)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection='3d')
+    ax = cast(Axes3D, fig.add_axes((0.0, 0.0, 1.0, 1.0), projection='3d'))
     half = 0.3
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = PillowWriter(fps=fps)
+    # (matplotlib's stubs say int; a GIF's frame duration, 1000 / fps ms, takes any fps)
+    writer = PillowWriter(fps=fps)  # type: ignore[arg-type]
     with writer.saving(fig, str(path), dpi):
         for t in times:
             i = min(np.searchsorted(run.head_t, t), run.head_t.size - 1)

@@ -39,8 +39,8 @@ def run_demo(duration, config, domain_id=None, record_path=None, tf=False):
     from rclpy.parameter import Parameter
     from rclpy.qos import qos_profile_sensor_data
 
-    from ponytail_ros.ros.head_demo import HeadDemoNode
     from ponytail_ros.node import PonytailNode
+    from ponytail_ros.ros.head_demo import HeadDemoNode
 
     ctx = Context()
     init_kw = {} if domain_id is None else {'domain_id': domain_id}
@@ -101,8 +101,8 @@ def chain_points(segments, lengths):
 
 
 def summarize(data):
-    from ponytail_ros.core.rotations import quat_axis_x
     from ponytail_ros.app.head_script import PHASES
+    from ponytail_ros.core.rotations import quat_axis_x
     segs, lengths = data['segments'], data['lengths']
     distal = segs[..., :3] + lengths[None, :, None] * quat_axis_x(segs[..., 3:])
     gap = (np.linalg.norm(distal[:, :-1] - segs[:, 1:, :3], axis=2).max() if segs.shape[1] > 1
@@ -200,6 +200,7 @@ def main(argv=None):
     print(f'Running the head demo and ponytail_node for {args.duration:g} s ({config})'
           f'{", the head over TF" if args.tf else ""} ...', flush=True)
     from rclpy.exceptions import ParameterException
+
     from ponytail_ros.app.parameters import ParameterError
     from ponytail_ros.ros.spin import describe_error
     run_file = _fresh(Path(args.out) / 'demo_run.mcap')

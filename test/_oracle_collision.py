@@ -62,13 +62,21 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.optimize import nnls
 
-import _oracle_limits as limits
 from ponytail_ros.core.head import AnchorKinematics
 from ponytail_ros.core.model import Model
-from ponytail_ros.core.rotations import (cross, quat_axis_x, quat_integrate, quat_normalize,
-                                         quat_rotate, quat_to_matrix, skew)
+from ponytail_ros.core.rotations import (
+    cross,
+    quat_axis_x,
+    quat_integrate,
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+    skew,
+)
 from ponytail_ros.core.stabilization import project_positions, project_velocities
 from ponytail_ros.core.state import half_vectors
+
+import _oracle_limits as limits
 
 __all__ = ['Unilateral', 'segment_depths', 'POSITION_TOLERANCE', 'POSITION_ITERATIONS',
            'SPECULATIVE_STEPS']
@@ -440,7 +448,7 @@ class Unilateral:
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
         for sl, row, uni in self._each(anchor):
             got = uni.resolve(x[sl], q[sl], v[sl], w[sl], row, pose, project, self.dt)
-            for o, g in zip(out, got):
+            for o, g in zip(out, got, strict=True):
                 o[sl] = g
             self.last['contacts'] += uni.last['contacts']
             self.last['limits'] += uni.last['limits']

@@ -34,8 +34,15 @@ passes): every joint ends exactly on its limits in one pass.
 """
 import numpy as np
 
-from ponytail_ros.core.rotations import (cross, quat_axis_x, quat_conjugate, quat_from_rotvec,
-                                         quat_multiply, quat_normalize, quat_rotate)
+from ponytail_ros.core.rotations import (
+    cross,
+    quat_axis_x,
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 
 __all__ = ['joint_angles', 'limit_rows', 'project_limits']
 

@@ -12,6 +12,7 @@ import math
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -28,16 +29,19 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from conftest import TEST_DOMAIN_ID  # noqa: E402
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
 from ponytail_ros.recording.cli import main  # noqa: E402
 from ponytail_ros.recording.recorder import stamp_ns  # noqa: E402
 from ponytail_ros.testing import Harness as PublicHarness  # noqa: E402
-from ponytail_ros.testing.harness import TIMEOUT_SCALE, diagnostic_values  # noqa: E402,F401
-from ponytail_ros.testing.harness import pose_msg as _public_pose_msg  # noqa: E402
+from ponytail_ros.testing.harness import (  # noqa: E402,F401
+    TIMEOUT_SCALE,
+    diagnostic_values,
+    pose_msg as _public_pose_msg,
+)
 
+from conftest import TEST_DOMAIN_ID  # noqa: E402
 
 # -- the node's test chain, head and messages ---------------------------------------------------
 
@@ -213,7 +217,7 @@ def head_at(t):
     return p, q
 
 
-_LIVE = {}
+_LIVE: dict[str, Any] = {}
 
 
 def live_recording(tmp_root):

@@ -138,6 +138,7 @@ def test_every_topic_the_viewers_name_is_published_by_the_node(ros_context):
     """The node started as the launch file starts it (config/ponytail.yaml, namespace alice):
     its publishers, read back from the ROS graph, include every topic the viewers subscribe."""
     import importlib.util
+
     from ponytail_ros.node import PonytailNode
     node = PonytailNode(context=ros_context, namespace=NAMESPACE,
                         cli_args=['--ros-args', '--params-file', str(CONFIG)])

@@ -28,10 +28,14 @@ from rclpy.qos import QoSDurabilityPolicy, QoSProfile  # noqa: E402
 from std_msgs.msg import ColorRGBA  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
-from ros_helpers import plain  # noqa: E402
 from ponytail_ros.recording.bag import (  # noqa: E402
-    PARAMETERS_METADATA, BagError, BagReader, BagWriter,
+    PARAMETERS_METADATA,
+    BagError,
+    BagReader,
+    BagWriter,
 )
+
+from ros_helpers import plain  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

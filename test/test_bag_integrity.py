@@ -24,6 +24,7 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap.writer import CompressionType, Writer as McapWriter  # noqa: E402
 
 from ponytail_ros.recording.bag import BagError, BagReader, message_definition  # noqa: E402
+
 from ros_helpers import HEAD, N_POSES, PERIOD_NS, T0_NS, head_samples, rosbags_bag, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,7 +132,7 @@ def test_messages_stored_out_of_log_time_order_replay_in_log_time_order(tmp_path
     assert any(str(scrambled) in e and 'out of log-time order' in e for e in err), err
     a, b = pose_arrays(tmp_path / 'a.mcap'), pose_arrays(tmp_path / 'b.mcap')
     assert len(a) >= 250 and [t for t, _ in a] == [t for t, _ in b]
-    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(a, b))
+    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(a, b, strict=True))
 
 
 def test_several_chunks_out_of_order_across_chunks(tmp_path):
@@ -183,11 +184,13 @@ def test_head_stamps_on_another_clock_are_refused_with_the_fix_which_works(tmp_p
         assert code == 0 and err == []
     fixed, same = pose_arrays(tmp_path / 'fixed.mcap'), pose_arrays(tmp_path / 'good_receive.mcap')
     assert len(fixed) == len(same) >= 250
-    assert all(t == u and np.array_equal(x, y) for (t, x), (u, y) in zip(fixed, same))
+    assert all(t == u and np.array_equal(x, y) for (t, x), (u, y) in zip(fixed, same, strict=True))
     good_run, wrong = pose_arrays(tmp_path / 'good.mcap'), pose_arrays(tmp_path / 'sim.mcap')
     assert [t for t, _ in good_run] == [t for t, _ in fixed]
-    assert max(np.abs(x[:, :3] - y[:, :3]).max() for (_, x), (_, y) in zip(good_run, fixed)) < 1e-4
-    assert max(np.abs(x[:, :3] - y[:, :3]).max() for (_, x), (_, y) in zip(good_run, wrong)) > 0.01
+    assert max(np.abs(x[:, :3] - y[:, :3]).max()
+               for (_, x), (_, y) in zip(good_run, fixed, strict=True)) < 1e-4
+    assert max(np.abs(x[:, :3] - y[:, :3]).max()
+               for (_, x), (_, y) in zip(good_run, wrong, strict=True)) > 0.01
 
 
 # -- diagnostics and drops -----------------------------------------------------------------------
@@ -274,7 +277,7 @@ def test_a_sigkilled_recording_is_repaired_into_a_file_rosbags_and_mcap_index_re
         tmp_path, capsys):
     killed = killed_recording(tmp_path)
     assert killed.read_bytes()[-8:] != b'\x89MCAP0\r\n'
-    with pytest.raises(Exception):                     # rosbags refuses the cut file
+    with pytest.raises(rosbags_highlevel.AnyReaderError):   # rosbags refuses the cut file
         with rosbags_highlevel.AnyReader([killed]) as reader:
             list(reader.messages())
     ours = BagReader(killed)
@@ -296,8 +299,9 @@ def test_a_sigkilled_recording_is_repaired_into_a_file_rosbags_and_mcap_index_re
     assert summary is not None and summary.chunk_indexes
     assert summary.statistics.message_count == len(readable)
     ours_raw = []
-    from ponytail_ros.recording.mcap_scan import McapScan
     from mcap.records import Channel, Message
+
+    from ponytail_ros.recording.mcap_scan import McapScan
     channels = {}
     for _, r in McapScan(killed).records():
         if isinstance(r, Channel):
@@ -319,7 +323,7 @@ def test_a_sigkilled_recording_is_repaired_into_a_file_rosbags_and_mcap_index_re
     a = pose_arrays(tmp_path / 'cut_replay.mcap')
     b = pose_arrays(tmp_path / 'fixed_replay.mcap')
     assert len(a) > 20 and [t for t, _ in a] == [t for t, _ in b]
-    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(a, b))
+    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(a, b, strict=True))
 
 
 def test_repair_skips_a_damaged_chunk_keeps_the_rest_and_says_so(tmp_path, capsys):

@@ -12,12 +12,12 @@ import yaml
 pytest.importorskip('rclpy')
 pytest.importorskip('rosbags.rosbag2')
 
-from ponytail_ros.recording.bag import BagError, BagReader  # noqa: E402
-from ros_helpers import HEAD, N_POSES, head_samples, run  # noqa: E402
-
-from rosbags.rosbag2 import (CompressionFormat, CompressionMode, StoragePlugin,  # noqa: E402
-                             Writer)
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from ponytail_ros.recording.bag import BagError, BagReader  # noqa: E402
+
+from ros_helpers import HEAD, N_POSES, head_samples, run  # noqa: E402
 
 STORE = get_typestore(Stores.ROS2_KILTED)
 
@@ -54,7 +54,7 @@ def split_folder(tmp_path, name, samples, storage=StoragePlugin.MCAP):
     end = infos[1]['starting_time']['nanoseconds_since_epoch'] + infos[1]['duration'][
         'nanoseconds']
     info['relative_file_paths'] = names
-    info['files'] = [dict(f['files'][0], path=n) for f, n in zip(infos, names)]
+    info['files'] = [dict(f['files'][0], path=n) for f, n in zip(infos, names, strict=True)]
     info['message_count'] = len(samples)
     info['duration'] = {'nanoseconds': end - start}
     info['topics_with_message_count'][0]['message_count'] = len(samples)
@@ -121,7 +121,7 @@ def test_every_layout_replays_to_the_same_segment_poses(layouts, tmp_path, param
     assert len(reference) >= N_POSES - 5
     for name, poses in outputs.items():
         assert [t for t, _ in poses] == [t for t, _ in reference], name
-        worst = max(np.abs(a - b).max() for (_, a), (_, b) in zip(poses, reference))
+        worst = max(np.abs(a - b).max() for (_, a), (_, b) in zip(poses, reference, strict=True))
         assert worst <= 1e-6, (name, worst)
 
 
@@ -196,7 +196,8 @@ def test_a_folder_of_bags_replays_one_output_per_bag_in_parallel(layouts, tmp_pa
     for name in ('db3', 'split'):
         poses = segment_poses(out / f'{name}.mcap')
         assert [t for t, _ in poses] == [t for t, _ in reference]
-        assert max(np.abs(a - b).max() for (_, a), (_, b) in zip(poses, reference)) <= 1e-6
+        assert max(np.abs(a - b).max()
+                   for (_, a), (_, b) in zip(poses, reference, strict=True)) <= 1e-6
 
 
 def test_one_bad_bag_among_many_fails_the_run_and_the_others_are_written(layouts, tmp_path,
@@ -247,6 +248,7 @@ def test_an_mcap_file_of_another_profile_is_read_as_rosbags_would_refuse_it(tmp_
     """rosbags refuses an MCAP file whose profile is not ``ros2``; the same messages with
     another profile read here as with it."""
     from mcap.writer import Writer as McapWriter
+
     from ponytail_ros.recording.bag import message_definition
     samples = head_samples(50)
     paths = {}

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ponytail_ros.bench import cli, measure, mujoco_chain
 from ponytail_ros.app.motions import SinusoidHead, SpinHead, crowd_motion, reference_motion
+from ponytail_ros.bench import cli, measure, mujoco_chain
 from ponytail_ros.bench.scenes import SCENES, make_scene
 from ponytail_ros.core import SwayYawMotion
 
@@ -228,7 +228,8 @@ def test_perf_map_names_each_compiled_kernel_at_its_address(tmp_path):
     published segment poses, run once) by module and function, at the addresses their
     dispatchers call."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
-    import perf_map   # benchmarks/: an investigation script, not installed
+    import perf_map  # benchmarks/: an investigation script, not installed
+
     from ponytail_ros.bench.tick_cost import crowd_runner
     from ponytail_ros.core import state_kernels, step_unilateral
 

@@ -14,8 +14,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
 pytest.importorskip('rosbags')
-from ros_helpers import TIMEOUT_SCALE, head_samples, rosbags_bag  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
+
+from ros_helpers import TIMEOUT_SCALE, head_samples, rosbags_bag  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXECUTABLES = {
@@ -165,6 +166,7 @@ def test_live_tf_off_without_tf2_msgs_is_said_once(ros_context, monkeypatch):
     off and why, whether tf.publish was asked for or is the default; tf.publish false says
     nothing; the head from TF is refused naming head_frame."""
     import sys
+
     from ponytail_ros.app.parameters import ParameterError
     monkeypatch.setitem(sys.modules, 'tf2_msgs.msg', None)
     asked = PonytailNode(context=ros_context,
@@ -233,6 +235,7 @@ def test_no_progress_bar_when_not_a_terminal(tmp_path, capsys):
 
 def test_head_stamps_on_another_clock_are_said_on_the_terminal_with_the_fix(ros_context, capfd):
     from geometry_msgs.msg import PoseStamped
+
     from ros_helpers import overrides
     node = PonytailNode(context=ros_context, parameter_overrides=overrides())
     tester = rclpy.create_node('tester', context=ros_context)

@@ -8,8 +8,7 @@ import sys
 
 import pytest
 
-from ponytail_ros.core import compile as kernels_compile
-from ponytail_ros.core import step_unilateral
+from ponytail_ros.core import compile as kernels_compile, step_unilateral
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
@@ -95,20 +94,20 @@ _SKULL = ColliderSpec.sphere(center=(0.0, 0.0, 0.0), radius=0.1)
 
 
 @pytest.mark.parametrize('scene, stages', [
-    (Scene(chains=[ChainSpec(n_segments=12)]), ('free step', 'head fit', 'markers')),
-    (Scene(chains=[ChainSpec(n_segments=12)], colliders=[_SKULL]),
+    (Scene(chains=(ChainSpec(n_segments=12),)), ('free step', 'head fit', 'markers')),
+    (Scene(chains=(ChainSpec(n_segments=12),), colliders=(_SKULL,)),
      ('free step', 'contact step', 'head fit', 'markers')),
-    (Scene(chains=[ChainSpec(n_segments=4, swing_limit=1.0)]),
+    (Scene(chains=(ChainSpec(n_segments=4, swing_limit=1.0),)),
      ('free step', 'contact step', 'head fit', 'markers')),
-    (Scene(chains=[ChainSpec(n_segments=4)], solver=SolverSpec(integrator='rattle')),
+    (Scene(chains=(ChainSpec(n_segments=4),), solver=SolverSpec(integrator='rattle')),
      ('free step', 'other integrators', 'head fit', 'markers')),
-    (Scene(chains=[ChainSpec(n_segments=4)], colliders=[_SKULL],
+    (Scene(chains=(ChainSpec(n_segments=4),), colliders=(_SKULL,),
            solver=SolverSpec(integrator='symplectic_euler')),
      ('free step', 'other integrators', 'contact step (other integrators)', 'head fit',
       'markers')),
-    (Scene(chains=[ChainSpec(n_segments=4, damping=0.0)] * 8),
+    (Scene(chains=(ChainSpec(n_segments=4, damping=0.0),) * 8),
      ('free step', 'crowd lanes', 'head fit', 'markers')),
-    (Scene(chains=[ChainSpec(n_segments=4, damping=0.0)] * 8, colliders=[_SKULL]),
+    (Scene(chains=(ChainSpec(n_segments=4, damping=0.0),) * 8, colliders=(_SKULL,)),
      ('free step', 'crowd lanes', 'crowd contacts', 'head fit', 'markers')),
 ])
 def test_a_scene_compiles_only_the_stages_it_uses(scene, stages):

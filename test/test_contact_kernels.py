@@ -12,16 +12,25 @@ and inner joints, several chains, a non-axisymmetric inertia and a run without p
 import numpy as np
 import pytest
 
-import _oracle_collision
-import _oracle_limits
-from ponytail_ros.core import ChainSpec, KinematicState, Scene, Simulator, StillMotion
-from ponytail_ros.core import collision, contact_kernels, limits, step
+from ponytail_ros.app.motions import ShakeNodHead as ShakeMotion
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    Simulator,
+    StillMotion,
+    collision,
+    contact_kernels,
+    limits,
+    step,
+)
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_multiply
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.state import half_vectors
 
+import _oracle_collision
+import _oracle_limits
 from helpers import TwoBodies
-from ponytail_ros.app.motions import ShakeNodHead as ShakeMotion
 
 DT = 1.0 / 240.0
 AGREE = 1e-11   # relative; most scenes agree to ~1e-13. Friction on a nearly stuck contact
@@ -118,7 +127,7 @@ def _caged():
     cage = tuple(ColliderSpec.sphere(center=(0.036 * np.cos(a), 0.036 * np.sin(a), z),
                                      radius=0.025, friction=0.0)
                  for a, z in zip(np.linspace(0, 2 * np.pi, 12, endpoint=False),
-                                 np.tile([-0.12, -0.2, -0.28], 4)))
+                                 np.tile([-0.12, -0.2, -0.28], 4), strict=True))
     return Scene(chains=(chain,), colliders=cage)
 
 
@@ -182,7 +191,8 @@ def test_the_compiled_loop_equals_the_per_step_path(name):
         for sim in sims:
             assert sim.advance_to(k * DT, motion).reset_reason is None
     for a, b in zip((sims[0].state.x, sims[0].state.q, sims[0].state.v, sims[0].state.w),
-                    (sims[1].state.x, sims[1].state.q, sims[1].state.v, sims[1].state.w)):
+                    (sims[1].state.x, sims[1].state.q, sims[1].state.v, sims[1].state.w),
+                    strict=True):
         assert np.array_equal(a, b)
     assert sims[0].unilateral.last == sims[1].unilateral.last
 
@@ -219,7 +229,7 @@ def test_compiled_resolve_matches_the_numpy_oracle(name):
     for args, anchor, pose, project, dt, out, last, q_rest in calls:
         sim.model.q_rest[:] = q_rest
         ref = oracle.resolve(*args, anchor, pose, project, dt)
-        for a, b in zip(out, ref):
+        for a, b in zip(out, ref, strict=True):
             worst = max(worst, float(np.max(np.abs(a - b))) / max(1.0, float(np.max(np.abs(b)))))
         assert last == oracle.last
         active += last['contacts'] + last['limits']
@@ -239,7 +249,7 @@ def test_rows_and_detection_match_the_oracle(name):
         det = collision._Detector(m, collision.Colliders(m))
         det_ref = _oracle_collision._Detector(m, _oracle_collision.Colliders(m))
     compared = 0
-    for args, anchor, pose, project, dt, _, _, q_rest in calls[::5]:
+    for args, anchor, pose, _project, dt, _, _, q_rest in calls[::5]:
         m.q_rest[:] = q_rest
         sim.unilateral.dt = oracle.dt = dt
         got, ref = sim.unilateral.rows(*args, anchor, pose), oracle.rows(*args, anchor, pose)
@@ -254,7 +264,7 @@ def test_rows_and_detection_match_the_oracle(name):
             for report in (False, True):
                 d_got = det.detect(args[0], h, anchor.position, pose, report)
                 d_ref = det_ref.detect(args[0], h, anchor.position, pose, report)
-                for a, b in zip(d_got, d_ref):
+                for a, b in zip(d_got, d_ref, strict=True):
                     assert np.allclose(a, b, rtol=0.0, atol=AGREE)
     assert compared > 5
 
@@ -276,7 +286,7 @@ def test_limit_kernels_match_the_oracle(seed):
     q = quat_multiply(quat_from_rotvec(rng.normal(size=(m.n, 3)) * 1.1), sim.state.q)
     w = rng.normal(size=(m.n, 3)) * 2.0
     for a, b in zip(limits.joint_angles(m, q, anchor.orientation),
-                    _oracle_limits.joint_angles(m, q, anchor.orientation)):
+                    _oracle_limits.joint_angles(m, q, anchor.orientation), strict=True):
         assert np.max(np.abs(a - b)) < AGREE
 
     def every(gap, sep):
@@ -307,7 +317,7 @@ def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
     rng = np.random.default_rng(0)
     sc = K.solve_scratch(1, 1, n, m.n_chains)
     compared = pushed = parents = 0
-    for args, anchor, pose, project, dt, _, _, q_rest in calls[::7]:
+    for args, anchor, pose, _project, dt, _, _, q_rest in calls[::7]:
         m.q_rest[:] = q_rest
         uni.dt = dt
         rows = uni.rows(*args, anchor, pose)

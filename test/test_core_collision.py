@@ -6,13 +6,22 @@ and the depth of the capsule around it computed in closed form against each coll
 import numpy as np
 import pytest
 
-from ponytail_ros.core import ChainSpec, KinematicState, Scene, SceneError, Simulator, StillMotion
-from ponytail_ros.core import collision, limits
 from ponytail_ros.app.motions import ShakeNodHead
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    StillMotion,
+    collision,
+    limits,
+)
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
+
 from helpers import PENETRATION_TOLERANCE, TwoBodies, total_energy
 
 DT = 1.0 / 240.0

@@ -3,8 +3,16 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator, SolverSpec,
-                               StillMotion, SwayYawMotion)
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    SolverSpec,
+    StillMotion,
+    SwayYawMotion,
+)
 
 ANCHOR = np.array([0.0, 0.0, 1.0])
 G = 9.81
@@ -56,7 +64,7 @@ def test_atan_nonneg_is_within_two_ulps_of_atan2():
     c = np.concatenate([scale, [0.0, 1.0, 1e-300, 5e-324, 1.0]])
     got = np.empty(s.size)
     atan_rows(s, c, got)
-    want = np.array([math.atan2(a, b) for a, b in zip(s, c)])
+    want = np.array([math.atan2(a, b) for a, b in zip(s, c, strict=True)])
     ulps = np.abs(got - want) / np.spacing(np.maximum(want, 5e-324))
     assert ulps.max() <= 2.0
     assert got[-5:].tolist() == [math.pi / 2, 5e-324, math.pi / 2, math.pi / 2, 0.0]
@@ -66,7 +74,7 @@ def test_atan_nonneg_is_within_two_ulps_of_atan2():
     theta = np.concatenate([rng.uniform(0.0, np.pi, 1990), [0.0, 1e-9, 1e-7, np.pi,
                                                              np.pi - 1e-9, 1.0, 2.0, 3.0,
                                                              0.5, 1e-3]])
-    for axis, th, sign in zip(axes, theta, rng.choice([-1.0, 1.0], 2000)):
+    for axis, th, sign in zip(axes, theta, rng.choice([-1.0, 1.0], 2000), strict=True):
         q = sign * np.append(axis * np.sin(th / 2), np.cos(th / 2))
         assert np.allclose(qto_rotvec(tuple(q)), axis * th, rtol=0, atol=1e-14)
 

@@ -5,21 +5,22 @@ Measured figures quoted in the docstrings come from these very scenes (10-segmen
 """
 import dataclasses
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
 from scipy.linalg import lapack
 
-from ponytail_ros.core import (ChainSpec, Scene, SceneError, Simulator, SolverSpec, StillMotion)
+from ponytail_ros.app.motions import reference_motion
+from ponytail_ros.core import ChainSpec, Scene, SceneError, Simulator, SolverSpec, StillMotion
 from ponytail_ros.core.integrators import free_rotation, rotation_kick
 from ponytail_ros.core.reference import default_reference_dir, load_reference, reference_errors
 from ponytail_ros.core.rotations import cross, quat_axis_x, quat_from_rotvec, quat_to_matrix
 from ponytail_ros.core.solver import Dynamics
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.app.motions import reference_motion
-from helpers import chain_sim, reference_ponytail
-from helpers import total_energy as energy
+
+from helpers import chain_sim, reference_ponytail, total_energy as energy
 
 HEAD = (0.0, 0.0, 1.6)
 STILL = StillMotion(HEAD)
@@ -285,7 +286,7 @@ def test_rattle_is_second_order(case):
         _end_positions(chain, 'rattle', 1 / hz, motion, **solver) - ref, axis=1))
         for hz in (480, 960, 1920)]
     assert errors[0] < 1e-4
-    for coarse, fine in zip(errors, errors[1:]):
+    for coarse, fine in pairwise(errors):
         assert 3.5 < coarse / fine < 4.6
 
 

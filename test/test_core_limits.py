@@ -7,14 +7,20 @@ from the swing–twist decomposition of the relative rotation.
 import numpy as np
 import pytest
 
+from ponytail_ros.app.motions import ShakeNodHead
 from ponytail_ros.core import ChainSpec, KinematicState, Scene, SceneError, Simulator, StillMotion
 from ponytail_ros.core.limits import joint_angles, limit_rows, project_limits
-from ponytail_ros.core.rotations import (quat_axis_x, quat_conjugate, quat_from_rotvec,
-                                         quat_integrate, quat_multiply, quat_rotate)
-from ponytail_ros.core.state import half_vectors
+from ponytail_ros.core.rotations import (
+    quat_axis_x,
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_integrate,
+    quat_multiply,
+    quat_rotate,
+)
 from ponytail_ros.core.stabilization import project_positions
+from ponytail_ros.core.state import half_vectors
 
-from ponytail_ros.app.motions import ShakeNodHead
 from helpers import ANGLE_TOLERANCE, total_energy
 
 DT = 1.0 / 240.0

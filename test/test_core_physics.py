@@ -2,10 +2,19 @@
 import numpy as np
 import pytest
 
-from ponytail_ros.core import (ChainSpec, KinematicState, Scene, SceneError, Simulator, SolverSpec,
-                               StillMotion, SwayYawMotion)
+from ponytail_ros.core import (
+    ChainSpec,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    SolverSpec,
+    StillMotion,
+    SwayYawMotion,
+)
 from ponytail_ros.core.forces import applied_forces
 from ponytail_ros.core.rotations import quat_from_rotvec, quat_rotate
+
 from helpers import total_energy
 
 G = 9.81
@@ -281,7 +290,7 @@ def test_frame_rate_independence_on_the_moving_reference_head():
     Internal step 1/1440 s divides every frame period, so all runs share one step grid; each
     is compared with the run driven exactly at every stage, at its own frame times.
     """
-    from ponytail_ros.core.reference import reference_scene, load_reference, default_reference_dir
+    from ponytail_ros.core.reference import default_reference_dir, load_reference, reference_scene
     path = default_reference_dir() / 'ponytail_N10_moving_hanging.json'
     if not path.exists():
         pytest.skip(f'reference data not found at {path} (needs ../shared beside the project)')
@@ -344,6 +353,7 @@ def test_frame_tables_are_the_frame_ends_and_their_tracks():
     both states are finite (a NaN anywhere in either: False)."""
     from ponytail_ros.core.head import STATE_FIELDS, AnchorTrack, SwayYawMotion, frame_ends
     from ponytail_ros.core.head_kernels import frame_tables
+
     from helpers import TwoBodies
     fields = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
 
@@ -394,8 +404,8 @@ def test_vectorised_motions_equal_their_per_time_states_bit_for_bit():
     the anchor points computed from them (``point_table`` against ``point_kinematics``); a
     rounding-level difference here would change the chaotic exact-motion runs."""
     from ponytail_ros.app.motions import ShakeNodHead, SpinHead, crowd_motion, shake_motion
-    from ponytail_ros.core.head import (StillMotion, SwayYawMotion, WithStaticBodies,
-                                        point_table)
+    from ponytail_ros.core.head import StillMotion, SwayYawMotion, WithStaticBodies, point_table
+
     from helpers import TwoBodies
     fields = ('position', 'orientation', 'linear_velocity', 'angular_velocity',
               'linear_acceleration', 'angular_acceleration')

@@ -18,7 +18,8 @@ FILES = sorted(REF_DIR.glob('ponytail_N*.json')) if REF_DIR.is_dir() else []
 CHAOTIC = {'ponytail_N5_still_horizontal', 'ponytail_N10_still_horizontal'}
 
 pytestmark = pytest.mark.skipif(
-    not FILES, reason=f'reference data not found in {REF_DIR} (needs ../shared beside the project)')
+    not FILES,
+    reason=f'reference data not found in {REF_DIR} (needs ../shared beside the project)')
 
 
 def rk4(dt):

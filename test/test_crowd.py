@@ -4,14 +4,23 @@ replayed), and the head demo's crowd output."""
 import dataclasses
 import math
 from collections import Counter
+from itertools import pairwise
 
 import numpy as np
 import pytest
 
-from ponytail_ros.app.crowd import (CHARACTER_PHASE, CHARACTER_SPACING, crowd_offsets,
-                                    crowd_values, main as crowd_main)
-from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
-                                           values_from_params_file)
+from ponytail_ros.app.crowd import (
+    CHARACTER_PHASE,
+    CHARACTER_SPACING,
+    crowd_offsets,
+    crowd_values,
+    main as crowd_main,
+)
+from ponytail_ros.app.param_values import (
+    complete_values,
+    scene_and_settings,
+    values_from_params_file,
+)
 from ponytail_ros.app.parameters import ParameterError
 from ponytail_ros.app.wire import pose_array_fields, pose_array_layout
 from ponytail_ros.resources import config_path
@@ -34,7 +43,7 @@ def test_a_crowd_copies_the_character_onto_its_own_frames_and_shares_world_colli
     assert values['colliders'] == ['skull', 'floor', 'skull_1', 'skull_2']   # one floor
     # character k's chain hangs from body k (the head is 0), its skull is fixed in body k
     assert [c.anchor_body for c in scene.chains] == [0, 1, 2]
-    bodies = {name: c.body for name, c in zip(values['colliders'], scene.colliders)}
+    bodies = {name: c.body for name, c in zip(values['colliders'], scene.colliders, strict=True)}
     assert bodies == {'skull': 0, 'floor': None, 'skull_1': 1, 'skull_2': 2}   # None: static
     # every copy is the character's chain, field for field but its anchor
     first = scene.chains[0]
@@ -144,7 +153,7 @@ def test_one_pose_array_of_every_frame_is_taken_as_each_frames_own_pose():
     assert batched.dropped['stamp_repeated'] == 1 + 3 and batched.dropped['frames_count'] == 1
     assert batched.frame_accepted_total == single.frame_accepted_total
     assert batched.history_restarts == single.history_restarts == 1 + 3   # the head, the frames
-    for e, f in zip(batched.frame_estimators, single.frame_estimators):
+    for e, f in zip(batched.frame_estimators, single.frame_estimators, strict=True):
         n = len(e)
         assert len(f) == n and np.array_equal(e._t[:n], f._t[:n])
         assert np.array_equal(e._p[:n], f._p[:n]) and np.array_equal(e._q[:n], f._q[:n])
@@ -201,7 +210,7 @@ def test_a_frames_teleport_resets_only_the_chains_hanging_from_it():
     m = runner.sim.model
     mine = m.chain_of == 3
     others = ~mine
-    for o, b in zip(outs[200:], base[200:]):
+    for o, b in zip(outs[200:], base[200:], strict=True):
         assert np.max(np.abs(o.origins[others] - b.origins[others])) < 10 * POSITION_TOLERANCE
     # At rest on the new pose: the root on the attachment point of the (one-sample) frame.
     attach = np.asarray(runner.scene.chains[3].attach, dtype=float)
@@ -210,9 +219,9 @@ def test_a_frames_teleport_resets_only_the_chains_hanging_from_it():
     assert np.allclose(root, p + quat_rotate(q, attach), atol=1e-9)
     # ... and it follows the frame from there: no segment moves more than 2 cm a tick.
     steps = [np.max(np.linalg.norm(b.origins[mine] - a.origins[mine], axis=1))
-             for a, b in zip(outs[200:-1], outs[201:])]
+             for a, b in pairwise(outs[200:])]
     assert max(steps) < 0.02
-    for a, b in zip(outs, single):
+    for a, b in zip(outs, single, strict=True):
         assert (a is None) == (b is None)
         if a is not None:
             assert np.array_equal(a.origins, b.origins) and a.frames_reset == b.frames_reset
@@ -290,7 +299,7 @@ def test_a_character_in_a_crowd_moves_exactly_as_alone(characters):
     assert contacts > 100                      # the character did touch its skull
     n = b.state.x.shape[0]
     for got, alone_value in zip((a.state.x, a.state.q, a.state.v, a.state.w),
-                                (b.state.x, b.state.q, b.state.v, b.state.w)):
+                                (b.state.x, b.state.q, b.state.v, b.state.w), strict=True):
         assert np.array_equal(got[:n], alone_value)
 
 
@@ -430,7 +439,7 @@ def test_a_recording_of_a_crowd_replays_bit_for_bit(tmp_path):
     for chain in ('ponytail', 'ponytail_1', 'ponytail_2'):
         topic = f'/segment_poses/{chain}'
 
-        def poses(p):
+        def poses(p, topic=topic):
             return [m for t, _, m, _ in BagReader(p).messages({topic:
                                                                'geometry_msgs/msg/PoseArray'})]
         live, again = poses(path), poses(out)

@@ -15,8 +15,13 @@ from pathlib import Path
 import pytest
 
 from ponytail_ros.app import param_docs
-from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, FRAME_PARAMS,
-                                         GLOBAL_PARAMS, NODE_PARAMS)
+from ponytail_ros.app.parameters import (
+    CHAIN_PARAMS,
+    COLLIDER_PARAMS,
+    FRAME_PARAMS,
+    GLOBAL_PARAMS,
+    NODE_PARAMS,
+)
 from ponytail_ros.bench import perf_page
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,13 +6,16 @@ import math
 import numpy as np
 import pytest
 
-from ponytail_ros.core import ChainSpec, Scene
-from ponytail_ros.core.scene import ColliderSpec
-from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
-                                           values_from_params_file)
-from ponytail_ros.resources import config_path
+from ponytail_ros.app.param_values import (
+    complete_values,
+    scene_and_settings,
+    values_from_params_file,
+)
 from ponytail_ros.app.parameters import ParameterError
 from ponytail_ros.app.runner import START_SAMPLES, ChainRunner, RunnerSettings
+from ponytail_ros.core import ChainSpec, Scene
+from ponytail_ros.core.scene import ColliderSpec
+from ponytail_ros.resources import config_path
 
 #: Stated penetration bound (the position stage stops at 1e-5 m), as in test_core_collision.
 TOLERANCE = 2e-5
@@ -219,14 +222,15 @@ def test_frame_parameters_build_the_bodies_in_order_and_bad_values_are_named():
 # -- in the node -------------------------------------------------------------------------------
 
 rclpy = pytest.importorskip('rclpy')
-from rclpy.parameter import Parameter  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 
+from ponytail_ros.node import PonytailNode  # noqa: E402
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
-from ponytail_ros.recording.recorder import RECORDING_METADATA, RunLayout  # noqa: E402
 from ponytail_ros.recording.inputs import ReplayError  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
-from ponytail_ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.recording.recorder import RECORDING_METADATA, RunLayout  # noqa: E402
+
 from ros_helpers import Harness, arrays, diag_values, overrides, pose_msg, t_of  # noqa: E402
 
 A = P_STILL + ATTACH            # the attachment point of the still head (identity rotation)

@@ -26,7 +26,11 @@ from hypothesis import given, settings, strategies as st
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.head_estimation import REJECT_REASONS, HeadEstimator
 from ponytail_ros.core.rotations import (
-    quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec)
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_to_rotvec,
+)
 
 KEYS = ('linear_velocity', 'linear_acceleration', 'angular_velocity', 'angular_acceleration')
 SWAY_OMEGA = 2.0 * math.pi * 1.5
@@ -116,7 +120,7 @@ def test_pose_tracks_exact_motion():
     motion = SwayYawMotion()
     ts, ps, qs = sample_stream(motion, 60.0, 2.0, jitter=0.2)
     est = HeadEstimator()
-    for t, p, q in zip(ts, ps, qs):
+    for t, p, q in zip(ts, ps, qs, strict=True):
         est.add(t, p, q)
     for t in np.linspace(0.5, ts[-1], 37):
         got, ref = est.state_at(t), motion.state_at(t)
@@ -257,7 +261,7 @@ def test_estimate_is_continuous_between_sample_arrivals(rate):
     motion = SwayYawMotion()
     ts, ps, qs = sample_stream(motion, rate, 2.0, jitter=0.2)
     est = HeadEstimator(delay=0.05)
-    for t, p, q in zip(ts, ps, qs):
+    for t, p, q in zip(ts, ps, qs, strict=True):
         est.add(t, p, q)
     states = [est.state_at(t) for t in np.linspace(1.0, 1.5, 5001)]
     lin = np.array([s.linear_acceleration[0] for s in states])
@@ -272,7 +276,7 @@ def test_stale_head_is_held_with_zero_velocity():
     motion = SwayYawMotion()
     ts, ps, qs = sample_stream(motion, 120.0, 1.0, jitter=0.2)
     est = HeadEstimator(max_extrapolation=0.1)
-    for t, p, q in zip(ts, ps, qs):
+    for t, p, q in zip(ts, ps, qs, strict=True):
         est.add(t, p, q)
     t_last = est.last_stamp
     assert not est.is_stale(t_last + 0.05, timeout=0.1)
@@ -442,7 +446,7 @@ def test_quaternion_sign_flips_do_not_create_angular_velocity():
     ts, ps, qs = sample_stream(motion, 60.0, 2.0, jitter=0.2)
     signs = np.where(np.random.default_rng(2).random(len(ts)) < 0.5, -1.0, 1.0)
     a, b = HeadEstimator(), HeadEstimator()
-    for t, p, q, sgn in zip(ts, ps, qs, signs):
+    for t, p, q, sgn in zip(ts, ps, qs, signs, strict=True):
         a.add(t, p, q)
         b.add(t, p, sgn * q)
     # Stored in one hemisphere: consecutive samples have a positive dot product.
@@ -603,7 +607,7 @@ def test_a_bank_fits_every_body_as_its_own_estimator_does():
     counts = (0, 1, 2, 5, 40, 200)
     ests = [HeadEstimator() for _ in counts]
     bank = HeadEstimatorBank(ests)
-    for e, n in zip(ests, counts):
+    for e, n in zip(ests, counts, strict=True):
         t = rng.uniform(0.0, 0.01)
         for _ in range(n):
             s = motion.state_at(t)
@@ -654,7 +658,7 @@ def test_a_bank_adds_many_bodies_poses_as_their_own_add_does():
             want = want if reason is None else REJECT_REASONS.index(reason)
             assert outcome[k] == want
             seen.add(want)
-    for e, b in zip(own, mine[1:]):
+    for e, b in zip(own, mine[1:], strict=True):
         n = len(e)
         assert len(b) == n and b.rejected == e.rejected
         assert np.array_equal(b._t[:n], e._t[:n])

@@ -71,7 +71,7 @@ def test_the_chain_is_the_same_whatever_the_epoch_of_the_stamps(rate):
     _, sim, _ = run(motion, rate, 1.0, epoch_ns=SIM_NS)
     _, wall, _ = run(motion, rate, 1.0, epoch_ns=WALL_NS)
     assert len(sim) == len(wall) > 80
-    worst = max(float(np.abs(a.origins - b.origins).max()) for a, b in zip(sim, wall))
+    worst = max(float(np.abs(a.origins - b.origins).max()) for a, b in zip(sim, wall, strict=True))
     assert worst <= 1e-9
     assert [o.t for o in sim] == [o.t for o in wall]
 
@@ -144,6 +144,7 @@ def test_the_node_says_a_sparse_stream_once_and_gaps_with_their_stamps_throttled
     its stamps, the second is held back (one notice per 10 s of node clock), the third is said
     with the count of the one held back."""
     from builtin_interfaces.msg import Time
+
     from ponytail_ros.app.node_core import NodeCore
     from ponytail_ros.app.param_values import complete_values
     core = NodeCore(complete_values({'chains': ['ponytail'], 'markers': {'style': 'off'}}))

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from ponytail_ros.app.motions import crowd_motion
-from ponytail_ros.core import lanes
-from ponytail_ros.core import step as compiled
+from ponytail_ros.core import lanes, step as compiled
 from ponytail_ros.core.head import point_table
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
@@ -68,7 +67,7 @@ def _assert_identical(scene, n_steps=40, external=False):
     s0, general = _run(compiled.advance, sim, M, A, n_steps)
     s1, lane = _run(lanes.advance_lanes, sim, M, A, n_steps)
     assert s0 == s1 == compiled.OK
-    for name, a, b in zip(('x', 'q', 'v', 'w', 'f_c'), general, lane):
+    for name, a, b in zip(('x', 'q', 'v', 'w', 'f_c'), general, lane, strict=True):
         assert np.array_equal(a, b), name
     # The chains really differ (else a mix-up of lanes would go unseen).
     x = general[0].reshape(len(scene.chains), -1, 3)

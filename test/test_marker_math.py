@@ -1,14 +1,21 @@
 """The markers' numbers (``app/messages.py``'s few-call forms, ``core.marker_kernels``'
 compiled ones) are bit for bit those of ``core.rotations``: random quaternions and vectors,
 with exact and signed zeros (planar motion), antiparallel and zero vectors."""
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
 pytest.importorskip('rclpy', reason='rclpy (ROS 2 wheels or a sourced workspace) is not installed')
 
 from ponytail_ros.app import messages as m  # noqa: E402
-from ponytail_ros.core.rotations import (quat_axis_x, quat_from_two_vectors,  # noqa: E402
-                                         quat_multiply, quat_normalize, quat_rotate)
+from ponytail_ros.core.rotations import (  # noqa: E402
+    quat_axis_x,
+    quat_from_two_vectors,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 
 
 def _quats(rng, n):
@@ -47,7 +54,7 @@ def test_collider_marker_numbers(seed):
     vs[40:45] = [0.0, 0.0, 0.0]
     z = np.array([0.0, 0.0, 1.0])
     with np.errstate(invalid='ignore', divide='ignore'):
-        for q, v in zip(qs, vs):
+        for q, v in zip(qs, vs, strict=True):
             assert _same(m._rotate(q.tolist(), v.tolist()), quat_rotate(q, v))
             r = quat_rotate(q, v)
             for a, b in ((z, r), (z, v), (v, r)):
@@ -80,7 +87,7 @@ def test_collider_kernel_rows_are_each_colliders_numbers(seed):
     for k in range(n):
         axis = m._rotate(qs[k].tolist(), vs[k].tolist())
         centre = [a + b for a, b in zip(ps[k].tolist(), m._rotate(qs[k].tolist(),
-                                                                   cs[k].tolist()))]
+                                                                   cs[k].tolist()), strict=True)]
         assert _same(poses[k, :3], centre) and _same(axes[k], axis)
         norm = np.linalg.norm(axis)
         opposite = norm == 0.0 or 1.0 + axis[2] / norm < 1e-12
@@ -117,13 +124,13 @@ def test_collider_markers_pose_every_collider_as_one_by_one():
         if c.body is not None:
             qb = bodies.orientation[c.body].tolist()
             centre = [a + b for a, b in zip(bodies.position[c.body].tolist(),
-                                            m._rotate(qb, centre))]
+                                            m._rotate(qb, centre), strict=True)]
             axis = m._rotate(qb, axis)
         want_poses.append([*centre, *m._from_two_vectors([0.0, 0.0, 1.0], axis)])
         if c.kind == 'capsule':
             want_poses.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-            want_points += [[a - c.half_length * b for a, b in zip(centre, axis)],
-                            [a + c.half_length * b for a, b in zip(centre, axis)]]
+            want_points += [[a - c.half_length * b for a, b in zip(centre, axis, strict=True)],
+                            [a + c.half_length * b for a, b in zip(centre, axis, strict=True)]]
     assert len(specs) == len(want_poses)
     assert _same(poses, want_poses) and _same(points, want_points)
 
@@ -142,7 +149,7 @@ def test_many_chains_marker_numbers_are_each_chains_concatenated(style):
     poses, points = numbers.numbers(origins, quats, style)
     starts = np.concatenate([[0], np.cumsum(counts)])
     each = [c.markers(origins[s:e], quats[s:e], style, (1.0, 0.0, 0.0, 1.0))
-            for c, s, e in zip(chains, starts[:-1], starts[1:])]
+            for c, (s, e) in zip(chains, pairwise(starts), strict=True)]
     assert _same(poses, np.concatenate([e[1] for e in each]))
     assert _same(points, np.concatenate([e[2] for e in each]))
 

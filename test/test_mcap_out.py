@@ -6,7 +6,6 @@ import io
 import random
 
 import pytest
-
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 

@@ -8,18 +8,30 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
+from builtin_interfaces.msg import Time  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from builtin_interfaces.msg import Time  # noqa: E402
-from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from ponytail_ros.ros.head_demo import HeadDemoNode  # noqa: E402
 from ponytail_ros.testing.harness import TIMEOUT_SCALE, diagnostic_values  # noqa: E402,F401
-from ros_helpers import (Harness, P_HEAD, Q_TILT, arrays, attach_point,  # noqa: E402
-                         check_geometry, overrides, pose_msg, stamp, t_of)
+
+from ros_helpers import (  # noqa: E402
+    P_HEAD,
+    Q_TILT,
+    Harness,
+    arrays,
+    attach_point,
+    check_geometry,
+    overrides,
+    pose_msg,
+    stamp,
+    t_of,
+)
+
 
 @pytest.fixture
 def harness():
@@ -397,8 +409,9 @@ def test_timer_callback_receives_the_timer_info(ros_context):
     the executor still finds the ``TimerInfo`` parameter: the callback gets the timer's
     expected and actual call times (what the node's 'timer lateness' reports)."""
     import rclpy
-    from rclpy.timer import TimerInfo
     from rclpy.experimental import EventsExecutor
+    from rclpy.timer import TimerInfo
+
     from ponytail_ros.ros.spin import timer_callback
     got = []
     node = rclpy.create_node('timer_info_check', context=ros_context)
@@ -427,7 +440,7 @@ def test_diagnostics_split_the_solve_time_into_the_compiled_stages(harness):
     for params, colliding in ((skull, True), (overrides(), False)):
         h = harness(params)
         h.head = still()
-        assert h.spin_until(lambda: len(h.poses['segment_poses']) >= 10, 5.0)
+        assert h.spin_until(lambda h=h: len(h.poses['segment_poses']) >= 10, 5.0)
         d = h.fresh_diagnostics(3.0)
         integrate, contact = (float(d[k]) for k in ('integrate time mean (ms)',
                                                      'contact time mean (ms)'))

@@ -17,11 +17,12 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+
+from ponytail_ros.app.param_values import values_from_params_file  # noqa: E402
 
 from ros_helpers import attach_point, check_geometry, pose_msg  # noqa: E402
-from ponytail_ros.app.param_values import values_from_params_file  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

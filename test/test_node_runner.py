@@ -3,13 +3,11 @@ script: exact counts and simulated time, fast and deterministic."""
 import numpy as np
 import pytest
 
+from ponytail_ros.app.head_script import PHASES, HeadScript
+from ponytail_ros.app.parameters import CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError, check_values
+from ponytail_ros.app.runner import START_SAMPLES, ChainRunner, RunnerSettings, structural_change
 from ponytail_ros.core import ChainSpec, Scene, SwayYawMotion
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec, quat_rotate
-from ponytail_ros.app.head_script import PHASES, HeadScript
-from ponytail_ros.app.parameters import (CHAIN_PARAMS, GLOBAL_PARAMS, ParameterError,
-                                         check_values)
-from ponytail_ros.app.runner import (START_SAMPLES, ChainRunner, RunnerSettings,
-                                     structural_change)
 
 ATTACH = np.array([-0.09, 0.0, 0.06])
 Q_ID = (0.0, 0.0, 0.0, 1.0)
@@ -371,6 +369,7 @@ def test_diagnostics_say_when_the_ticks_fall_behind_the_rate():
     published) is not; a short window (a short ``diagnostics_period``) still reports the rate
     once its calls span ``MIN_RATE_PERIODS`` periods, and nothing below that."""
     from diagnostic_msgs.msg import DiagnosticStatus
+
     from ponytail_ros.app.node_core import OVERLOADED, NodeCore, time_msg
     from ponytail_ros.resources import config_path
     from ponytail_ros.testing import load_config

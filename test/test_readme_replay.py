@@ -11,9 +11,10 @@ import pytest
 
 pytest.importorskip('rclpy')
 
+from test_tf_replay import _write as write_tf_bag  # noqa: E402
+
 from ponytail_ros.bench.head_bag import make_head_recording  # noqa: E402
 from ponytail_ros.recording.cli import main  # noqa: E402
-from test_tf_replay import _write as write_tf_bag  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -21,21 +22,21 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
+import yaml  # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from mcap.exceptions import EndOfFile  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap.records import Chunk, Message  # noqa: E402
 from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
-import yaml  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 
-from ros_helpers import (CHANGES, P_HEAD, TIMEOUT_SCALE, TYPES, head_at, overrides,  # noqa: E402
-                         plain, pose_msg)
-from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
 from ponytail_ros.app.param_values import values_from_metadata  # noqa: E402
-from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader  # noqa: E402
+from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
+
+from ros_helpers import CHANGES, P_HEAD, TIMEOUT_SCALE, TYPES, head_at, overrides, plain, pose_msg  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -105,7 +106,7 @@ def test_log_time_is_the_node_clock_receive_time_and_publish_time_the_stamp(live
     ticks = []
     with open(live_run.path, 'rb') as f:
         reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages():
+        for _schema, channel, message in reader.iter_messages():
             if channel.topic == '/segment_poses':
                 stamp = int.from_bytes(message.data[4:8], 'little') * 10**9 + \
                     int.from_bytes(message.data[8:12], 'little')
@@ -120,7 +121,7 @@ def test_log_time_is_the_node_clock_receive_time_and_publish_time_the_stamp(live
     # before the next tick's (no wall-time bound: a loaded machine may take long over a tick).
     ticks.sort()
     assert len(ticks) > 10
-    assert all(log_ns <= next_stamp for (_, log_ns), (next_stamp, _) in zip(ticks, ticks[1:]))
+    assert all(log_ns <= next_stamp for (_, log_ns), (next_stamp, _) in pairwise(ticks))
 
 
 def test_rosbags_decodes_the_node_recording_with_and_without_a_typestore(live_run):
@@ -142,9 +143,9 @@ def test_rosbags_decodes_the_node_recording_with_and_without_a_typestore(live_ru
         tf = theirs.pop('/tf')
         arrays = ours['/segment_poses']
         assert [log for log, _ in tf] == [log for log, _ in arrays]
-        for (_, frames), (_, array) in zip(tf, arrays):
+        for (_, frames), (_, array) in zip(tf, arrays, strict=True):
             assert len(frames['transforms']) == len(array['poses']) > 0
-            for i, (tr, pose) in enumerate(zip(frames['transforms'], array['poses'])):
+            for i, (tr, pose) in enumerate(zip(frames['transforms'], array['poses'], strict=True)):
                 assert tr['header'] == array['header']
                 assert tr['child_frame_id'] == f'ponytail/{i}'
                 got = [tr['transform']['translation'][k] for k in 'xyz'] + \

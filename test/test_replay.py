@@ -17,22 +17,26 @@ import yaml
 
 rclpy = pytest.importorskip('rclpy')
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from ros_helpers import TIMEOUT_SCALE, TYPES, poses_by_stamp, topic_messages  # noqa: E402
+from ponytail_ros.app.param_values import (  # noqa: E402
+    complete_values,
+    values_from_metadata,
+    values_from_params_file,
+)
+from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
 from ponytail_ros.bench import head_bag  # noqa: E402
 from ponytail_ros.core.rotations import quat_rotate  # noqa: E402
 from ponytail_ros.recording.bag import PARAMETERS_METADATA, BagReader, BagWriter  # noqa: E402
-from ponytail_ros.app.param_values import (  # noqa: E402
-    complete_values, values_from_metadata, values_from_params_file)
-from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
-from ponytail_ros.recording.live import live_replay  # noqa: E402
 from ponytail_ros.recording.cli import main  # noqa: E402
+from ponytail_ros.recording.live import live_replay  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
-from ponytail_ros.app.runner import START_SAMPLES  # noqa: E402
+from ponytail_ros.recording.recorder import RECORDING_METADATA, stamp_ns  # noqa: E402
 from ponytail_ros.resources import config_path  # noqa: E402
+
+from ros_helpers import TIMEOUT_SCALE, TYPES, poses_by_stamp, topic_messages  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -18,6 +18,7 @@ rosbag2 = pytest.importorskip('rosbags.rosbag2')
 
 import ponytail_ros  # noqa: E402
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
+
 from ros_helpers import HEAD, head_samples, run  # noqa: E402
 
 PACKAGE_ROOT = str(Path(ponytail_ros.__file__).resolve().parents[1])

@@ -11,16 +11,18 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
+from ponytail_ros.app.motions import ShakeNodHead
+from ponytail_ros.app.param_values import (
+    complete_values,
+    scene_and_settings,
+    values_from_params_file,
+)
 from ponytail_ros.core import Simulator
 from ponytail_ros.core.head import HeadMotion, KinematicState, WithStaticBodies
 from ponytail_ros.core.rotations import quat_multiply, quat_rotate
-from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
-                                           values_from_params_file)
 from ponytail_ros.resources import config_path
 
-from ponytail_ros.app.motions import ShakeNodHead
-from helpers import ANGLE_TOLERANCE
-from helpers import PENETRATION_TOLERANCE as TOLERANCE
+from helpers import ANGLE_TOLERANCE, PENETRATION_TOLERANCE as TOLERANCE
 
 SCENES = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail.yaml',
           'tail_and_ponytail.yaml', 'ponytail_arm.yaml')
@@ -155,14 +157,15 @@ def test_colliders_and_limits_of_each_scene_hold_under_a_violent_shake(name):
 # -- in the node and in replay -----------------------------------------------------------------
 
 rclpy = pytest.importorskip('rclpy')
+from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from geometry_msgs.msg import PoseArray, PoseStamped  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from ponytail_ros.recording.offline import replay  # noqa: E402
 from ponytail_ros.app.head_script import HeadScript  # noqa: E402
 from ponytail_ros.node import PonytailNode  # noqa: E402
+from ponytail_ros.recording.offline import replay  # noqa: E402
+
 from ros_helpers import TIMEOUT_SCALE, pose_msg, poses_by_stamp  # noqa: E402
 
 TICKS = 60
@@ -200,7 +203,7 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
         t = tester.get_clock().now().nanoseconds * 1e-9
         p, q = state.position[0], state.orientation[0]
         head_pub.publish(pose_msg(t, p, q))
-        for f, pub in zip(frames, frame_pubs):     # each frame carried by the head
+        for f, pub in zip(frames, frame_pubs, strict=True):     # each frame carried by the head
             offset, rotation = FRAME_OFFSETS[f]
             pub.publish(pose_msg(t, p + quat_rotate(q, offset), quat_multiply(q, rotation)))
     if needs_head:
@@ -221,7 +224,7 @@ def test_each_scene_runs_in_the_node_and_replays_exactly(name, ros_context, tmp_
     assert resets['guard'] == 0
     assert needs_head == (name != 'rope.yaml')
 
-    for c, (tp, spec) in enumerate(zip(topics, scene.chains)):
+    for tp, spec in zip(topics, scene.chains, strict=True):
         lengths = spec.lengths()
         for msg in got[tp]:
             assert msg.header.frame_id == 'world' and len(msg.poses) == spec.n_segments

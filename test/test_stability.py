@@ -49,18 +49,27 @@ import math
 import os
 import time
 import warnings
+from itertools import pairwise
 
 import numpy as np
 import pytest
 
-from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, SceneError, Simulator,
-                               SolverSpec, StillMotion)
+from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
+from ponytail_ros.core import (
+    ChainSpec,
+    ChainState,
+    KinematicState,
+    Scene,
+    SceneError,
+    Simulator,
+    SolverSpec,
+    StillMotion,
+)
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
 from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
-from helpers import chain_sim, reference_ponytail
-from helpers import total_energy as energy
+
+from helpers import chain_sim, reference_ponytail, total_energy as energy
 
 hypothesis = pytest.importorskip('hypothesis')
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
@@ -586,8 +595,8 @@ def test_a_hitch_carries_the_chain_with_the_head(integrator):
 def test_carry_with_anchors_keeps_the_chain_relative_to_its_anchor():
     """The carry itself: the chain's positions, orientations and velocities seen from the anchor
     body are the same before and after, so closed joints stay closed (position and velocity)."""
-    from ponytail_ros.core.simulator import carry_with_anchors
     from ponytail_ros.core.rotations import quat_conjugate, quat_multiply, quat_rotate
+    from ponytail_ros.core.simulator import carry_with_anchors
     motion = reference_motion()
     sim = make_sim(ponytail(), motion, RK4, 1 / 240)
     sim.advance_to(0.7, motion)
@@ -601,7 +610,8 @@ def test_carry_with_anchors_keeps_the_chain_relative_to_its_anchor():
         return (quat_rotate(qc, r), quat_multiply(qc, q),
                 quat_rotate(qc, v - a.velocity[0] - np.cross(a.angular_velocity[0], r)),
                 quat_rotate(qc, w - a.angular_velocity[0]))
-    for before, after in zip(seen_from(a0, st.x, st.q, st.v, st.w), seen_from(a1, x, q, v, w)):
+    for before, after in zip(seen_from(a0, st.x, st.q, st.v, st.w), seen_from(a1, x, q, v, w),
+                             strict=True):
         assert np.allclose(before, after, rtol=0, atol=1e-12)
     sim.reset(motion.state_at(2.3), 2.3, state=ChainState(x, q, v, w))
     assert np.max(sim.joint_gaps()) < 1e-12
@@ -723,5 +733,5 @@ def test_one_hour_at_120_hz_on_the_moving_head():
     assert abs(sim.t - n / 120.0) <= sim.dt
     assert gap_max < 1e-12
     assert len(resets) <= max(3, int(3 * SOAK_SECONDS / 3600))
-    assert all(b[0] - a[0] > 10.0 for a, b in zip(resets, resets[1:])), 'no reset storms'
+    assert all(b[0] - a[0] > 10.0 for a, b in pairwise(resets)), 'no reset storms'
     assert np.percentile(kes, 99.9) < 2.0   # typical 0.1 J, whips to ~0.5 J; a runaway is more

@@ -17,11 +17,23 @@ import pytest
 
 import ponytail_ros
 from ponytail_ros.app.runner import START_SAMPLES
+from ponytail_ros.testing import (
+    CheckFailed,
+    PoseSample,
+    assert_energy_does_not_grow,
+    assert_joints_closed,
+    assert_no_penetration,
+    assert_no_resets,
+    assert_tips_close,
+    assert_within_joint_limits,
+    joint_gaps,
+    load_config,
+    n_ticks,
+    run_offline,
+    still,
+    tick_period_ns,
+)
 from ponytail_ros.testing.motion import stamp_ns
-from ponytail_ros.testing import (CheckFailed, PoseSample, assert_energy_does_not_grow,
-                                  assert_joints_closed, assert_no_penetration, assert_no_resets,
-                                  assert_tips_close, assert_within_joint_limits, joint_gaps,
-                                  load_config, n_ticks, run_offline, still, tick_period_ns)
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = ROOT / 'examples' / 'my_character.yaml'
@@ -198,7 +210,7 @@ def test_harness_is_driven_by_sim_time_and_publishes_what_the_offline_path_compu
     offline = run_offline(PARAMS, walk, 1.0)
     assert np.array_equal(run.origins, offline.origins)
     assert np.array_equal(run.orientations, offline.orientations)
-    assert all(a == b for a, b in zip(got, offline.poses['segment_poses']))
+    assert all(a == b for a, b in zip(got, offline.poses['segment_poses'], strict=True))
     assert h.publish_diagnostics()['resets'] == '0'
 
 
@@ -254,7 +266,7 @@ def _parallel(tmp_path, discovery):
 @pytest.mark.ros
 def test_two_harnesses_in_parallel_on_one_domain_do_not_hear_each_other(tmp_path):
     pytest.importorskip('rclpy')
-    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF')):
+    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'OFF'), strict=True):
         assert 'error' not in r, r['error']
         assert r['n'] == published(1.0, 60.0) and r['resets'] == []
         roots, anchors = np.array(r['roots']), np.array(r['anchors'])
@@ -272,7 +284,7 @@ def test_the_parallel_check_sees_interference_when_both_runs_share_a_localhost_g
     /clock and outputs, and the harness says so (or the run's content shows it)."""
     pytest.importorskip('rclpy')
     disturbed = []
-    for offset, r in zip((0.0, 5.0), _parallel(tmp_path, 'LOCALHOST')):
+    for r in _parallel(tmp_path, 'LOCALHOST'):
         disturbed.append('error' in r or not r['same_as_offline'] or r['n'] != 60
                          or r['resets'] != [])
     assert any(disturbed)
@@ -285,8 +297,9 @@ def test_a_recorded_take_feeds_the_harness_as_its_samples_do(ponytail, tmp_path)
     harness and ``run_offline`` exactly as the same poses given as a list from t = 0."""
     pytest.importorskip('rclpy')
     rosbag2 = pytest.importorskip('rosbags.rosbag2')
-    from rosbags.typesys import Stores, get_typestore
     from rclpy.serialization import serialize_message
+    from rosbags.typesys import Stores, get_typestore
+
     from ponytail_ros.testing import bag_samples, sample_motion
     from ponytail_ros.testing.harness import HarnessError, pose_msg
     t0_ns = 1_700_000_000_123_456_789

@@ -10,9 +10,9 @@ pytest.importorskip('rclpy')
 highlevel = pytest.importorskip('rosbags.highlevel')
 typesys = pytest.importorskip('rosbags.typesys')
 
+from ponytail_ros.recording.tf import TFMESSAGE_TYPE, tf_message_cdr, tfmessage_type_hash  # noqa: E402
+
 from ros_helpers import head_samples, rosbags_bag, run  # noqa: E402
-from ponytail_ros.recording.tf import (TFMESSAGE_TYPE, tf_message_cdr,  # noqa: E402
-                                       tfmessage_type_hash)
 
 STORE = typesys.get_typestore(typesys.Stores.ROS2_KILTED)
 
@@ -62,10 +62,10 @@ def test_replay_output_has_every_segment_as_a_frame_matching_its_pose_to_1e_12(
     got = tf_and_arrays(out)
     tf, arrays = got['/tf'], got['/segment_poses']
     assert len(tf) == len(arrays) >= 100
-    for (log_tf, frames), (log_pa, array) in zip(tf, arrays):
+    for (log_tf, frames), (log_pa, array) in zip(tf, arrays, strict=True):
         assert log_tf == log_pa
         assert len(frames.transforms) == len(array.poses) == 4
-        for i, (tr, pose) in enumerate(zip(frames.transforms, array.poses)):
+        for i, (tr, pose) in enumerate(zip(frames.transforms, array.poses, strict=True)):
             assert tr.header.frame_id == array.header.frame_id == 'world'
             assert (tr.header.stamp.sec, tr.header.stamp.nanosec) == (
                 array.header.stamp.sec, array.header.stamp.nanosec)

@@ -250,8 +250,13 @@ def test_tf_input_skips_the_nodes_own_segments():
      ('arm.tf_frame', 'frames_topic'), 'not allowed with frames_topic'),
 ])
 def test_tf_parameters_are_refused_naming_them(changes, names, words):
-    from ponytail_ros.app.parameters import (CHAIN_PARAMS, FRAME_PARAMS, GLOBAL_PARAMS,
-                                             ParameterError, check_values)
+    from ponytail_ros.app.parameters import (
+        CHAIN_PARAMS,
+        FRAME_PARAMS,
+        GLOBAL_PARAMS,
+        ParameterError,
+        check_values,
+    )
     values = {p.name: p.default for p in GLOBAL_PARAMS}
     values.update({f'ponytail.{p.name}': p.default for p in CHAIN_PARAMS})
     values.update({f'arm.{p.name}': p.default for p in FRAME_PARAMS})

@@ -20,16 +20,17 @@ import pytest
 rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs is not installed: no live TF')
 
+from geometry_msgs.msg import PoseArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from geometry_msgs.msg import PoseArray  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
-from ros_helpers import TIMEOUT_SCALE, attach_point, check_geometry  # noqa: E402
 from ponytail_ros.app.param_values import values_from_params_file  # noqa: E402
 from ponytail_ros.app.wire import tf_message_fields  # noqa: E402
 from ponytail_ros.recording.bag import BagReader  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
+
+from ros_helpers import TIMEOUT_SCALE, attach_point, check_geometry  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -9,9 +9,10 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip('rclpy')
 
-from ros_helpers import poses_by_stamp  # noqa: E402
 from ponytail_ros.recording.inputs import ReplayError  # noqa: E402
 from ponytail_ros.recording.offline import replay  # noqa: E402
+
+from ros_helpers import poses_by_stamp  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -150,7 +151,7 @@ def _same_poses(a, b):
     worst = 0.0
     for stamp in pb:
         assert pa[stamp].header.frame_id == pb[stamp].header.frame_id == 'world'
-        for x, y in zip(pa[stamp].poses, pb[stamp].poses):
+        for x, y in zip(pa[stamp].poses, pb[stamp].poses, strict=True):
             worst = max(worst, math.dist((x.position.x, x.position.y, x.position.z),
                                          (y.position.x, y.position.y, y.position.z)))
     assert worst <= 1e-6

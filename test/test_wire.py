@@ -16,13 +16,12 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 pytest.importorskip('rclpy')
-from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
+from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from ponytail_ros.app.messages import SegmentPoses, segment_frame, tf_cdr  # noqa: E402
-from ponytail_ros.app.wire import (pose_array_cdr, pose_array_layout, pose_block,  # noqa: E402
-                                   tf_layout)
+from ponytail_ros.app.wire import pose_array_cdr, pose_array_layout, pose_block, tf_layout  # noqa: E402
 from ponytail_ros.recording.cdr import serialize_canonical  # noqa: E402
 from ponytail_ros.recording.tf import TFMESSAGE_TYPE, tf_message_cdr  # noqa: E402
 
@@ -136,7 +135,7 @@ def test_tf_message_is_the_hand_written_and_rosbags_serialisation(data, n, paren
     ours = tf_layout(parent, children).encode(sec, nanosec, block)
     rows = block.tolist()
     assert ours == tf_message_cdr((sec, nanosec, parent, c, r[:3], r[3:])
-                                  for c, r in zip(children, rows))
+                                  for c, r in zip(children, rows, strict=True))
     msg = tm[TFMESSAGE_TYPE](transforms=[
         tm['geometry_msgs/msg/TransformStamped'](
             header=tm['std_msgs/msg/Header'](
@@ -146,7 +145,7 @@ def test_tf_message_is_the_hand_written_and_rosbags_serialisation(data, n, paren
             transform=tm['geometry_msgs/msg/Transform'](
                 translation=tm['geometry_msgs/msg/Vector3'](x=r[0], y=r[1], z=r[2]),
                 rotation=tm['geometry_msgs/msg/Quaternion'](x=r[3], y=r[4], z=r[5], w=r[6])))
-        for c, r in zip(children, rows)])
+        for c, r in zip(children, rows, strict=True)])
     assert ours == bytes(store.serialize_cdr(msg, TFMESSAGE_TYPE))
 
 
@@ -157,9 +156,9 @@ def test_tf_of_several_chains_is_one_message_chain_after_chain():
     rows = np.concatenate([a.poses, b.poses]).tolist()
     names = ['p/left/0', 'p/left/1', 'p/left/2', 'p/right/0', 'p/right/1']
     assert tf_cdr([a, b], 'p/') == tf_message_cdr((0, 7, 'head', c, r[:3], r[3:])
-                                                  for c, r in zip(names, rows))
+                                                  for c, r in zip(names, rows, strict=True))
     assert a.tf_cdr('p/') == tf_message_cdr((0, 7, 'head', c, r[:3], r[3:])
-                                            for c, r in zip(names[:3], rows[:3]))
+                                            for c, r in zip(names[:3], rows[:3], strict=True))
 
 
 # -- MarkerArray -------------------------------------------------------------------------------
@@ -231,6 +230,7 @@ def test_marker_array_is_serialize_messages_bytes(params, overrides, changes):
 @given(data=st.data(), frame_id=FRAMES, sec=SEC, nanosec=NANOSEC)
 def test_received_pose_is_what_rclpy_deserialises(data, frame_id, sec, nanosec):
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.messages import ReceivedPose
     from ponytail_ros.app.wire import pose_stamped_fields
     row = data.draw(poses_of(1, FLOATS))[0].tolist()
@@ -254,6 +254,7 @@ def test_received_pose_is_what_rclpy_deserialises(data, frame_id, sec, nanosec):
 
 def test_what_the_decoder_leaves_to_rclpy():
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.wire import pose_stamped_fields
     msg = PoseStamped()
     msg.header.frame_id = 'world'
@@ -273,6 +274,7 @@ def test_received_pose_canonical_cdr_normalises_what_is_not():
     """Bytes that are canonical already are recorded as they are; encapsulation options, a
     set alignment gap or slack after the data are normalised away."""
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.app.messages import ReceivedPose
     from ponytail_ros.app.wire import is_canonical_pose_stamped
     msg = PoseStamped()

@@ -171,7 +171,7 @@ def get_requires_for_build_wheel(config_settings=None):
     pins = _target_versions()
     requires = [f'{r}=={pins[r]}' if r in pins else r for r in BUILD_REQUIRES]
     if not _cmake_ok():
-        requires.append('cmake>=%d.%d' % MIN_CMAKE)
+        requires.append(f'cmake>={MIN_CMAKE[0]}.{MIN_CMAKE[1]}')
     return requires
 
 

@@ -20,7 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any, Dict, List, Mapping, Tuple
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +39,7 @@ CHARACTER_PHASE = 0.37
 FRAMES_TOPIC = 'frame_poses'
 
 
-def crowd_offsets(n: int) -> List[Tuple[np.ndarray, float]]:
+def crowd_offsets(n: int) -> list[tuple[np.ndarray, float]]:
     """``(shift (3,) m, delay s)`` of characters 0..n-1: the head's motion delayed and
     shifted."""
     return [(np.array([k * CHARACTER_SPACING, 0.0, 0.0]), k * CHARACTER_PHASE)
@@ -51,7 +52,7 @@ def frame_name(k: int) -> str:
 
 
 def crowd_values(partial: Mapping[str, Any], n: int,
-                 frames_topic: str = FRAMES_TOPIC) -> Dict[str, Any]:
+                 frames_topic: str = FRAMES_TOPIC) -> dict[str, Any]:
     """The (partial, flat) parameter values of ``n`` characters from one character's
     ``partial`` (``values_from_params_file``). Raises ``ValueError`` for ``n`` < 1 or a scene
     with extra frames of its own (their copies would need poses nobody publishes)."""
@@ -86,8 +87,8 @@ def crowd_values(partial: Mapping[str, Any], n: int,
     return out
 
 
-def _nested(flat: Mapping[str, Any]) -> Dict[str, Any]:
-    tree: Dict[str, Any] = {}
+def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
     for key, value in flat.items():
         node = tree
         *groups, leaf = key.split('.')
@@ -102,7 +103,7 @@ def _scalar(value: Any) -> str:
     return json.dumps(value)
 
 
-def _block(tree: Mapping[str, Any], indent: int) -> List[str]:
+def _block(tree: Mapping[str, Any], indent: int) -> list[str]:
     """Mappings as blocks, lists in flow style, no anchors or aliases (what ROS 2's params
     file parser reads)."""
     lines = []

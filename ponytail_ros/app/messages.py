@@ -25,21 +25,29 @@ namespace ``colliders`` (id = the collider's index): a ``SPHERE``; a capsule as 
 a ``DELETEALL`` is sent first so that nothing stale lingers in RViz/Foxglove.
 """
 import math
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Dict, NamedTuple, Optional, Sequence, Tuple
+from typing import NamedTuple, Optional
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
 from visualization_msgs.msg import Marker, MarkerArray
 
-import numpy as np
-
 from ponytail_ros.core.marker_kernels import chain_numbers, collider_numbers
 from ponytail_ros.core.rotations import quat_from_two_vectors
 
-from .wire import (MarkerArrayLayout, MarkerSpec, TFLayout, is_canonical_pose_stamped,
-                   pose_array_fields, pose_array_layout, pose_block, pose_stamped_cdr,
-                   pose_stamped_fields)
+from .wire import (
+    MarkerArrayLayout,
+    MarkerSpec,
+    TFLayout,
+    is_canonical_pose_stamped,
+    pose_array_fields,
+    pose_array_layout,
+    pose_block,
+    pose_stamped_cdr,
+    pose_stamped_fields,
+)
 
 __all__ = ['SegmentPoses', 'SegmentMarkers', 'ReceivedPose', 'ReceivedPoses', 'Stamp', 'tf_cdr',
            'ChainMessages', 'ChainsMarkerNumbers', 'ColliderMarkers', 'DELETE_ALL',
@@ -85,7 +93,7 @@ def _axis_x(q: np.ndarray) -> np.ndarray:
     return e
 
 
-def _times_constant(b) -> Tuple[np.ndarray, ...]:
+def _times_constant(b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``quat_multiply(a, b)`` for a constant ``b`` as ``((aw K0 + ax K1) + ay K2) + az K3``:
     the four ``K`` (``(4,)``, the signed components of ``b`` in each term of the product)."""
     bx, by, bz, bw = (float(v) for v in b)
@@ -161,8 +169,8 @@ class SegmentPoses:
         sec, nanosec = self.stamp
         #: The ``PoseArray``'s CDR (encapsulation header included, padding zeroed).
         self.cdr: bytes = self._layout.encode(sec, nanosec, pose_block(origins, quats))
-        self._message: Optional[PoseArray] = None
-        self._tf: Dict[str, bytes] = {}
+        self._message: PoseArray | None = None
+        self._tf: dict[str, bytes] = {}
 
     @property
     def n(self) -> int:
@@ -228,7 +236,7 @@ def tf_cdr(segments: Sequence[SegmentPoses], prefix: str = '') -> bytes:
 
 
 @lru_cache(maxsize=256)
-def _tf_layout(frame_id: str, prefix: str, chains: Tuple[Tuple[str, int], ...]) -> TFLayout:
+def _tf_layout(frame_id: str, prefix: str, chains: tuple[tuple[str, int], ...]) -> TFLayout:
     """The ``TFLayout`` of the segments of ``chains`` (``(name, n_segments)``) under
     ``frame_id`` (the frame names built once, not every tick)."""
     return TFLayout(frame_id, [segment_frame(prefix, c, i) for c, n in chains for i in range(n)])
@@ -257,7 +265,7 @@ class ReceivedPose:
         self.frame_id = frame_id
         self.position = position
         self.orientation = orientation
-        self._message: Optional[PoseStamped] = None
+        self._message: PoseStamped | None = None
 
     @classmethod
     def decode(cls, cdr: bytes) -> Optional['ReceivedPose']:
@@ -301,7 +309,7 @@ class ReceivedPoses:
         self.stamp = stamp
         self.frame_id = frame_id
         self.poses = poses
-        self._message: Optional[PoseArray] = None
+        self._message: PoseArray | None = None
 
     @classmethod
     def decode(cls, cdr: bytes) -> Optional['ReceivedPoses']:
@@ -367,7 +375,7 @@ class SegmentMarkers:
         sec, nanosec = self.stamp_ns // 1_000_000_000, self.stamp_ns % 1_000_000_000
         #: The ``MarkerArray``'s CDR (encapsulation header included, padding zeroed).
         self.cdr: bytes = layout.encode(sec, nanosec, poses, points)
-        self._message: Optional[MarkerArray] = None
+        self._message: MarkerArray | None = None
 
     @property
     def wire(self) -> bytes:
@@ -382,7 +390,7 @@ class SegmentMarkers:
                          nanosec=self.stamp_ns % 1_000_000_000)
             markers, k = [], 0
             points = self.points.tolist()
-            for spec, row in zip(self.layout.specs, self.poses.tolist()):
+            for spec, row in zip(self.layout.specs, self.poses.tolist(), strict=True):
                 m = Marker()
                 m.header.frame_id = self.layout.frame_id
                 m.header.stamp = stamp
@@ -494,26 +502,26 @@ class ChainsMarkerNumbers:
     costs a few NumPy calls instead of a few per chain."""
 
     def __init__(self, counts: Sequence[int], lengths: np.ndarray):
-        counts = np.asarray(counts, dtype=np.int64)
-        c = np.arange(len(counts))
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        chain_of = np.repeat(c, counts)
-        self.n = int(counts.sum())
-        self.n_chains = len(counts)
+        n_seg = np.asarray(counts, dtype=np.int64)     # segments of each chain
+        c = np.arange(len(n_seg))
+        starts = np.concatenate([[0], np.cumsum(n_seg)[:-1]]).astype(np.int64)
+        chain_of = np.repeat(c, n_seg)
+        self.n = int(n_seg.sum())
+        self.n_chains = len(n_seg)
         self._lengths = np.ascontiguousarray(lengths, dtype=float)
-        self._last = starts + counts - 1                 # each chain's tip segment
+        self._last = starts + n_seg - 1                 # each chain's tip segment
         # capsules: chain c's rows in poses: its sphere list (identity), then its segments
         self._identity_rows = starts + c
         self._capsule_rows = np.arange(self.n) + chain_of + 1
         # its n + 1 joints in points: the segments' origins, then the tip
         self._origin_rows = np.arange(self.n) + chain_of
-        self._tip_rows = starts + counts + c
+        self._tip_rows = starts + n_seg + c
         # line: chain c's points are its joints twice (the sphere list's, the strip's)
         joint_rows = np.arange(self.n + self.n_chains)
-        joint_chain = np.repeat(c, counts + 1)
-        first = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
+        joint_chain = np.repeat(c, n_seg + 1)
+        first = np.concatenate([[0], np.cumsum(n_seg + 1)[:-1]])
         self._line_rows = np.concatenate([joint_rows + first[joint_chain],
-                                          joint_rows + first[joint_chain] + counts[joint_chain]
+                                          joint_rows + first[joint_chain] + n_seg[joint_chain]
                                           + 1])
 
     def numbers(self, origins: np.ndarray, quats: np.ndarray, style: str):

@@ -8,21 +8,36 @@ relative to its origin (``ChainRunner.seconds``), so nothing depends on the cloc
 per-tick logic (input checks, head estimation, stepping) is ``ChainRunner``; the parameter
 table is ``parameters.py``; messages are built by ``messages.py``.
 """
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, List, Mapping, Optional
+from typing import Any
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-import numpy as np
-
-from .messages import (DELETE_ALL, IDENTITY_POSE, ChainMessages, ChainsMarkerNumbers,
-                       ColliderMarkers, SegmentMarkers, SegmentPoses)
-from .wire import MarkerArrayLayout
-from .parameters import (build_runner_settings, chain_param_name, check_names, check_values,
-                         collider_names, definition, frame_names, frame_topics)
+from .messages import (
+    DELETE_ALL,
+    IDENTITY_POSE,
+    ChainMessages,
+    ChainsMarkerNumbers,
+    ColliderMarkers,
+    SegmentMarkers,
+    SegmentPoses,
+)
+from .parameters import (
+    build_runner_settings,
+    chain_param_name,
+    check_names,
+    check_values,
+    collider_names,
+    definition,
+    frame_names,
+    frame_topics,
+)
 from .runner import DROP_REASONS, RESET_REASONS, ChainRunner, TickOutput
 from .tf_input import TFInput
+from .wire import MarkerArrayLayout
 
 __all__ = ['NodeCore', 'NodeTick', 'LIVE_SETTINGS', 'MIN_RATE_PERIODS', 'OVERLOAD_FRACTION',
            'OVERLOADED', 'tick_rate', 'time_msg']
@@ -52,7 +67,7 @@ NOTICE_PERIOD_NS = 10_000_000_000
 MIN_RATE_PERIODS = 10
 
 
-def tick_rate(win: '_Window', rate: float) -> Optional[float]:
+def tick_rate(win: '_Window', rate: float) -> float | None:
     """The rate (Hz, node clock) of a window's tick calls, None over less than
     ``MIN_RATE_PERIODS`` periods of the nominal ``rate`` (Hz)."""
     span = (win.last_call_ns - win.first_call_ns) * 1e-9
@@ -76,16 +91,16 @@ class NodeTick:
 
     output: TickOutput
     frame_id: str
-    segments: List[SegmentPoses]
-    segment_markers: Optional[SegmentMarkers]
+    segments: list[SegmentPoses]
+    segment_markers: SegmentMarkers | None
 
     @property
-    def poses(self) -> List[Any]:
+    def poses(self) -> list[Any]:
         """The ``PoseArray`` message per chain."""
         return [s.message() for s in self.segments]
 
     @property
-    def markers(self) -> Optional[Any]:
+    def markers(self) -> Any | None:
         """The ``MarkerArray`` message, or None (no markers this tick)."""
         return None if self.segment_markers is None else self.segment_markers.message()
 
@@ -130,16 +145,16 @@ class NodeCore:
         self.runner = ChainRunner(self.scene, build_runner_settings(self.values), self.frames)
         self.stamp_source = self.values['stamp_source']
         #: The head (and frames) from TF (``head_frame`` set), else None.
-        self.tf: Optional[TFInput] = (TFInput(self.values) if self.values.get('head_frame')
+        self.tf: TFInput | None = (TFInput(self.values) if self.values.get('head_frame')
                                       else None)
         self._chain_msgs = self._make_chain_messages(self.scene)
         self._color_names = [chain_param_name(c, 'color') for c in self.chains]
         self._slices_model: Any = None
-        self._slices: List[slice] = []
+        self._slices: list[slice] = []
         self._msgs_scene = None     # the scene the chain messages were last checked against
         self._collider_markers = ColliderMarkers()
         self._marker_key: Any = None
-        self._marker_layout: Optional[MarkerArrayLayout] = None
+        self._marker_layout: MarkerArrayLayout | None = None
         self._numbers: Any = None
         self._numbers_for: Any = None
         self._last_marker_t = None
@@ -147,9 +162,9 @@ class NodeCore:
         self.window = _Window()
         #: Called as ``on_notice(key, text)`` with what the user should read on the terminal
         #: (a sparse head stream, a gap in it: ``ChainRunner.on_notice``), throttled per key.
-        self.on_notice: Optional[Callable[[str, str], None]] = None
+        self.on_notice: Callable[[str, str], None] | None = None
         self._notices: dict = {}
-        self._clock_ns: Optional[int] = None
+        self._clock_ns: int | None = None
         self.runner.on_notice = self._runner_notice
         self._dropped_at_diag = dict(self.runner.dropped)
 
@@ -203,11 +218,11 @@ class NodeCore:
     # -- the tick ------------------------------------------------------------------------------
     def _make_chain_messages(self, scene):
         msgs = [ChainMessages(c.name, c.lengths(), c.radius) for c in scene.chains]
-        for m, name in zip(msgs, self.chains):
+        for m, name in zip(msgs, self.chains, strict=True):
             m.set_color(self.values[chain_param_name(name, 'color')])
         return msgs
 
-    def tick(self, t_ns: int) -> Optional[NodeTick]:
+    def tick(self, t_ns: int) -> NodeTick | None:
         """Advance to ``t_ns``; the tick's messages, or None (no clock yet, no head pose yet, or
         no pose yet of a frame the scene uses)."""
         if t_ns == 0:                    # sim time before the first /clock
@@ -230,7 +245,7 @@ class NodeCore:
         if scene is not self._msgs_scene:     # (a Scene is frozen: the same one, the same chains)
             if any(m.n != c.n_segments or m.radius != c.radius or
                    not np.array_equal(m.lengths, c.lengths())
-                   for m, c in zip(self._chain_msgs, scene.chains)):
+                   for m, c in zip(self._chain_msgs, scene.chains, strict=True)):
                 self._chain_msgs = self._make_chain_messages(scene)
             self._msgs_scene = scene
         # No frame set and no head pose frame (an empty header.frame_id, or chains hanging
@@ -241,7 +256,7 @@ class NodeCore:
         slices = self._chain_slices()
         origins, orientations = out.origins, out.orientations
         poses = [cm.segment_poses(origins[sl], orientations[sl], frame, stamp_ns)
-                 for sl, cm in zip(slices, self._chain_msgs)]
+                 for sl, cm in zip(slices, self._chain_msgs, strict=True)]
         self.published += 1
         win, rep = self.window, out.report
         win.ticks += 1
@@ -280,7 +295,7 @@ class NodeCore:
         self._last_marker_t = out.t
         delete = False
         chain_specs = []
-        for cm, color_name in zip(self._chain_msgs, self._color_names):
+        for cm, color_name in zip(self._chain_msgs, self._color_names, strict=True):
             specs, changed = cm.marker_specs(style, values[color_name])
             delete = delete or changed
             chain_specs.append(specs)
@@ -347,7 +362,7 @@ class NodeCore:
 
     # -- diagnostics ---------------------------------------------------------------------------
     def diagnostic_status(self, t_ns: int, span: float, name: str,
-                          timing: Optional[Mapping[str, str]] = None) -> DiagnosticStatus:
+                          timing: Mapping[str, str] | None = None) -> DiagnosticStatus:
         """The status over the window since the last call (which it starts anew).
 
         ``span``: the window's length, s (wall time in the node, recorded time in a replay);
@@ -381,7 +396,7 @@ class NodeCore:
             flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
                                         f'(clocks differ? use_sim_time / stamp_source)')
         frames = []
-        for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics)):
+        for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics, strict=True)):
             state = ('none' if not r.has_frame(i)
                      else 'stale' if r.frame_stale(i, t) else 'ok')
             frames.append((f'frame {f}', state))
@@ -389,7 +404,7 @@ class NodeCore:
                 flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
             elif r.needs_frame(i) and state == 'stale':
                 flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
-        tf_kv: List[Any] = []
+        tf_kv: list[Any] = []
         if self.tf is not None:
             tf_problems, tf_kv = self.tf.diagnostics()
             for text in tf_problems:
@@ -414,7 +429,7 @@ class NodeCore:
             ('head poses accepted per s', f'{win.accepted / span:.1f}'),
             ('head poses accepted', str(r.accepted_total)),
         ]
-        for (key, state), n in zip(frames, r.frame_accepted_total):
+        for (key, state), n in zip(frames, r.frame_accepted_total, strict=True):
             kv += [(key, state), (f'{key} poses accepted', str(n))]
         kv += tf_kv
         kv += [

@@ -9,16 +9,22 @@ Regenerate the page after changing a parameter::
 """
 import sys
 import textwrap
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Tuple
 
-from .parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, FRAME_PARAMS, GLOBAL_PARAMS,
-                         NODE_PARAMS, ParamDef)
+from .parameters import (
+    CHAIN_PARAMS,
+    COLLIDER_PARAMS,
+    FRAME_PARAMS,
+    GLOBAL_PARAMS,
+    NODE_PARAMS,
+    ParamDef,
+)
 
 __all__ = ['GROUPS', 'UNITS', 'help_text', 'markdown', 'main']
 
 #: (heading, name prefix, definitions, what the prefix stands for), in page order.
-GROUPS: Tuple[Tuple[str, str, tuple, str], ...] = (
+GROUPS: tuple[tuple[str, str, tuple, str], ...] = (
     ('Global', '', GLOBAL_PARAMS, ''),
     ('Per chain', '<chain>.', CHAIN_PARAMS, 'every name in `chains`'),
     ('Per collider', '<collider>.', COLLIDER_PARAMS, 'every name in `colliders`'),
@@ -27,7 +33,7 @@ GROUPS: Tuple[Tuple[str, str, tuple, str], ...] = (
 )
 
 #: SI unit of each parameter (its name as in the table); '' for none (names, switches, counts).
-UNITS: Dict[str, str] = {
+UNITS: dict[str, str] = {
     'rate': 'Hz', 'interpolation_delay': 's', 'interpolation_delay_periods': 'input periods',
     'stale_timeout': 's', 'teleport_distance': 'm', 'teleport_angle': 'rad',
     'gravity': 'm/s²', 'wind': 'm/s', 'input_queue_size': 'poses', 'diagnostics_period': 's',
@@ -46,7 +52,7 @@ UNITS: Dict[str, str] = {
     'center': 'm', 'half_length': 'm',
 }
 #: Collider parameters whose unit differs from the chain parameter of the same name.
-_COLLIDER_UNITS: Dict[str, str] = {}
+_COLLIDER_UNITS: dict[str, str] = {}
 
 _TYPES = {'double': 'double', 'int': 'integer', 'bool': 'bool', 'string': 'string',
           'double3': '3 doubles', 'double4': '4 doubles', 'doubles': 'list of doubles',
@@ -85,8 +91,8 @@ def _changes(p: ParamDef) -> str:
     return 'rebuild' if p.rebuild else 'live'
 
 
-def _rows(prefix: str, defs: Iterable[ParamDef]) -> List[Tuple[str, ...]]:
-    rows = []
+def _rows(prefix: str, defs: Iterable[ParamDef]) -> list[tuple[str, ...]]:
+    rows: list[tuple[str, ...]] = []
     for p in defs:
         unit = UNITS.get(p.name, '') if prefix != '<collider>.' else _COLLIDER_UNITS.get(
             p.name, UNITS.get(p.name, ''))
@@ -136,7 +142,7 @@ def markdown() -> str:
 
 def help_text() -> str:
     """Every parameter for ``ponytail_node --help``: one entry per parameter."""
-    lines: List[str] = []
+    lines: list[str] = []
     for heading, prefix, defs, what in GROUPS:
         lines.append(f'{heading} parameters' + (f' ({prefix} = {what.replace("`", "")})'
                                                  if what else '') + ':')
@@ -154,7 +160,7 @@ def help_text() -> str:
     return '\n'.join(lines).rstrip('\n')
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Write the page to the path given (default: print it)."""
     args = sys.argv[1:] if argv is None else argv
     text = markdown()

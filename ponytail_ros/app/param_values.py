@@ -13,14 +13,24 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
+from typing import Any
 
 import yaml
 
 from ponytail_ros.app.parameters import (
-    CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS, FRAME_PARAMS, GLOBAL_PARAMS, ParameterError,
-    build_runner_settings, chain_param_name, check_names, check_values, definition,
+    CHAIN_PARAMS,
+    COLLIDER_PARAMS,
+    DEFAULT_COLORS,
+    FRAME_PARAMS,
+    GLOBAL_PARAMS,
+    ParameterError,
+    build_runner_settings,
+    chain_param_name,
+    check_names,
+    check_values,
+    definition,
 )
 
 __all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
@@ -33,7 +43,7 @@ IGNORED_NAMES = frozenset({'use_sim_time', 'record_path', 'start_type_descriptio
                            'tf.publish', 'tf.prefix'})
 
 
-def default_values(chains, colliders=(), frames=()) -> Dict[str, Any]:
+def default_values(chains, colliders=(), frames=()) -> dict[str, Any]:
     """Every parameter's default for these chain, collider and frame names, as the node
     declares them."""
     values = {p.name: _copy(p.default) for p in GLOBAL_PARAMS}
@@ -62,39 +72,49 @@ def _is_number(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _is_integer(v):
+    return _is_number(v) and float(v).is_integer()
+
+
+def _is_numbers(v):
+    return isinstance(v, (list, tuple)) and all(_is_number(x) for x in v)
+
+
+def _is_strings(v):
+    return isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v)
+
+
+def _floats(v):
+    return [float(x) for x in v]
+
+
+def _same(v):
+    return v
+
+
+#: kind -> (accepts(value), the value converted, what an error says was expected)
+_KINDS = {
+    'double': (_is_number, float, 'a number'),
+    'int': (_is_integer, int, 'an integer'),
+    'bool': (lambda v: isinstance(v, bool), _same, 'true or false'),
+    'string': (lambda v: isinstance(v, str), _same, 'a string'),
+    'double3': (_is_numbers, _floats, 'a list of numbers'),
+    'double4': (_is_numbers, _floats, 'a list of numbers'),
+    'doubles': (_is_numbers, _floats, 'a list of numbers'),
+    'strings': (_is_strings, list, 'a list of strings'),
+}
+
+
 def _coerce(name, kind, value):
     """Type check and conversion as the node's declaration (plus its int→double coercion)
     does; raises ``ParameterError`` naming the parameter."""
-    def bad(expected):
-        return ParameterError(name, f'{name} = {value!r} has the wrong type: expected {expected}')
-    if kind == 'double':
-        if not _is_number(value):
-            raise bad('a number')
-        return float(value)
-    if kind == 'int':
-        if _is_number(value) and float(value).is_integer():
-            return int(value)
-        raise bad('an integer')
-    if kind == 'bool':
-        if not isinstance(value, bool):
-            raise bad('true or false')
-        return value
-    if kind == 'string':
-        if not isinstance(value, str):
-            raise bad('a string')
-        return value
-    if kind in ('double3', 'double4', 'doubles'):
-        if not isinstance(value, (list, tuple)) or not all(_is_number(v) for v in value):
-            raise bad('a list of numbers')
-        return [float(v) for v in value]
-    if kind == 'strings':
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise bad('a list of strings')
-        return list(value)
-    raise bad(kind)  # pragma: no cover - every kind is listed above
+    accepts, converted, expected = _KINDS.get(kind, (lambda v: False, _same, kind))
+    if not accepts(value):
+        raise ParameterError(name, f'{name} = {value!r} has the wrong type: expected {expected}')
+    return converted(value)
 
 
-def complete_values(partial: Mapping[str, Any]) -> Dict[str, Any]:
+def complete_values(partial: Mapping[str, Any]) -> dict[str, Any]:
     """The node's full parameter set given ``partial`` (name -> value; the rest defaults).
 
     Unknown names are ignored as the node ignores undeclared overrides (those in
@@ -127,7 +147,7 @@ def unknown_names(partial: Mapping[str, Any]):
                   if definition(n, chains, colliders, frames) is None and n not in IGNORED_NAMES)
 
 
-def closest_name(name: str, known) -> Optional[str]:
+def closest_name(name: str, known) -> str | None:
     """The known name most like ``name`` (a typo's intended name), or None."""
     import difflib
     match = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
@@ -141,7 +161,7 @@ def unknown_parameter_warning(name: str, known) -> str:
     return f'unknown parameter {name!r} ignored{hint}'
 
 
-def unknown_parameter_warnings(partial: Mapping[str, Any]) -> List[str]:
+def unknown_parameter_warnings(partial: Mapping[str, Any]) -> list[str]:
     """One warning per name in ``partial`` that no node with its chains, colliders and
     frames has, naming the closest known parameter."""
     unknown = unknown_names(partial) if partial else []
@@ -165,7 +185,7 @@ def scene_and_settings(values: Mapping[str, Any]):
 # -- params files ------------------------------------------------------------------------------
 
 
-def _flatten(tree: Mapping, prefix: str = '') -> Dict[str, Any]:
+def _flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
     out = {}
     for key, value in tree.items():
         name = f'{prefix}{key}'
@@ -186,7 +206,7 @@ def _section_matches(pattern: str, node_fqn: str) -> bool:
     return re.fullmatch(regex, node_fqn) is not None
 
 
-def values_from_params_file(path: Union[str, Path], node_fqn: str = '/ponytail') -> Dict[str, Any]:
+def values_from_params_file(path: str | Path, node_fqn: str = '/ponytail') -> dict[str, Any]:
     """The parameters a node named ``node_fqn`` gets from a ROS 2 params file.
 
     Every section (``/**:``, ``ponytail:``, ``/alice/ponytail:``, wildcards) matching the node
@@ -207,7 +227,7 @@ def values_from_params_file(path: Union[str, Path], node_fqn: str = '/ponytail')
     if not isinstance(tree, Mapping):
         raise ParameterError('params', f'params file {path} is not a ROS 2 params file '
                                        f'(expected "/**: ros__parameters: ...")')
-    values: Dict[str, Any] = {}
+    values: dict[str, Any] = {}
     found = False
     for section, body in tree.items():
         if not isinstance(body, Mapping) or 'ros__parameters' not in body:
@@ -224,12 +244,12 @@ def values_from_params_file(path: Union[str, Path], node_fqn: str = '/ponytail')
 # -- recording metadata ------------------------------------------------------------------------
 
 
-def metadata_from_values(values: Mapping[str, Any]) -> Dict[str, str]:
+def metadata_from_values(values: Mapping[str, Any]) -> dict[str, str]:
     """name -> JSON text of the value, every entry a str (an MCAP metadata record)."""
     return {name: json.dumps(_copy(value)) for name, value in values.items()}
 
 
-def values_from_metadata(record: Mapping[str, str]) -> Dict[str, Any]:
+def values_from_metadata(record: Mapping[str, str]) -> dict[str, Any]:
     """Inverse of :func:`metadata_from_values`; a hand-edited YAML value is accepted too.
 
     Raises:
@@ -248,8 +268,8 @@ def values_from_metadata(record: Mapping[str, str]) -> Dict[str, Any]:
     return values
 
 
-def resolve_values(params_file: Optional[Union[str, Path]], recorded: Optional[Mapping[str, str]],
-                   node_fqn: str = '/ponytail') -> Tuple[Dict[str, Any], str]:
+def resolve_values(params_file: str | Path | None, recorded: Mapping[str, str] | None,
+                   node_fqn: str = '/ponytail') -> tuple[dict[str, Any], str]:
     """The full parameter set of a replay and where it came from: ``params_file`` if given,
     else the recording's ``recorded`` metadata, else the package's default config."""
     if params_file is not None:

@@ -47,15 +47,27 @@ Live or not (``ParamDef.live``):
 
 This module does not import rclpy (the descriptors are built by the node).
 """
-from dataclasses import dataclass, replace
 import math
 import re
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ponytail_ros.core.scene import (COLLIDER_KINDS, ChainSpec, ColliderSpec, DAMPING_METHODS,
-                                     INTEGRATORS, LINEAR_SOLVERS, MAX_COLLIDERS, MAX_LIMIT,
-                                     MAX_SEGMENTS, Scene, SceneError, SolverSpec)
+from ponytail_ros.core.scene import (
+    COLLIDER_KINDS,
+    DAMPING_METHODS,
+    INTEGRATORS,
+    LINEAR_SOLVERS,
+    MAX_COLLIDERS,
+    MAX_LIMIT,
+    MAX_SEGMENTS,
+    ChainSpec,
+    ColliderSpec,
+    Scene,
+    SceneError,
+    SolverSpec,
+)
+
 from .runner import OUTPUT_STAMPS, RunnerSettings
 
 __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAME_PARAMS',
@@ -101,9 +113,9 @@ class ParamDef:
     default: object
     kind: str
     description: str
-    lo: float = None
-    hi: float = None
-    choices: tuple = None
+    lo: float | None = None
+    hi: float | None = None
+    choices: tuple | None = None
     live: bool = True
     rebuild: bool = False
 
@@ -433,19 +445,25 @@ def check_names(chains, colliders=(), frames=()):
                                        f'allowed')
     groups = (('chains', chains), ('colliders', colliders), ('frames', frames))
     for param, names in groups:
-        for n in names:
-            if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
-                raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
-                                     f'digits, underscores, starting with a letter; not one of '
-                                     f'{", ".join(RESERVED_NAMES)})')
-        if len(set(names)) != len(names):
-            raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
+        _check_group(param, names)
     for i, (pa, a) in enumerate(groups):
         for pb, b in groups[i + 1:]:
             shared = sorted(set(a) & set(b))
             if shared:
                 raise ParameterError((pa, pb), f'{pa} and {pb} share the name(s) {shared}: '
                                                f'every name prefixes its own parameters')
+
+
+def _check_group(param, names):
+    """The names of one list parameter (``chains``, ``colliders``, ``frames``): each valid and
+    not reserved, all distinct."""
+    for n in names:
+        if not _CHAIN_NAME.match(n) or n in RESERVED_NAMES:
+            raise ParameterError(param, f'{param}: {n!r} is not a valid name (letters, '
+                                 f'digits, underscores, starting with a letter; not one of '
+                                 f'{", ".join(RESERVED_NAMES)})')
+    if len(set(names)) != len(names):
+        raise ParameterError(param, f'{param}: duplicate names in {list(names)}')
 
 
 def _check_frame_topics(values, frames):
@@ -587,7 +605,7 @@ def build_scene(values, chains):
         specs.append(ChainSpec(
             name=c, n_segments=n, length=float(v['length']),
             mass=float(v['mass']), radius=float(v['radius']), **per_segment,
-            inertia=tuple(zip(inertia[0::3], inertia[1::3], inertia[2::3])) or None,
+            inertia=tuple(zip(inertia[0::3], inertia[1::3], inertia[2::3], strict=True)) or None,
             anchor_body=body_of(chain_param_name(c, 'anchor'), v['anchor'], world_body),
             attach=_vector(v['attach']),
             rest_direction=None if not any(rest) else rest,

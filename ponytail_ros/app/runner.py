@@ -115,8 +115,12 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ponytail_ros.core.head import KinematicState
-from ponytail_ros.core.head_estimation import (REJECT_REASONS, RESTARTED, HeadEstimator,
-                                              HeadEstimatorBank)
+from ponytail_ros.core.head_estimation import (
+    REJECT_REASONS,
+    RESTARTED,
+    HeadEstimator,
+    HeadEstimatorBank,
+)
 from ponytail_ros.core.simulator import Simulator, StepReport
 
 __all__ = ['ChainRunner', 'RunnerSettings', 'TickOutput', 'DROP_REASONS', 'RESET_REASONS',
@@ -230,11 +234,11 @@ class TickOutput:
     origins: np.ndarray
     orientations: np.ndarray
     report: StepReport
-    reset_reason: str
+    reset_reason: str | None
     head_stale: bool
     newest_stamp: float
     accepted: int
-    t_state: float = None
+    t_state: float
     frames_reset: tuple = ()
 
 
@@ -243,7 +247,8 @@ def structural_change(old, new):
     if len(old.chains) != len(new.chains):
         return True
     strip_c = {f: 0.0 for f in TUNABLE_CHAIN_FIELDS}
-    if any(replace(a, **strip_c) != replace(b, **strip_c) for a, b in zip(old.chains, new.chains)):
+    if any(replace(a, **strip_c) != replace(b, **strip_c)
+           for a, b in zip(old.chains, new.chains, strict=True)):
         return True
     return (old.n_kinematic_bodies != new.n_kinematic_bodies or old.solver != new.solver
             or old.colliders != new.colliders)
@@ -942,7 +947,7 @@ class ChainRunner:
         old = self.scene
         if tuple(scene.gravity) != tuple(old.gravity) or tuple(scene.wind) != tuple(old.wind):
             self.sim.set_parameters(gravity=scene.gravity, wind=scene.wind)
-        for i, (a, b) in enumerate(zip(old.chains, scene.chains)):
+        for i, (a, b) in enumerate(zip(old.chains, scene.chains, strict=True)):
             changed = {f: getattr(b, f) for f in TUNABLE_CHAIN_FIELDS
                        if getattr(a, f) != getattr(b, f)}
             if changed:

@@ -13,20 +13,21 @@ input, the publishing time of an output.
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional, Protocol, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any, Protocol
 
 from .node_core import NodeTick
 
 __all__ = ['TickSink', 'Sinks', 'HEAD']
 
 #: ``source`` of :meth:`TickSink.on_input` for the head pose (a frame's is its index).
-HEAD: Optional[int] = None
+HEAD: int | None = None
 
 
 class TickSink(Protocol):
     """Receives everything the node handles or emits, in the order it does."""
 
-    def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
+    def on_input(self, source: int | None, msg: Any, log_time_ns: int) -> None:
         """An input pose as received (a message, or the node's ``ReceivedPose``: its CDR and
         fields, ``.message()``): ``source`` is ``HEAD`` (None) or the frame's index."""
 
@@ -51,7 +52,7 @@ class Sinks:
     def __init__(self, sinks: Sequence[TickSink] = ()):
         self.sinks = list(sinks)
 
-    def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
+    def on_input(self, source: int | None, msg: Any, log_time_ns: int) -> None:
         for s in self.sinks:
             s.on_input(source, msg, log_time_ns)
 

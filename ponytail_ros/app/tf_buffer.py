@@ -24,8 +24,8 @@ from __future__ import annotations
 import math
 from bisect import bisect_left
 from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 __all__ = ['TFError', 'TFBuffer', 'Edge', 'Lookup', 'TFPoseSource', 'TFSample',
            'CACHE_NS', 'compose', 'invert', 'interpolate']
@@ -33,9 +33,9 @@ __all__ = ['TFError', 'TFBuffer', 'Edge', 'Lookup', 'TFPoseSource', 'TFSample',
 #: How long dynamic samples are kept behind an edge's newest (tf2's default cache time).
 CACHE_NS = 10_000_000_000
 
-Vec = Tuple[float, float, float]
-Quat = Tuple[float, float, float, float]
-Pose = Tuple[Vec, Quat]
+Vec = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+Pose = tuple[Vec, Quat]
 
 
 class TFError(LookupError):
@@ -114,8 +114,8 @@ class Edge:
     child: str
     static: bool
     #: integer ns stamps, increasing; ``values[i]`` the pose at ``stamps[i]``
-    stamps: List[int] = field(default_factory=list)
-    values: List[Pose] = field(default_factory=list)
+    stamps: list[int] = field(default_factory=list)
+    values: list[Pose] = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -125,7 +125,7 @@ class Edge:
     def newest(self) -> int:
         return self.stamps[-1]
 
-    def at(self, t_ns: int) -> Tuple[Pose, int]:
+    def at(self, t_ns: int) -> tuple[Pose, int]:
         """The pose at ``t_ns`` and how far (ns, > 0) ``t_ns`` lies outside the samples (the
         nearest sample held then; 0 within them or for a static edge)."""
         if self.static:
@@ -153,7 +153,7 @@ class Lookup:
     t_ns: int
     position: Vec
     orientation: Quat
-    held: Tuple[Tuple[str, int], ...] = ()
+    held: tuple[tuple[str, int], ...] = ()
 
 
 class TFBuffer:
@@ -167,7 +167,7 @@ class TFBuffer:
 
     def __init__(self, cache_ns: int = CACHE_NS):
         self.cache_ns = int(cache_ns)
-        self.edges: Dict[str, Edge] = {}
+        self.edges: dict[str, Edge] = {}
         self.version = 0
         self.old = 0
         self.repeated = 0
@@ -219,9 +219,9 @@ class TFBuffer:
         edge.values.insert(i, pose)
         return True
 
-    def add_transforms(self, transforms: Iterable[Tuple[int, int, str, str, Sequence[float],
+    def add_transforms(self, transforms: Iterable[tuple[int, int, str, str, Sequence[float],
                                                         Sequence[float]]],
-                       static: bool = False) -> List[Tuple[str, int]]:
+                       static: bool = False) -> list[tuple[str, int]]:
         """The transforms of one ``TFMessage`` (``wire.tf_message_fields``: ``(sec, nanosec,
         parent, child, translation, rotation)``); returns ``(child, stamp_ns)`` of the moving
         samples stored. An invalid transform raises ``ValueError`` naming it; the ones before
@@ -235,9 +235,9 @@ class TFBuffer:
         return added
 
     # -- paths and look-ups ---------------------------------------------------------------
-    def _ancestors(self, frame: str) -> List[Edge]:
+    def _ancestors(self, frame: str) -> list[Edge]:
         """The edges from ``frame`` up to its root, nearest first."""
-        out: List[Edge] = []
+        out: list[Edge] = []
         seen = {frame}
         edge = self.edges.get(frame)
         while edge is not None:
@@ -250,7 +250,7 @@ class TFBuffer:
             edge = self.edges.get(edge.parent)
         return out
 
-    def path(self, fixed_frame: str, frame: str) -> Tuple[List[Edge], List[Edge]]:
+    def path(self, fixed_frame: str, frame: str) -> tuple[list[Edge], list[Edge]]:
         """The edges from ``fixed_frame`` up to the common ancestor and from ``frame`` up to
         it (each nearest first). Raises ``TFError`` naming the frames."""
         known = self.frames()
@@ -278,7 +278,7 @@ class TFBuffer:
         return _compose_path(up_fixed, up_frame, int(t_ns))
 
 
-def _down(edges: List[Edge], t_ns: int, held: List[Tuple[str, int]]) -> Pose:
+def _down(edges: list[Edge], t_ns: int, held: list[tuple[str, int]]) -> Pose:
     """The pose of the first edge's child in the last edge's parent (edges nearest first)."""
     pose: Pose = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     for edge in reversed(edges):
@@ -289,8 +289,8 @@ def _down(edges: List[Edge], t_ns: int, held: List[Tuple[str, int]]) -> Pose:
     return pose
 
 
-def _compose_path(up_fixed: List[Edge], up_frame: List[Edge], t_ns: int) -> Lookup:
-    held: List[Tuple[str, int]] = []
+def _compose_path(up_fixed: list[Edge], up_frame: list[Edge], t_ns: int) -> Lookup:
+    held: list[tuple[str, int]] = []
     pose = compose(invert(_down(up_fixed, t_ns, held)), _down(up_frame, t_ns, held))
     return Lookup(t_ns, pose[0], pose[1], tuple(held))
 
@@ -329,25 +329,25 @@ class TFPoseSource:
         self.wait_ns = int(wait_ns)
         self.stale_ns = int(stale_ns)
         self._version = -1
-        self._path: Optional[Tuple[List[Edge], List[Edge]]] = None
+        self._path: tuple[list[Edge], list[Edge]] | None = None
         self._on_path: set = set()
         self._pending: set = set()
         #: stamps seen (of any edge) while the path is unknown: used once it is found
-        self._unplaced: Dict[str, List[int]] = {}
-        self.last_ns: Optional[int] = None
+        self._unplaced: dict[str, list[int]] = {}
+        self.last_ns: int | None = None
         self.missing = 0
         #: polls in a row that could not find the path (0 once it is found)
         self.failing = 0
-        self.error: Optional[str] = None
+        self.error: str | None = None
         self.late = 0
         #: edge name -> poses given with that edge held past its newest (or before its oldest)
         self.extrapolated: Counter = Counter()
         #: edge name -> poses given with that edge held for more than ``stale_ns``
         self.stale: Counter = Counter()
         #: the last pose's held edges (``Lookup.held``)
-        self.last_held: Tuple[Tuple[str, int], ...] = ()
+        self.last_held: tuple[tuple[str, int], ...] = ()
 
-    def note(self, samples: Iterable[Tuple[str, int]]) -> None:
+    def note(self, samples: Iterable[tuple[str, int]]) -> None:
         """Moving samples stored: ``(child frame, stamp ns)``."""
         self._refresh()
         for child, stamp in samples:
@@ -379,13 +379,13 @@ class TFPoseSource:
         self._unplaced.clear()
 
     @property
-    def moving_edges(self) -> List[Edge]:
+    def moving_edges(self) -> list[Edge]:
         """The moving edges on the path (empty when it is unknown)."""
         if self._path is None:
             return []
         return [e for edges in self._path for e in edges if not e.static]
 
-    def poll(self) -> List[TFSample]:
+    def poll(self) -> list[TFSample]:
         """The poses now due (class docstring), oldest first."""
         self._refresh()
         if self._path is None:
@@ -413,7 +413,7 @@ class TFPoseSource:
         self.last_ns = due[-1]
         return out
 
-    def _due(self) -> List[int]:
+    def _due(self) -> list[int]:
         """The pending stamps now due, in order (taken out of the pending ones)."""
         moving = self.moving_edges
         if not self._pending or not moving:

@@ -8,7 +8,8 @@ are counted for ``/diagnostics`` and said in words naming the frames (:meth:`TFI
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, List, Optional, Tuple, Union
+from collections.abc import Iterable
+from typing import Any, TypeAlias
 
 from .messages import TF_TOPIC, ReceivedPose, Stamp
 from .parameters import chain_param_name, frame_names
@@ -24,15 +25,15 @@ TF_STATIC_TOPIC = '/tf_static'
 FAILING_SAID = 10
 
 #: A source: 'head' or the index of an extra frame in ``frames``.
-Source = Union[str, int]
+Source: TypeAlias = str | int
 
 
-def tf_frames(values) -> Dict[Source, str]:
+def tf_frames(values) -> dict[Source, str]:
     """What comes from TF in a value set: ``{'head': head_frame, i: <frames[i]>.tf_frame}``
     for those set (empty when ``head_frame`` is '')."""
     if not values.get('head_frame'):
         return {}
-    out: Dict[Source, str] = {'head': str(values['head_frame']).lstrip('/')}
+    out: dict[Source, str] = {'head': str(values['head_frame']).lstrip('/')}
     for i, f in enumerate(frame_names(values)):
         frame = str(values.get(chain_param_name(f, 'tf_frame')) or '').lstrip('/')
         if frame:
@@ -53,24 +54,24 @@ class TFInput:
         self.frames = frame_names(values)
         wait_ns = int(round(float(values['stale_timeout']) * 1e9))
         self.buffer = TFBuffer()
-        self.sources: Dict[Source, TFPoseSource] = {
+        self.sources: dict[Source, TFPoseSource] = {
             source: TFPoseSource(self.buffer, self.fixed_frame, frame, wait_ns=wait_ns,
                                  stale_ns=wait_ns)
             for source, frame in tf_frames(values).items()}
         #: ``/tf`` messages that could not be read or held an invalid transform
         self.bad_messages = 0
-        self.last_bad: Optional[str] = None
+        self.last_bad: str | None = None
         #: Child frames starting with these are skipped: the node's own segments, which it
         #: hears back on ``/tf`` (set by the node: ``<tf.prefix><chain>/``).
-        self.ignore_prefixes: Tuple[str, ...] = ()
-        self._said: Dict[str, Any] = {}
+        self.ignore_prefixes: tuple[str, ...] = ()
+        self._said: dict[str, Any] = {}
 
     def describe(self, source: Source) -> str:
         """``TF <fixed_frame> -> <frame>`` (log messages, the head's 'topic')."""
         return f'TF {self.fixed_frame} -> {self.sources[source].frame}'
 
-    def add(self, transforms: Iterable[Tuple[int, int, str, str, Any, Any]],
-            static: bool) -> List[Tuple[Source, ReceivedPose]]:
+    def add(self, transforms: Iterable[tuple[int, int, str, str, Any, Any]],
+            static: bool) -> list[tuple[Source, ReceivedPose]]:
         """One ``TFMessage``'s transforms (``wire.tf_message_fields``) into the buffer; the poses
         now due, as ``(source, ReceivedPose)`` in stamp order per source."""
         if self.ignore_prefixes:
@@ -104,7 +105,7 @@ class TFInput:
         return 'head' if source == 'head' else f'frame {self.frames[int(source)]}'
 
     # -- what is counted and said ---------------------------------------------------------
-    def diagnostics(self) -> Tuple[List[str], List[Tuple[str, str]]]:
+    def diagnostics(self) -> tuple[list[str], list[tuple[str, str]]]:
         """``(problems, key-values)`` for the node's ``DiagnosticStatus``: per source its TF
         path's state, the poses given, the transforms held past their samples."""
         problems, kv = [], []
@@ -128,7 +129,7 @@ class TFInput:
                ('tf old samples dropped', str(self.buffer.old))]
         return problems, kv
 
-    def news(self) -> List[Tuple[str, str]]:
+    def news(self) -> list[tuple[str, str]]:
         """``(key, text)`` of what went wrong since the last call (a frame missing, a transform
         held past its samples, a bad message), in words naming the frames; the node says
         them on its terminal (throttled by key)."""

@@ -33,9 +33,9 @@ so each is computed once (cached) and a tick fills in the stamp and the numbers.
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -74,7 +74,7 @@ def pose_block(origins: np.ndarray, quats: np.ndarray) -> np.ndarray:
     return block if block.dtype == _F8 else block.astype(_F8)
 
 
-def _gather(size: int, at: np.ndarray, points_at: Optional[np.ndarray] = None) -> np.ndarray:
+def _gather(size: int, at: np.ndarray, points_at: np.ndarray | None = None) -> np.ndarray:
     """The byte indices that make a message of a template of ``size`` bytes in one ``take``:
     from the template followed by the stamp (8 bytes), the poses (``(n, 7)`` float64, ``n =
     len(at)``) and the points (``(p, 3)`` float64); ``at`` ``(n, 64)``: where each row's stamp
@@ -194,7 +194,7 @@ class TFLayout:
 
 
 @lru_cache(maxsize=256)
-def tf_layout(parent: str, children: Tuple[str, ...]) -> TFLayout:
+def tf_layout(parent: str, children: tuple[str, ...]) -> TFLayout:
     """The (cached) :class:`TFLayout` of ``children`` (a tuple) under ``parent``."""
     return TFLayout(parent, children)
 
@@ -209,8 +209,8 @@ class MarkerSpec:
     id: int
     type: int
     action: int
-    scale: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    color: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    scale: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    color: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     n_points: int = 0
 
 
@@ -229,7 +229,9 @@ class MarkerArrayLayout:
         self.n = len(self.specs)
         self.n_points = sum(s.n_points for s in self.specs)
         body = bytearray(_U32.pack(self.n))
-        stamps, poses, points = [], [], []
+        stamps: list[int] = []
+        poses: list[int] = []
+        points: list[int] = []
         for spec in self.specs:
             _align(body, 4)
             stamps.append(len(body))
@@ -295,8 +297,8 @@ class MarkerArrayLayout:
         return src.take(self._gather).tobytes()
 
 
-def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[float, ...],
-                                                      Tuple[float, ...]]]:
+def pose_stamped_fields(data: bytes) -> tuple[int, int, str, tuple[float, ...],
+                                              tuple[float, ...]] | None:
     """``(sec, nanosec, frame_id, (x, y, z), (qx, qy, qz, qw))`` of the CDR of a
     ``geometry_msgs/msg/PoseStamped`` (what a raw subscription receives); None if ``data`` is
     not plain little-endian CDR of that layout, or its frame is not plain UTF-8 without a
@@ -320,7 +322,7 @@ def pose_stamped_fields(data: bytes) -> Optional[Tuple[int, int, str, Tuple[floa
     return sec, nanosec, frame_id, pose[:3], pose[3:]
 
 
-def pose_array_fields(data: bytes) -> Optional[Tuple[int, int, str, np.ndarray]]:
+def pose_array_fields(data: bytes) -> tuple[int, int, str, np.ndarray] | None:
     """``(sec, nanosec, frame_id, poses)`` of the CDR of a ``geometry_msgs/msg/PoseArray``,
     ``poses`` ``(n, 7)`` (x, y, z, qx, qy, qz, qw; a read-only view of ``data``); None if
     ``data`` is not plain little-endian CDR of that layout, or its frame is not plain UTF-8
@@ -372,7 +374,7 @@ def is_canonical_pose_stamped(data: bytes) -> bool:
     return len(data) == at + 8 * POSE_FLOATS and not any(data[end:at])
 
 
-def _read_string(data: bytes, at: int) -> Tuple[str, int]:
+def _read_string(data: bytes, at: int) -> tuple[str, int]:
     """A CDR string at ``at`` (aligned to 4 from the encapsulation's end): its text and the
     offset after it. Raises ``ValueError`` when it does not fit or is not UTF-8."""
     at += -(at - len(ENCAPSULATION)) % 4
@@ -383,8 +385,8 @@ def _read_string(data: bytes, at: int) -> Tuple[str, int]:
     return data[at + 4:end - 1].decode('utf-8'), end
 
 
-def tf_message_fields(data: bytes) -> List[Tuple[int, int, str, str, Tuple[float, ...],
-                                                  Tuple[float, ...]]]:
+def tf_message_fields(data: bytes) -> list[tuple[int, int, str, str, tuple[float, ...],
+                                                  tuple[float, ...]]]:
     """The transforms of the CDR of a ``tf2_msgs/msg/TFMessage`` (``/tf``, ``/tf_static``) as
     ``(sec, nanosec, parent frame_id, child_frame_id, (x, y, z), (qx, qy, qz, qw))``: read with
     ``struct``, so neither ``tf2_msgs`` nor a message object is needed (the inverse of

@@ -50,13 +50,14 @@ and the run metadata, ``recommend`` the choice of the default setting.
 # First, before anything imports NumPy: one BLAS thread (see ``blas_threads``).
 from . import blas_threads
 
+# isort: split
 import argparse
 import json
 import os
 import sys
 import time
 from types import ModuleType
-from typing import Any, Optional
+from typing import Any
 
 from ponytail_ros.core.compile import report_compile
 
@@ -157,12 +158,12 @@ def run_tool(name: str, argv: list[str]) -> int:
     """Run the measurement ``name`` of ``TOOLS`` with its own command line ``argv``."""
     import importlib
     module, _, preset = TOOLS[name]
-    main = getattr(importlib.import_module(f'{__package__}.{module}'), 'main')
+    main = importlib.import_module(f'{__package__}.{module}').main
     status = main([*preset, *argv])
     return status if isinstance(status, int) else 0
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """``ponytail_bench [options] [command] [options]``; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in TOOLS:

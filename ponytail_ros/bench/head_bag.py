@@ -13,8 +13,9 @@ INPUT_RATE = 100.0
 def make_head_recording(path, seconds, rate=INPUT_RATE, t0_ns=1_700_000_000_000_000_000):
     """A head-only recording of the demo head script (as ``ros2 bag record`` would store it)."""
     from geometry_msgs.msg import PoseStamped
-    from ponytail_ros.recording.bag import BagWriter
+
     from ponytail_ros.app.head_script import HeadScript
+    from ponytail_ros.recording.bag import BagWriter
     script = HeadScript()
     period_ns = int(round(1e9 / rate))
     msg = PoseStamped()

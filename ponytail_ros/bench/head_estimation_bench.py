@@ -70,7 +70,7 @@ def measure(rate, delay, duration=6.0, warmup=1.0, n_ticks=600, jitter=0.2, pos_
             ref[k].append(getattr(true, k)[0])
     rel = {k: np.sqrt(np.mean(np.sum(np.square(err[k]), axis=1))
                       / np.mean(np.sum(np.square(ref[k]), axis=1))) for k in keys}
-    return dict(zip(('v', 'a', 'w', 'alpha'), (rel[k] for k in keys)))
+    return dict(zip(('v', 'a', 'w', 'alpha'), (rel[k] for k in keys), strict=True))
 
 
 def table(title, pos_noise=0.0, rot_noise=0.0, n_ticks=600, **estimator_kwargs):
@@ -107,7 +107,7 @@ def fit_cost(rates=RATES, repeats=2000, **kw):
     motion = SwayYawMotion()
     for rate in rates:
         e = HeadEstimator(**kw)
-        for t, p, q in zip(*sample_stream(motion, rate, 1.5)):
+        for t, p, q in zip(*sample_stream(motion, rate, 1.5), strict=True):
             e.add(t, p, q)
         t_eval = e.last_stamp - 0.5 / rate
         e._state_at(t_eval)

@@ -16,12 +16,12 @@ independent trajectories of ``../shared/reference/`` where the scene matches
 method its own error is ≈ the difference / 15); errors are compared only while that estimate
 stays below 1e-5 m (chaotic scenes diverge from any reference after a while).
 """
-from dataclasses import dataclass, asdict, replace
 import json
 import math
 import time
-from typing import Any, Optional
 import warnings
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +56,7 @@ class Setting:
     projection: bool = True
     baumgarte_stiffness: float = 0.0
     baumgarte_damping: float = 0.0
-    tick_rate: Optional[float] = None
+    tick_rate: float | None = None
     extra: tuple = ()       # more SolverSpec fields, as ((name, value), ...)
 
     def solver(self, max_steps=1_000_000, **kw):
@@ -92,10 +92,10 @@ class Trajectory:
 
     t: np.ndarray
     tip: np.ndarray
-    tip_vel: Optional[np.ndarray] = None
-    energy: Optional[np.ndarray] = None
-    gap: Optional[np.ndarray] = None
-    resets: Optional[list] = None
+    tip_vel: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    gap: np.ndarray | None = None
+    resets: list | None = None
 
     def at(self, t):
         """Tip position at times ``t`` (cubic Hermite; linear if no velocities)."""
@@ -228,7 +228,7 @@ def time_setting(bench, setting, window, repeats=3, sample_dt=0.01):
                 # (``advance_to`` at every sample, bit for bit: the motion evaluated once)
                 sim.rollout(times, bench.motion)
             else:
-                for t, s in zip(times, states):
+                for t, s in zip(times, states, strict=True):
                     sim.advance_frame(t, s)
             cpu.append(time.process_time() - c0)
             wall.append(time.perf_counter() - w0)

@@ -31,10 +31,9 @@ import time
 
 import numpy as np
 
+from ponytail_ros.app.motions import SinusoidHead
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.rotations import quat_from_two_vectors
-
-from ponytail_ros.app.motions import SinusoidHead
 
 try:  # optional dependency
     import mujoco
@@ -111,7 +110,7 @@ def build_mjcf(bench, dt):
            '<size nkey="0"/>', '<worldbody>']
     xml.append(f'<body name="head" pos="{_fmt(p0)}" quat="{_fmt([q0[3], q0[0], q0[1], q0[2]])}">')
     axes = ('1 0 0', '0 1 0', '0 0 1')
-    for j, (kind, ax, amp, w, ph) in enumerate(dofs):
+    for j, (kind, ax, _amp, w, _ph) in enumerate(dofs):
         k = HEAD_MASS * w * w
         ref = 0.0
         if kind == 'slide' and g[ax] != 0.0:
@@ -155,7 +154,7 @@ class MujocoChain:
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         nh = len(self.dofs)
-        for j, (kind, ax, amp, w, ph) in enumerate(self.dofs):
+        for j, (_kind, _ax, amp, w, ph) in enumerate(self.dofs):
             d.qpos[j] = amp * math.sin(ph)
             d.qvel[j] = amp * w * math.cos(ph)
         c = self.bench.scene.chains[0]
@@ -175,7 +174,7 @@ class MujocoChain:
 
     def _head_rotation0(self, q_head):
         yaw = 0.0
-        for j, (kind, ax, amp, w, ph) in enumerate(self.dofs):
+        for kind, _ax, amp, _w, ph in self.dofs:
             if kind == 'hinge':
                 yaw = amp * math.sin(ph)
         cy, sy = math.cos(yaw), math.sin(yaw)

@@ -12,24 +12,24 @@ import json
 import statistics
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 __all__ = ['page', 'main']
 
-Rows = List[List[str]]
+Rows = list[list[str]]
 
 
-def _median(values: List[float]) -> float:
+def _median(values: list[float]) -> float:
     return float(statistics.median(values)) if values else float('nan')
 
 
-def _table(header: List[str], rows: Rows) -> List[str]:
+def _table(header: list[str], rows: Rows) -> list[str]:
     out = ['| ' + ' | '.join(header) + ' |', '|' + ' --- |' * len(header)]
     out += ['| ' + ' | '.join(r) + ' |' for r in rows]
     return out
 
 
-def _pct(x: Optional[float]) -> str:
+def _pct(x: float | None) -> str:
     return '' if x is None else f'{100 * x:.1f} %'
 
 
@@ -56,7 +56,7 @@ def _replay(r: Any) -> Rows:
              f'{r["bound_speed"]:.0f}×']]
 
 
-def _stages(r: Any) -> List[str]:
+def _stages(r: Any) -> list[str]:
     s = r['stages_ms']
     return [f'{s["integrate"]:.3f}', f'{s["contacts"]:.3f}']
 
@@ -140,7 +140,7 @@ def _many(data: Any) -> Rows:
 
 
 #: data file -> (title, command, column headers, rows from the file's JSON, note).
-BENCHMARKS: Dict[str, tuple] = {
+BENCHMARKS: dict[str, tuple] = {
     'node_cpu.json': (
         'The node beside the head demo at 120 Hz',
         'ponytail_bench node config/ponytail.yaml config/tail.yaml config/rope.yaml --floor',
@@ -213,7 +213,7 @@ BENCHMARKS: Dict[str, tuple] = {
 }
 
 
-def _section(bench: Path, heading: str, label: str, files: List[str]) -> List[str]:
+def _section(bench: Path, heading: str, label: str, files: list[str]) -> list[str]:
     out = ['', f'## {heading}', '', label]
     for f in files:
         title, command, header, rows_of, note = BENCHMARKS[f]
@@ -248,7 +248,7 @@ def page(bench: Path = Path('docs/bench')) -> str:
     return '\n'.join(out) + '\n'
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     root = Path(args[0]) if args else Path('.')
     target = root / 'docs' / 'performance.md'

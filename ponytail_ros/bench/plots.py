@@ -50,7 +50,7 @@ def pareto_plot(rows, path, scenes, mujoco_rows=(), recommended=None, title=None
     cols = 2 if n > 1 else 1
     nrows = int(math.ceil(n / cols))
     fig, axes = plt.subplots(nrows, cols, figsize=(7.5 * cols, 5.6 * nrows), squeeze=False)
-    for ax, scene in zip(axes.ravel(), scenes):
+    for ax, scene in zip(axes.ravel(), scenes, strict=False):   # (a spare panel: empty)
         _pareto_panel(plt, ax, rows, scene, mujoco_rows, recommended)
     for ax in axes.ravel()[n:]:
         ax.axis('off')

@@ -82,8 +82,7 @@ KEYS = (('p', 'position'), ('v', 'linear_velocity'), ('a', 'linear_acceleration'
 
 def _look_ahead_estimator():
     from ponytail_ros.core.head_spline import SplineHeadEstimator
-    from ponytail_ros.recording.offline import LOOK_AHEAD_SPLINE_DEGREE
-    from ponytail_ros.recording.offline import LOOK_AHEAD_VALUES as L
+    from ponytail_ros.recording.offline import LOOK_AHEAD_SPLINE_DEGREE, LOOK_AHEAD_VALUES as L
     return SplineHeadEstimator(spline_degree=LOOK_AHEAD_SPLINE_DEGREE,
                                degree=L['head.degree'], min_samples=L['head.min_samples'],
                                window=L['head.window'], max_samples=100000)
@@ -98,7 +97,7 @@ def estimation_errors(rate, jitter, mode, duration=6.0, n_ticks=400, seed=0, mot
     err = {k: [] for k, _ in KEYS}
     if mode == 'look_ahead':
         est, delay = _look_ahead_estimator(), 0.0
-        for t, p, q in zip(ts, ps, qs):
+        for t, p, q in zip(ts, ps, qs, strict=True):
             est.add(t, p, q)
     else:
         kw = {} if mode == 'live' else dict(window=LIVE_INTERP['head.window'],
@@ -137,10 +136,11 @@ def write_bag(path, ts, ps, qs):
     """A ``PoseStamped`` bag (``/head_pose``, frame ``world``) of the samples, stamps and log
     times ``BAG_T0_NS + t``."""
     from geometry_msgs.msg import PoseStamped
+
     from ponytail_ros.recording.bag import BagWriter
     with BagWriter(path) as writer:
         writer.add_topic('/head_pose', PoseStamped)
-        for t, p, q in zip(ts, ps, qs):
+        for t, p, q in zip(ts, ps, qs, strict=True):
             ns = BAG_T0_NS + int(round(t * 1e9))
             m = PoseStamped()
             m.header.frame_id = 'world'
@@ -174,6 +174,7 @@ def tip_errors(rate, jitter, mode, dt, duration=3.0, seed=0, workdir=None, motio
                exact_cache=None):
     """RMS and max tip distance (m) of the replayed chain to the exactly driven one."""
     import yaml
+
     from ponytail_ros.recording.compare import load_chain_runs
     from ponytail_ros.recording.offline import replay
     motion = motion or SwayYawMotion()
@@ -280,7 +281,7 @@ def write_rosbags_bag(directory, t0_ns, ns, ps, qs):
     with rosbag2.Writer(directory, version=9,
                         storage_plugin=rosbag2.StoragePlugin.MCAP) as writer:
         conn = writer.add_connection('/head_pose', msgtype, typestore=store)
-        for k, p, q in zip(ns, np.asarray(ps).tolist(), np.asarray(qs).tolist()):
+        for k, p, q in zip(ns, np.asarray(ps).tolist(), np.asarray(qs).tolist(), strict=True):
             stamp = int(t0_ns) + int(k)
             msg = T[msgtype](
                 header=T['std_msgs/msg/Header'](
@@ -303,6 +304,7 @@ def reference_tip_errors(rate, t0_ns, workdir, *, look_ahead=True, dt=REFERENCE_
     the output track ``(t, tips)``."""
     import yaml
     from scipy.interpolate import CubicSpline
+
     from ponytail_ros.core.reference import default_reference_dir, load_reference
     from ponytail_ros.recording.compare import load_chain_runs
     from ponytail_ros.recording.offline import replay
@@ -363,6 +365,7 @@ def reference_figures(log=print, rates=(30, 60, 120, 1000), workdir=None):
     """Part 3 of the module docstring; returns rows of dicts."""
     import yaml
     from scipy.interpolate import CubicSpline
+
     from ponytail_ros.core.reference import default_reference_dir, load_reference
     from ponytail_ros.recording.compare import load_chain_runs
     from ponytail_ros.recording.offline import replay

@@ -5,7 +5,7 @@
 """
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any, Optional
+from typing import Any
 
 from .measure import Setting
 from .tables import Row
@@ -20,7 +20,7 @@ TARGET_GAP_M = 1e-6
 
 
 def recommend(rows: Sequence[Row], required: Sequence[str] = ('moving', 'release', 'shake', 'rope')
-              ) -> tuple[Optional[Candidate], Optional[dict[str, Row]]]:
+              ) -> tuple[Candidate | None, dict[str, Row] | None]:
     """The cheapest plain setting (banded, projection, exact head) good on all ``required`` scenes.
 
     Good: no guard reset and joint gap ≤ ``TARGET_GAP_M`` on every scene, tip RMS ≤

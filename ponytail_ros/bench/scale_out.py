@@ -23,15 +23,15 @@ import subprocess
 import sys
 import tempfile
 import time
-from typing import Any, Dict, List, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ponytail_ros.bench.node_cpu import DIAGNOSTICS_LISTENER, _cpu_seconds, diagnostics_windows
 
 
-
-def split(characters: int, nodes: int) -> List[int]:
+def split(characters: int, nodes: int) -> list[int]:
     """``characters`` over ``nodes`` groups as evenly as possible, larger groups first."""
     if not 1 <= nodes <= characters:
         raise ValueError(f'nodes = {nodes}: must be in [1, characters = {characters}]')
@@ -61,13 +61,13 @@ def _stop(procs: Sequence[subprocess.Popen]) -> None:
 
 
 def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float,
-               head_rate: float, folder: str) -> Dict[str, Any]:
+               head_rate: float, folder: str) -> dict[str, Any]:
     """One layout: a node and a head demo per group (``groups``: characters per node)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    procs: List[Dict[str, Any]] = []
+    procs: list[dict[str, Any]] = []
     listener = None
-    all_procs: List[subprocess.Popen] = []
+    all_procs: list[subprocess.Popen] = []
     try:
         for g, n in enumerate(groups):
             ns = f'/scale_{g}'
@@ -103,7 +103,7 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
         out, _ = listener.communicate(timeout=10)
     finally:
         _stop(all_procs)
-    windows: Dict[str, List[List[Any]]] = {}
+    windows: dict[str, list[list[Any]]] = {}
     for name, kv in diagnostics_windows(out):
         if 'tick rate (Hz)' in kv:
             rate = kv['tick rate (Hz)']
@@ -111,7 +111,7 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
                                                  float(kv['ticks per s']),
                                                  float(kv['dropped time (s)'])])
     rows = []
-    for p, a, b in zip(procs, c0, c1):
+    for p, a, b in zip(procs, c0, c1, strict=True):
         row = {k: p[k] for k in ('role', 'namespace', 'characters')}
         row['cpu_share'] = (b - a) / (t1 - t0)
         if p['role'] == 'node':
@@ -126,7 +126,7 @@ def run_layout(params: str, groups: Sequence[int], seconds: float, warmup: float
                 processes=rows)
 
 
-def describe(layout: Dict[str, Any]) -> str:
+def describe(layout: dict[str, Any]) -> str:
     groups = layout['groups']
     lines = [f'{len(groups)} node{"s" * (len(groups) > 1)} ({" + ".join(map(str, groups))} '
              f'characters; load average {layout["load_average_before"]:.1f} before, '

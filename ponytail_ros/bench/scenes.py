@@ -22,16 +22,14 @@ All use gravity (0, 0, -9.81) and no drag or stiffness, and all but ``damped`` n
 (still scenes then conserve energy exactly, which is what their energy drift is measured
 against).
 """
-from dataclasses import dataclass, replace
 import os
-from typing import Optional
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ponytail_ros.app.motions import reference_motion, shake_motion
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.scene import ChainSpec, Scene, SolverSpec
-
-from ponytail_ros.app.motions import reference_motion, shake_motion
 
 __all__ = ['BenchScene', 'make_scene', 'SCENES', 'EXTRA_SCENES', 'REFERENCE_DIR',
            'shared_reference_path', 'ponytail_chain']
@@ -58,7 +56,7 @@ class BenchScene:
     motion: object
     duration: float
     still: bool
-    shared: Optional[str] = None
+    shared: str | None = None
     description: str = ''
 
     @property

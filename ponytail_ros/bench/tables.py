@@ -13,7 +13,7 @@ import platform
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
-from typing import IO, Any, Optional, Union
+from typing import IO, Any
 
 import numpy as np
 
@@ -26,7 +26,7 @@ Meta = dict[str, Any]
 #: Progress output of a command (``print`` by default).
 Log = Callable[..., None]
 #: (header, key or function of the row, format spec); '' formats with ``str``.
-Column = tuple[str, Union[str, Callable[[Row], Any]], str]
+Column = tuple[str, str | Callable[[Row], Any], str]
 
 
 def jsonable(x: Any) -> Any:
@@ -46,7 +46,7 @@ def jsonable(x: Any) -> Any:
 
 
 def write_table(out: str, name: str, rows: Sequence[Row], meta: dict[str, Any],
-                extra: Optional[dict[str, Any]] = None) -> None:
+                extra: dict[str, Any] | None = None) -> None:
     """``name.csv`` (one row per dict, union of keys) and ``name.json`` ({meta, rows, ...})."""
     keys = []
     for r in rows:
@@ -65,8 +65,8 @@ def write_table(out: str, name: str, rows: Sequence[Row], meta: dict[str, Any],
         json.dump(jsonable(doc), f, indent=1, allow_nan=False)
 
 
-def print_table(rows: Sequence[Row], cols: Sequence[Column], title: Optional[str] = None,
-                file: Optional[IO[str]] = None) -> None:
+def print_table(rows: Sequence[Row], cols: Sequence[Column], title: str | None = None,
+                file: IO[str] | None = None) -> None:
     """Fixed-width table: ``cols`` = [(header, key or callable, format)]."""
     file = file or sys.stdout
     cells = [[h for h, _, _ in cols]]
@@ -84,13 +84,13 @@ def print_table(rows: Sequence[Row], cols: Sequence[Column], title: Optional[str
         print(f'\n{title}', file=file)
     for j, c in enumerate(cells):
         print('  '.join(s.rjust(w) if j and i else s.ljust(w)
-                        for i, (s, w) in enumerate(zip(c, widths))), file=file)
+                        for i, (s, w) in enumerate(zip(c, widths, strict=True))), file=file)
         if j == 0:
             print('  '.join('-' * w for w in widths), file=file)
     file.flush()
 
 
-def git_describe() -> Optional[str]:
+def git_describe() -> str | None:
     """This checkout's short revision, ``+core-modified`` if ``ponytail_ros/core`` has changes."""
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     try:
@@ -128,7 +128,7 @@ def cpu_name() -> str:
     return platform.processor()
 
 
-def load_rows(out: str, name: str) -> tuple[Optional[list[Row]], dict[str, Any]]:
+def load_rows(out: str, name: str) -> tuple[list[Row] | None, dict[str, Any]]:
     """The rows of ``name.json`` in ``out`` (``None`` errors as NaN) and the whole document.
 
     No such file: ``(None, {})``.

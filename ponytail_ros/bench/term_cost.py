@@ -31,8 +31,8 @@ Run: ``ponytail_bench terms`` (tables in ``docs/bench/terms.*``), or
 ``python -m ponytail_ros.bench.term_cost [--segments N] [--seconds S] [--repeats R]``.
 """
 import argparse
-from dataclasses import replace
 import time
+from dataclasses import replace
 
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.scene import ChainSpec, ColliderSpec, Scene, SolverSpec
@@ -133,8 +133,11 @@ READY_MADE = ('ponytail.yaml', 'pigtails.yaml', 'rope.yaml', 'sword.yaml', 'tail
 def ready_made_scenes(names=READY_MADE):
     """``[(name, Scene, what it enables)]`` of the ready-made params files, as the node builds
     them (a world-anchored chain gets the static world body)."""
-    from ponytail_ros.app.param_values import (complete_values, scene_and_settings,
-                                               values_from_params_file)
+    from ponytail_ros.app.param_values import (
+        complete_values,
+        scene_and_settings,
+        values_from_params_file,
+    )
     from ponytail_ros.resources import config_path
     out = []
     for name in names:
@@ -167,8 +170,8 @@ def bench_ready_made(seconds=3.0, repeats=3, out=print):
 
     Returns ``[(name, what, segments, cpu_s_per_simulated_s, rows_per_step)]``.
     """
-    from ponytail_ros.core.head import WithStaticBodies
     from ponytail_ros.app.head_script import HeadScript
+    from ponytail_ros.core.head import WithStaticBodies
     scenes = ready_made_scenes()
     best, rows = {}, {}
     for _ in range(repeats):

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import importlib
 import struct
-from functools import lru_cache
+from functools import cache
 
 __all__ = ['zero_padding', 'serialize_canonical']
 
@@ -51,9 +51,9 @@ class _Unsupported(Exception):
 #   ('a', n, ops):      a fixed array of a type that is not a plain primitive run.
 
 
-@lru_cache(maxsize=None)
+@cache
 def _ops_of_class(cls) -> tuple:
-    ops = []
+    ops: list[tuple] = []
     for t in cls.SLOT_TYPES:
         ops.extend(_ops_of_type(t))
     return _merge(ops)
@@ -82,7 +82,7 @@ def _ops_of_type(t) -> tuple:
 
 
 def _merge(ops) -> tuple:
-    out = []
+    out: list[tuple] = []
     for op in ops:
         if op[0] == 'h' and out and out[-1][0] == 'h' and out[-1][1] == op[1]:
             out[-1] = ('h', op[1], out[-1][2] + op[2])

@@ -120,8 +120,8 @@ import gc
 import os
 import signal
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 from ponytail_ros.core.compile import say_compiles
 
@@ -211,7 +211,7 @@ def _repair_parser():
     return p
 
 
-def _check_plot_path(path) -> Optional[str]:
+def _check_plot_path(path) -> str | None:
     """Why ``--plot`` cannot be written there, or None."""
     out = Path(path)
     if out.is_dir():
@@ -223,7 +223,7 @@ def _check_plot_path(path) -> Optional[str]:
     return None
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ponytail_replay``; returns the exit code. Called without ``argv``
     (the console script: the process ends next), it freezes the garbage collector's objects
     first: the interpreter's final collection over the loaded compiled kernels took 0.3-0.8 s

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +47,7 @@ class ChainComparison:
     tip_b: np.ndarray
 
 
-def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
+def load_chain_runs(path) -> tuple[dict[str, ChainRun], dict[str, Any]]:
     """Every chain's tip track in a recording (ours, or any with ``segment_poses`` topics),
     and its parameters (empty if not recorded).
 
@@ -66,7 +66,7 @@ def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
     if not chains:
         raise ReplayError(f'{path} has no segment_poses (geometry_msgs/msg/PoseArray) topic')
     lengths = _lengths(chains, values)
-    tracks: Dict[str, Tuple[list, list]] = {t: ([], []) for t in chains.values()}
+    tracks: dict[str, tuple[list, list]] = {t: ([], []) for t in chains.values()}
     try:
         # Only the stamp and the tip of each message are kept (hours of run fit in memory).
         for topic, _, m, _ in reader.messages(list(chains.values())):
@@ -88,9 +88,9 @@ def load_chain_runs(path) -> Tuple[Dict[str, ChainRun], Dict[str, Any]]:
     return runs, values
 
 
-def _lengths(chains: Dict[str, str], values) -> Dict[str, Tuple[str, Optional[float], str]]:
+def _lengths(chains: dict[str, str], values) -> dict[str, tuple[str, float | None, str]]:
     """Topic -> (chain, its length or None, where the segment length comes from)."""
-    lengths: Dict[str, Tuple[str, Optional[float], str]] = {}
+    lengths: dict[str, tuple[str, float | None, str]] = {}
     for name, topic in chains.items():
         try:
             lengths[topic] = (name, float(values[f'{name}.length']), 'parameters')
@@ -99,7 +99,7 @@ def _lengths(chains: Dict[str, str], values) -> Dict[str, Tuple[str, Optional[fl
     return lengths
 
 
-def _recorded_values(metadata) -> Dict[str, Any]:
+def _recorded_values(metadata) -> dict[str, Any]:
     """The recorded parameters (empty if none, or not readable)."""
     if PARAMETERS_METADATA in metadata:
         try:
@@ -109,7 +109,7 @@ def _recorded_values(metadata) -> Dict[str, Any]:
     return {}
 
 
-def _chain_topics(metadata, topics, values) -> Dict[str, str]:
+def _chain_topics(metadata, topics, values) -> dict[str, str]:
     """Chain name -> its ``PoseArray`` topic: the recorded layout's, else every
     ``segment_poses`` topic (``segment_poses/<chain>``; a lone ``segment_poses`` is the
     recorded first chain, else ``ponytail``; another ``PoseArray`` topic is named by itself)."""
@@ -120,8 +120,9 @@ def _chain_topics(metadata, topics, values) -> Dict[str, str]:
         except (KeyError, ValueError):
             layout = None
     if layout is not None:
-        return {c: t for c, t in zip(layout.chains, layout.pose_topics) if t in topics}
-    chains: Dict[str, str] = {}
+        return {c: t for c, t in zip(layout.chains, layout.pose_topics, strict=True)
+                if t in topics}
+    chains: dict[str, str] = {}
     for t in sorted(t for t, ty in topics.items() if ty == 'geometry_msgs/msg/PoseArray'):
         parts = t.strip('/').split('/')
         if parts[-1] == 'segment_poses':
@@ -134,7 +135,7 @@ def _chain_topics(metadata, topics, values) -> Dict[str, str]:
     return chains
 
 
-def _tip(m, length: Optional[float]) -> Tuple[np.ndarray, bool]:
+def _tip(m, length: float | None) -> tuple[np.ndarray, bool]:
     """The far end of a ``PoseArray``'s last segment, and whether its length was known: from
     the chain's length (``length``), else the last joint spacing, else (one segment) the
     last joint itself. Per message: the segment count may change during a run (a live
@@ -224,10 +225,10 @@ def format_comparison(path_a, path_b, comparisons, values_a=None, values_b=None)
              f'{c.t_max:.3f}', f'{1e3 * c.final:.4g}') for c in comparisons]
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines.append('  '.join(h.ljust(w) if i == 0 else h.rjust(w)
-                           for i, (h, w) in enumerate(zip(header, widths))))
+                           for i, (h, w) in enumerate(zip(header, widths, strict=True))))
     for r in rows:
         lines.append('  '.join(v.ljust(w) if i == 0 else v.rjust(w)
-                               for i, (v, w) in enumerate(zip(r, widths))))
+                               for i, (v, w) in enumerate(zip(r, widths, strict=True))))
     for c in comparisons:
         extra = [c.matching]
         if c.only_a or c.only_b:

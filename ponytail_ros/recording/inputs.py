@@ -7,17 +7,18 @@ what the node recorded with it (layout, parameters, live changes, clock).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional, Tuple
+from typing import Any
 
 import numpy as np
 import yaml
+from rclpy.serialization import deserialize_message
 
 from ponytail_ros.app.messages import TF_TOPIC
 from ponytail_ros.app.parameters import frame_names
 from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
 from ponytail_ros.app.wire import pose_stamped_fields
-from rclpy.serialization import deserialize_message
 
 from .bag import PARAMETERS_METADATA, BagError, BagReader
 from .bag.msgdefs import _message_class
@@ -41,7 +42,7 @@ class ReplayInput:
             :meth:`require_head`: the head may come from TF, ``use_tf_head``).
     """
 
-    def __init__(self, path, head_topic: Optional[str] = None, head_required: bool = True):
+    def __init__(self, path, head_topic: str | None = None, head_required: bool = True):
         self.path = Path(path)
         try:
             self.reader = BagReader(self.path)
@@ -84,7 +85,7 @@ class ReplayInput:
         if head_required:
             self.require_head()
 
-    def _head_error(self, head_topic: str) -> Optional[ReplayError]:
+    def _head_error(self, head_topic: str) -> ReplayError | None:
         """Why ``head_topic`` cannot be read as the head (None: it can)."""
         if head_topic not in self.topics:
             recorded = ', '.join(f'{t} ({ty})' for t, ty in sorted(self.topics.items()))
@@ -156,7 +157,7 @@ class ReplayInput:
             return self.layout.frame_topics[self.layout.frames.index(frame)]
         return resolve_topic(self.node, configured)
 
-    def tick_topic(self) -> Optional[str]:
+    def tick_topic(self) -> str | None:
         """The node's first ``segment_poses`` topic, if this is a node recording with ticks."""
         if self.layout and self.layout.pose_topics[0] in self.topics:
             return self.layout.pose_topics[0]
@@ -171,7 +172,7 @@ class ReplayInput:
         except (KeyError, TypeError, StopIteration, yaml.YAMLError):
             return 0
 
-    def span_ns(self) -> Optional[Tuple[int, int]]:
+    def span_ns(self) -> tuple[int, int] | None:
         """(first, last) log time of a finished bag, else None."""
         return self.reader.span_ns()
 
@@ -200,7 +201,7 @@ def head_stamps(inp: ReplayInput):
             if fields is not None:
                 out.append((fields[0] * 1_000_000_000 + fields[1], log_ns))
             else:
-                msg = deserialize_message(data, _message_class(inp.head_type))
+                msg: Any = deserialize_message(data, _message_class(inp.head_type))
                 out.append((stamp_ns(msg.header.stamp), log_ns))
             if len(out) >= _STAMP_SAMPLE:
                 break
@@ -209,7 +210,7 @@ def head_stamps(inp: ReplayInput):
     return out
 
 
-def partial_note(path, metadata) -> Optional[str]:
+def partial_note(path, metadata) -> str | None:
     """A line saying that ``path`` is the output of an interrupted replay (and up to which
     time it holds the run), or None."""
     record = metadata.get(RECORDING_METADATA) or {}
@@ -219,7 +220,7 @@ def partial_note(path, metadata) -> Optional[str]:
             f'holds the run up to log time {record.get("complete_until_ns", "?")} ns only')
 
 
-def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[str]:
+def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> str | None:
     """Why the head stamps cannot be used if they are on another clock than the log times (a
     bag stamped by a simulator clock from 0, or from another epoch) and would be used
     (``stamp_source: header``): the head motion would be estimated on one clock and simulated
@@ -239,8 +240,10 @@ def foreign_clock(inp: ReplayInput, head_stamps, stamp_source: str) -> Optional[
             f'header to use the stamps anyway')
 
 
-def recorded_value(recorded: Optional[Mapping[str, str]], name: str, default: Any) -> Any:
+def recorded_value(recorded: Mapping[str, str] | None, name: str, default: Any) -> Any:
     """A parameter's value in a recording's parameters metadata (JSON), else ``default``."""
+    if recorded is None:
+        return default
     try:
         return json.loads(recorded[name])
     except (KeyError, TypeError, ValueError):
@@ -255,7 +258,7 @@ def used_frame_names(values) -> set:
     return frames & used
 
 
-def event_values(event) -> Dict[str, Any]:
+def event_values(event) -> dict[str, Any]:
     """The values a recorded ``ParameterEvent`` sets (new and changed), as plain Python."""
     from rclpy.parameter import Parameter
     changed = {}

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import signal
 import threading
-from typing import Any, Dict, Optional
+from typing import Any
 
 __all__ = ['StopRequest', 'EXIT_CODES', 'signal_name']
 
 #: Exit status of a run stopped by a signal: 128 + its number (the shell's convention).
-EXIT_CODES: Dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143}
+EXIT_CODES: dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
 def signal_name(signum: int) -> str:
@@ -31,8 +31,8 @@ class StopRequest:
 
     def __init__(self, signals=(signal.SIGINT, signal.SIGTERM)):
         self.signals = tuple(signals)
-        self.signum: Optional[int] = None
-        self._previous: Dict[int, Any] = {}
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
 
     def __bool__(self) -> bool:
         return self.signum is not None
@@ -52,7 +52,7 @@ class StopRequest:
             raise SystemExit(EXIT_CODES.get(signum, 1))
         self.signum = signum
 
-    def __enter__(self) -> 'StopRequest':
+    def __enter__(self) -> StopRequest:
         if threading.current_thread() is threading.main_thread():
             for signum in self.signals:
                 self._previous[signum] = signal.signal(signum, self._handler)

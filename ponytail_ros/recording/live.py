@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
+from typing import Any
 
 from .bag import BagError
 from .inputs import ReplayError, ReplayInput
@@ -13,11 +14,11 @@ from .recorder import HEAD_TYPES, stamp_ns
 __all__ = ['live_replay']
 
 
-def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: float = 1.0,
+def live_replay(path, *, context=None, head_topic: str | None = None, rate: float = 1.0,
                 clock: bool = True, clock_hz: float = 100.0, restamp: bool = False,
                 loop: bool = False, wait_for_subscribers: float = 2.0,
-                stop: Optional[threading.Event] = None,
-                warn: Optional[Callable[[str], None]] = None) -> int:
+                stop: threading.Event | None = None,
+                warn: Callable[[str], None] | None = None) -> int:
     """Publish a recording's head poses into the ROS graph at the recorded pace.
 
     ``rclpy`` must be initialised (``context``: the context to use). Publishes the head topic
@@ -33,8 +34,10 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
         ReplayError: bad input (as the offline replay).
     """
     import rclpy
+    from rclpy.publisher import Publisher
     from rclpy.qos import QoSProfile
     from rosgraph_msgs.msg import Clock
+
     from .bag.msgdefs import _message_class
 
     warn = warn or (lambda text: None)
@@ -43,9 +46,9 @@ def live_replay(path, *, context=None, head_topic: Optional[str] = None, rate: f
     inp, topics, samples = _live_input(path, head_topic, warn)
     node = rclpy.create_node('ponytail_replay', context=context)
     try:
-        pubs = {topic: node.create_publisher(_message_class(type_name), topic,
-                                             QoSProfile(depth=10))
-                for topic, type_name in topics.items()}
+        pubs: dict[str, Publisher[Any]] = {
+            topic: node.create_publisher(_message_class(type_name), topic, QoSProfile(depth=10))
+            for topic, type_name in topics.items()}
         pub = pubs[inp.head_topic]
         clock_pub = node.create_publisher(Clock, '/clock', QoSProfile(depth=10)) if clock else None
         deadline = time.monotonic() + wait_for_subscribers

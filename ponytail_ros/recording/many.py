@@ -15,10 +15,11 @@ import multiprocessing
 import os
 import signal
 import traceback
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any
 
 from .bag import BagError
 from .bag.layout import bags_in, is_one_bag
@@ -28,14 +29,14 @@ from .interrupt import StopRequest
 __all__ = ['expand_inputs', 'output_paths', 'replay_many', 'BagOutcome']
 
 
-def expand_inputs(inputs: Sequence[str]) -> List[Path]:
+def expand_inputs(inputs: Sequence[str]) -> list[Path]:
     """The bags named on the command line: a folder that is not one bag itself (no
     ``metadata.yaml``) stands for the bags in it (``layout.bags_in``).
 
     Raises:
         ReplayError: an input does not exist, or a folder holds no bag.
     """
-    out: List[Path] = []
+    out: list[Path] = []
     for given in inputs:
         path = Path(given)
         if not path.exists():
@@ -65,15 +66,15 @@ def bag_name(path: Path) -> str:
     return name
 
 
-def output_paths(bags: Sequence[Path], out_dir: Path) -> List[Path]:
+def output_paths(bags: Sequence[Path], out_dir: Path) -> list[Path]:
     """``out_dir/<bag name>.mcap`` per bag (the folder made if missing).
 
     Raises:
         ReplayError: two bags with one name, or ``out_dir`` is a file or cannot be made.
     """
     names = [bag_name(b) for b in bags]
-    seen: Dict[str, Path] = {}
-    for name, bag in zip(names, bags):
+    seen: dict[str, Path] = {}
+    for name, bag in zip(names, bags, strict=True):
         if name in seen:
             raise ReplayError(f'{seen[name]} and {bag} would both be replayed into '
                               f'{out_dir / (name + ".mcap")}: replay them into different '
@@ -99,14 +100,14 @@ class BagOutcome:
     status: str
     text: str = ''
     result: Any = None
-    warnings: List[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
-def _worker(bag: Path, output: Path, options: Dict[str, Any], conn) -> None:
+def _worker(bag: Path, output: Path, options: dict[str, Any], conn) -> None:
     """In a worker process: replay one bag, send its ``BagOutcome``."""
     os.setpgid(0, 0)        # Ctrl-C reaches the parent only; it passes the signal on once
     from .offline import replay
-    warnings: List[str] = []
+    warnings: list[str] = []
     try:
         with StopRequest() as stop:
             result = replay(bag, output, warn=warnings.append, stop=stop, **options)
@@ -120,18 +121,18 @@ def _worker(bag: Path, output: Path, options: Dict[str, Any], conn) -> None:
     conn.close()
 
 
-def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: Dict[str, Any], *,
+def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: dict[str, Any], *,
                 jobs: int, report: Callable[[BagOutcome], None],
-                stop: Optional[StopRequest] = None) -> List[BagOutcome]:
+                stop: StopRequest | None = None) -> list[BagOutcome]:
     """Replay ``bags`` into ``outputs`` in at most ``jobs`` worker processes; ``report`` is
     called with each bag's outcome as it ends (in the parent). ``options``: keyword arguments
     of ``offline.replay``. Bags not started when ``stop`` becomes true get status
     ``'not started'``."""
     ctx: Any = multiprocessing.get_context(
         'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn')
-    pending = list(zip(bags, outputs))
-    running: Dict[Any, Tuple[Any, Path]] = {}       # connection -> (process, bag)
-    outcomes: List[BagOutcome] = []
+    pending = list(zip(bags, outputs, strict=True))
+    running: dict[Any, tuple[Any, Path]] = {}       # connection -> (process, bag)
+    outcomes: list[BagOutcome] = []
     outcome: BagOutcome
     forwarded = False
     try:
@@ -155,7 +156,7 @@ def replay_many(bags: Sequence[Path], outputs: Sequence[Path], options: Dict[str
                 pending.clear()
             if not running:
                 break
-            ready: List[Any] = wait(list(running), timeout=0.2)
+            ready: list[Any] = wait(list(running), timeout=0.2)
             for conn in ready:
                 process, bag = running.pop(conn)
                 try:

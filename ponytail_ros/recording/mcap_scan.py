@@ -24,17 +24,30 @@ from __future__ import annotations
 import os
 import struct
 import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
-from typing import Iterator, List, Optional, Tuple, Union
 
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError, UnsupportedCompressionError
 from mcap.opcode import Opcode
 from mcap.records import (
-    Attachment, AttachmentIndex, Channel, Chunk, ChunkIndex, DataEnd, Footer, Header,
-    McapRecord, Message, MessageIndex, Metadata, MetadataIndex, Schema, Statistics,
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    McapRecord,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
     SummaryOffset,
 )
 
@@ -42,7 +55,7 @@ __all__ = ['MAGIC', 'McapScan', 'Problem', 'ScanError', 'is_finished']
 
 MAGIC = b'\x89MCAP0\r\n'
 _FRAME = struct.Struct('<BQ')  # opcode, content length
-_READERS = {
+_READERS: dict[int, Callable[[ReadDataStream], McapRecord]] = {
     Opcode.ATTACHMENT: Attachment.read, Opcode.ATTACHMENT_INDEX: AttachmentIndex.read,
     Opcode.CHANNEL: Channel.read, Opcode.CHUNK: Chunk.read, Opcode.CHUNK_INDEX: ChunkIndex.read,
     Opcode.DATA_END: DataEnd.read, Opcode.FOOTER: Footer.read, Opcode.HEADER: Header.read,
@@ -76,7 +89,7 @@ class ScanError(Exception):
         self.problem = problem
 
 
-def is_finished(path: Union[str, os.PathLike]) -> bool:
+def is_finished(path: str | os.PathLike) -> bool:
     """Whether the file ends with the MCAP magic (a writer that finished it)."""
     with open(path, 'rb') as f:
         size = f.seek(0, os.SEEK_END)
@@ -102,7 +115,7 @@ def _parse(opcode: int, content: bytes) -> McapRecord:
         channel_id, size = _INDEX_FIELDS.unpack_from(content)
         if size % 16 == 0 and 6 + size <= len(content):
             flat = struct.unpack_from(f'<{size // 8}Q', content, 6)
-            return MessageIndex(channel_id, list(zip(flat[::2], flat[1::2])))
+            return MessageIndex(channel_id, list(zip(flat[::2], flat[1::2], strict=True)))
     stream = ReadDataStream(BytesIO(content))
     if opcode == Opcode.MESSAGE:
         if len(content) < 22:
@@ -146,12 +159,12 @@ class McapScan:
         damage: problems skipped with ``skip_damaged`` (empty in strict reading).
     """
 
-    def __init__(self, path: Union[str, os.PathLike]):
+    def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self.size = self.path.stat().st_size
         self.finished = is_finished(self.path)
-        self.truncation: Optional[Problem] = None
-        self.damage: List[Problem] = []
+        self.truncation: Problem | None = None
+        self.damage: list[Problem] = []
         self.footer_seen = False
 
     # -- problems ----------------------------------------------------------------------------
@@ -171,7 +184,7 @@ class McapScan:
 
     # -- reading -----------------------------------------------------------------------------
     def records(self, *, expand_chunks: bool = True, skip_damaged: bool = False
-                ) -> Iterator[Tuple[int, McapRecord]]:
+                ) -> Iterator[tuple[int, McapRecord]]:
         """``(offset, record)`` for every record in file order; records inside a chunk come
         after its CRC check, with the chunk's offset (``expand_chunks``), else the chunk itself.
         The trailing magic is checked after the footer.
@@ -207,7 +220,7 @@ class McapScan:
                                       skip_damaged)
                     return
 
-    def _next_record(self, f, walk: '_Walk', skip: bool):
+    def _next_record(self, f, walk: _Walk, skip: bool):
         """The next record at ``walk.offset`` as ``(offset, record)``; None when there was
         none to give there (damage skipped, a user opcode); ``_STOP`` at the end of what can
         be read (a cut, or damage that cannot be skipped past)."""
@@ -249,7 +262,7 @@ class McapScan:
                                   f'({exc or type(exc).__name__})', skip)
             return None
 
-    def _resync(self, f, walk: '_Walk', text: str, skip: bool):
+    def _resync(self, f, walk: _Walk, text: str, skip: bool):
         """Damage at ``walk.offset``: on at the next record found (None), or ``_STOP``; the
         data-section CRC cannot be checked any more either way."""
         resync = self._damaged_frame(f, walk.offset, text, skip)
@@ -259,7 +272,7 @@ class McapScan:
         walk.in_data = False
         return None
 
-    def _check_data_end(self, offset: int, record: McapRecord, walk: '_Walk',
+    def _check_data_end(self, offset: int, record: McapRecord, walk: _Walk,
                         skip: bool) -> None:
         """At the data section's end: its CRC (when it was read through) against the stored."""
         if not isinstance(record, DataEnd):
@@ -271,7 +284,7 @@ class McapScan:
         walk.in_data = False
 
     def _chunk_records(self, offset: int, chunk: Chunk, skip: bool
-                       ) -> Optional[List[McapRecord]]:
+                       ) -> list[McapRecord] | None:
         """The records of a chunk, checked; None (damage recorded) if it is damaged."""
         data = self._chunk_data(offset, chunk, skip)
         if data is None:
@@ -300,7 +313,7 @@ class McapScan:
                 return None
         return out
 
-    def _chunk_data(self, offset: int, chunk: Chunk, skip: bool) -> Optional[bytes]:
+    def _chunk_data(self, offset: int, chunk: Chunk, skip: bool) -> bytes | None:
         """A chunk's records as bytes, decompressed and checked (size, CRC); None (damage
         recorded) if damaged. A compression mcap cannot read is an error, not damage."""
         try:
@@ -333,7 +346,7 @@ class McapScan:
                 return None
         return data
 
-    def _damaged_frame(self, f, offset: int, text: str, skip: bool) -> Optional[int]:
+    def _damaged_frame(self, f, offset: int, text: str, skip: bool) -> int | None:
         """A record whose framing cannot be trusted: raise (strict) or find the next intact
         chunk after ``offset`` (its offset, the file positioned there) or None (give up)."""
         self._damaged(offset, text, skip)
@@ -369,19 +382,19 @@ class McapScan:
             chunk = _parse(opcode, f.read(length))
         except (McapError, struct.error, UnicodeDecodeError, ValueError):
             return False
-        if chunk.uncompressed_crc == 0:
+        if not isinstance(chunk, Chunk) or chunk.uncompressed_crc == 0:
             return False  # no way to tell a real chunk from chance bytes
         probe = McapScan.__new__(McapScan)
         probe.size, probe.damage = self.size, []
         return probe._chunk_records(candidate, chunk, True) is not None and not probe.damage
 
-    def chunk_start_times(self) -> List[Tuple[int, int]]:
+    def chunk_start_times(self) -> list[tuple[int, int]]:
         """``(offset, log time)`` for each unit of messages in file order (a chunk, or a
         message outside chunks): the earliest log time it claims (``message_start_time``; 0
         for a chunk without messages): a quick walk that reads only record headers. Stops
         quietly where :meth:`records` would report a problem.
         """
-        out: List[Tuple[int, int]] = []
+        out: list[tuple[int, int]] = []
         with self.path.open('rb') as f:
             offset = len(MAGIC)
             f.seek(offset)

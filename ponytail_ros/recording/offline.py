@@ -14,24 +14,35 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any
 
-from ponytail_ros.app.param_values import (IGNORED_NAMES, resolve_values,
-                                           unknown_parameter_warnings, values_from_metadata,
-                                           values_from_params_file)
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
-from ponytail_ros.app.parameters import ParameterError, frame_names
+from ponytail_ros.app.param_values import (
+    IGNORED_NAMES,
+    resolve_values,
+    unknown_parameter_warnings,
+    values_from_metadata,
+    values_from_params_file,
+)
+from ponytail_ros.app.parameters import ParameterError, frame_names, frame_topics as topics_of
 from ponytail_ros.app.tf_input import TF_STATIC_TOPIC, TF_TOPIC, tf_frames
 from ponytail_ros.app.wire import tf_message_fields
-from ponytail_ros.app.parameters import frame_topics as topics_of
 
 from .bag import BagError
-from .inputs import (ReplayError, ReplayInput, event_values, foreign_clock, head_stamps,
-                     recorded_value, used_frame_names)
-from .recorder import (FRAMES_TYPE, HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder,
-                       stamp_ns)
+from .inputs import (
+    ReplayError,
+    ReplayInput,
+    event_values,
+    foreign_clock,
+    head_stamps,
+    recorded_value,
+    used_frame_names,
+)
+from .recorder import FRAMES_TYPE, HEAD_TYPES, RECORDING_METADATA, RunLayout, RunRecorder, stamp_ns
 from .replay_node import ReplayNode
 from .tf import TFMESSAGE_TYPE
 
@@ -65,8 +76,8 @@ class ReplayResult:
     #: Poses of the extra frames pushed (all frames).
     frame_samples: int = 0
     parameter_changes: int = 0
-    first_tick_ns: Optional[int] = None
-    last_tick_ns: Optional[int] = None
+    first_tick_ns: int | None = None
+    last_tick_ns: int | None = None
     wall_seconds: float = 0.0
     #: CPU time of this process (all threads) during the replay, s.
     cpu_seconds: float = 0.0
@@ -79,11 +90,11 @@ class ReplayResult:
     truncated: bool = False
     #: The signal that stopped the replay early ("SIGINT", "SIGTERM"), else None: the output
     #: is finalised and its metadata says it is partial.
-    interrupted: Optional[str] = None
+    interrupted: str | None = None
 
     @property
     def sim_seconds(self) -> float:
-        if self.first_tick_ns is None:
+        if self.first_tick_ns is None or self.last_tick_ns is None:
             return 0.0
         return (self.last_tick_ns - self.first_tick_ns) * 1e-9
 
@@ -120,7 +131,7 @@ class Progress:
         except ImportError:
             self.tqdm = False
 
-    def __call__(self, done_s: float, total_s: Optional[float] = None,
+    def __call__(self, done_s: float, total_s: float | None = None,
                  final: bool = False) -> None:
         if self.tqdm:
             self._tqdm(done_s, total_s, final)
@@ -166,14 +177,14 @@ class Progress:
         self.stream.flush()
 
 
-def replay(input_path, output_path, *, params_file=None, head_topic: Optional[str] = None,
+def replay(input_path, output_path, *, params_file=None, head_topic: str | None = None,
            ticks: str = 'auto', overwrite: bool = False, look_ahead: bool = False,
-           progress: Optional[Callable[..., None]] = None,
-           warn: Optional[Callable[[str], None]] = None,
-           stamp_source: Optional[str] = None, tf: bool = True,
-           tf_prefix: Optional[str] = None, stop: Any = None,
-           head_frame: Optional[str] = None,
-           fixed_frame: Optional[str] = None) -> ReplayResult:
+           progress: Callable[..., None] | None = None,
+           warn: Callable[[str], None] | None = None,
+           stamp_source: str | None = None, tf: bool = True,
+           tf_prefix: str | None = None, stop: Any = None,
+           head_frame: str | None = None,
+           fixed_frame: str | None = None) -> ReplayResult:
     """Re-simulate ``input_path`` into ``output_path`` (see the module docstring).
 
     Args:
@@ -257,7 +268,7 @@ def replay(input_path, output_path, *, params_file=None, head_topic: Optional[st
     _finish(inp, node, recorder, result, output_path, clock_note, warn)
     result.wall_seconds = time.perf_counter() - wall0
     result.cpu_seconds = time.process_time() - cpu0
-    if progress is not None and result.first_tick_ns is not None and loop.t_start is not None:
+    if progress is not None and result.last_tick_ns is not None and loop.t_start is not None:
         progress((result.last_tick_ns - loop.t_start) * 1e-9, loop.total_s, final=True)
     return result
 
@@ -290,7 +301,7 @@ def _use_spline_estimators(runner) -> None:
 # -- the stages of replay() ----------------------------------------------------------------------
 
 
-def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[ReplayInput, Path]:
+def _open_input(input_path, output_path, head_topic, ticks, warn) -> tuple[ReplayInput, Path]:
     """The input opened and the options that need no parameters checked (what the input
     itself says about it warned)."""
     if ticks not in ('auto', 'recorded', 'nominal'):
@@ -312,7 +323,7 @@ def _open_input(input_path, output_path, head_topic, ticks, warn) -> Tuple[Repla
     return inp, output_path
 
 
-def _given_values(inp: ReplayInput, params_file) -> Dict[str, Any]:
+def _given_values(inp: ReplayInput, params_file) -> dict[str, Any]:
     """The values the user or the recording gave (not completed with defaults): the names in
     it are checked for typos."""
     if params_file is not None:
@@ -326,7 +337,7 @@ def _given_values(inp: ReplayInput, params_file) -> Dict[str, Any]:
 
 
 def _resolve_parameters(inp: ReplayInput, params_file, stamp_source, look_ahead,
-                        warn) -> Tuple[Dict[str, Any], str]:
+                        warn) -> tuple[dict[str, Any], str]:
     """The full parameter set of the replay and where it came from (``ReplayResult``'s
     ``parameters_from``): ``--params``, else the recorded parameters, else the package
     config; ``--stamp-source`` and ``--look-ahead`` over it."""
@@ -348,7 +359,7 @@ def _resolve_parameters(inp: ReplayInput, params_file, stamp_source, look_ahead,
     return values, parameters_from
 
 
-def _frames_given(values, head_frame: Optional[str], fixed_frame: Optional[str]) -> None:
+def _frames_given(values, head_frame: str | None, fixed_frame: str | None) -> None:
     """``--head-frame`` / ``--fixed-frame`` over the parameters' ``head_frame`` /
     ``fixed_frame``."""
     if fixed_frame is not None and not fixed_frame.strip('/'):
@@ -358,7 +369,7 @@ def _frames_given(values, head_frame: Optional[str], fixed_frame: Optional[str])
             values[name] = value
 
 
-def _tick_mode(inp: ReplayInput, ticks: str, values) -> Tuple[str, Optional[str]]:
+def _tick_mode(inp: ReplayInput, ticks: str, values) -> tuple[str, str | None]:
     """``'recorded'`` (the node's own tick times, on the returned topic) or ``'nominal'``."""
     tick_topic = inp.tick_topic()
     recorded_rate = None
@@ -377,7 +388,7 @@ def _tick_mode(inp: ReplayInput, ticks: str, values) -> Tuple[str, Optional[str]
     return 'nominal', tick_topic
 
 
-def _events_topic(inp: ReplayInput, params_file, warn) -> Optional[str]:
+def _events_topic(inp: ReplayInput, params_file, warn) -> str | None:
     """The topic of the recorded live parameter changes to apply, or None: none recorded, or
     ``--params`` given (then they are not applied, with a warning if there are any)."""
     if inp.layout is None or (inp.topics.get(inp.layout.parameter_events_topic)
@@ -392,14 +403,15 @@ def _events_topic(inp: ReplayInput, params_file, warn) -> Optional[str]:
     return inp.layout.parameter_events_topic
 
 
-def _frame_inputs(inp: ReplayInput, values, warn) -> Tuple[tuple, tuple, List[str]]:
+def _frame_inputs(inp: ReplayInput, values, warn) -> tuple[tuple, tuple, list[str]]:
     """The extra frames, their topics (the recorded node's, else as configured) and types; a
     frame the scene uses must have its topic in the input."""
     frames = tuple(frame_names(values))
-    frame_topics = tuple(inp.frame_topic(f, t) for f, t in zip(frames, topics_of(values)))
+    frame_topics = tuple(inp.frame_topic(f, t)
+                         for f, t in zip(frames, topics_of(values), strict=True))
     used = used_frame_names(values)
     from_tf = tf_frames(values) if inp.use_tf_head(values) else {}
-    for i, (f, topic) in enumerate(zip(frames, frame_topics)):
+    for i, (f, topic) in enumerate(zip(frames, frame_topics, strict=True)):
         if i in from_tf:
             continue                    # its poses come from TF (recorded on its topic)
         if topic not in inp.topics:
@@ -454,7 +466,7 @@ def _open_output(inp: ReplayInput, output_path: Path, values, frames, frame_topi
         raise ReplayError(text) from None
 
 
-def _partial_output(path: Path) -> Optional[str]:
+def _partial_output(path: Path) -> str | None:
     """How an existing output is partial (an interrupted replay's), or None."""
     from .bag import BagReader
     from .inputs import partial_note
@@ -472,9 +484,9 @@ class _OfflineLoop:
     it they run at once. Counts into ``result``."""
 
     def __init__(self, inp: ReplayInput, node: ReplayNode, result: ReplayResult, values, *,
-                 mode: str, tick_topic: Optional[str], events_topic: Optional[str],
+                 mode: str, tick_topic: str | None, events_topic: str | None,
                  frame_topics, frame_types, look_ahead: bool,
-                 progress: Optional[Callable[..., None]], tf_head: bool = False):
+                 progress: Callable[..., None] | None, tf_head: bool = False):
         self.inp, self.node, self.result = inp, node, result
         self.mode, self.events_topic = mode, events_topic
         self.look_ahead, self.progress = look_ahead, progress
@@ -484,53 +496,60 @@ class _OfflineLoop:
         self.wanted = {inp.head_topic: inp.head_type}
         #: With the head from TF: the TF topics (read with ``wire.tf_message_fields``; their
         #: composed poses go the way of head and frame poses), else empty.
-        self.tf_topics: Dict[str, bool] = {}
+        self.tf_topics: dict[str, bool] = {}
         tf_sources = node.core.tf.sources if tf_head and node.core.tf is not None else {}
         if tf_head:
             del self.wanted[inp.head_topic]
             self.tf_topics = {t: t == TF_STATIC_TOPIC for t in (TF_TOPIC, TF_STATIC_TOPIC)
                               if t in inp.topics}
         #: topic -> the frames (indices) whose poses it carries
-        self.frame_index: Dict[str, List[int]] = {}
-        for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types)):
+        self.frame_index: dict[str, list[int]] = {}
+        for i, (topic, type_name) in enumerate(zip(frame_topics, frame_types, strict=True)):
             if i in tf_sources:
                 continue
             if topic in inp.topics and topic != inp.head_topic:
                 self.wanted[topic] = type_name
                 self.frame_index.setdefault(topic, []).append(i)
-        if mode == 'recorded':
+        if mode == 'recorded' and tick_topic is not None:     # (recorded: there is one)
             self.wanted[tick_topic] = 'geometry_msgs/msg/PoseArray'
         if events_topic is not None:
             self.wanted[events_topic] = 'rcl_interfaces/msg/ParameterEvent'
-        self.pending: List[Tuple[int, Callable, tuple]] = []
+        self.pending: list[tuple[int, Callable, tuple]] = []
         self.recent_heads: Any = deque(maxlen=LOOK_AHEAD_SAMPLES)
-        self.newest_head: Optional[int] = None
+        self.newest_head: int | None = None
         # Ticks of a node recording are its poses' log times when their stamps are not tick
         # times.
         self.recorded_stamp = recorded_value(inp.recorded_parameters, 'output_stamp', 'tick')
         self.period_ns = int(round(1e9 / values['rate']))
-        self.next_tick: Optional[int] = None
-        self.last_log: Optional[int] = None
+        self.next_tick: int | None = None
+        self.last_log: int | None = None
 
-    def _decoders(self) -> Dict[str, Callable[[bytes], Any]]:
+    def _decoders(self) -> dict[str, Callable[[bytes], Any]]:
         """Topic -> bytes to what the node takes: ``PoseStamped`` poses as ``ReceivedPose``
         (their fields read with ``struct``, recorded again as they are: no message object and
         no serialisation), everything else deserialised."""
         from rclpy.serialization import deserialize_message
 
         from .bag.msgdefs import _message_class
-        out: Dict[str, Callable[[bytes], Any]] = {}
+        def pose(cls: type, data: bytes) -> Any:
+            return ReceivedPose.decode(data) or deserialize_message(data, cls)
+
+        def poses(cls: type, data: bytes) -> Any:
+            return (ReceivedPoses.decode(data)
+                    or ReceivedPoses.of_message(deserialize_message(data, cls)))
+
+        def message(cls: type, data: bytes) -> Any:
+            return deserialize_message(data, cls)
+
+        out: dict[str, Callable[[bytes], Any]] = {}
         for topic, type_name in self.wanted.items():
             cls = _message_class(type_name)
             if type_name == HEAD_TYPES[0]:
-                out[topic] = lambda data, cls=cls: (ReceivedPose.decode(data)
-                                                    or deserialize_message(data, cls))
+                out[topic] = partial(pose, cls)
             elif type_name == FRAMES_TYPE and topic in self.frame_index:
-                out[topic] = lambda data, cls=cls: (
-                    ReceivedPoses.decode(data)
-                    or ReceivedPoses.of_message(deserialize_message(data, cls)))
+                out[topic] = partial(poses, cls)
             else:
-                out[topic] = lambda data, cls=cls: deserialize_message(data, cls)
+                out[topic] = partial(message, cls)
         return out
 
     def run(self) -> None:
@@ -580,6 +599,7 @@ class _OfflineLoop:
         (the ticks due before this message first, as for any input)."""
         self._ticks_before(log_ns)
         tf_in = self.node.core.tf
+        assert tf_in is not None            # (TF topics are read with the head from TF only)
         try:
             transforms = tf_message_fields(data)
         except ValueError as err:
@@ -611,7 +631,8 @@ class _OfflineLoop:
             self.t_start = log_ns
 
     def _event(self, msg, log_ns: int) -> None:
-        if msg.node != self.inp.layout.node:
+        layout = self.inp.layout            # (there are events to read with a layout only)
+        if layout is None or msg.node != layout.node:
             return
         changed = event_values(msg)
         if not changed:
@@ -651,8 +672,8 @@ class _OfflineLoop:
         full = len(self.recent_heads) == LOOK_AHEAD_SAMPLES
         pending = self.pending
         while pending and (flush or (full and pending[0][0] < self.recent_heads[0]
-                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS
-                                     <= self.newest_head)):
+                                     and (newest := self.newest_head) is not None
+                                     and pending[0][0] + LOOK_AHEAD_SPAN_NS <= newest)):
             _, fn, args = pending.pop(0)
             fn(*args)
 
@@ -680,7 +701,7 @@ def _tf_finish(inp: ReplayInput, node: ReplayNode, result: ReplayResult, output_
 
 
 def _finish(inp: ReplayInput, node: ReplayNode, recorder: RunRecorder, result: ReplayResult,
-            output_path: Path, clock_note: Optional[str], warn) -> None:
+            output_path: Path, clock_note: str | None, warn) -> None:
     """What was simulated checked (nothing: an error, the output removed) and said; an
     interrupted replay's output is kept as it is (marked partial)."""
     if recorder.error is not None:

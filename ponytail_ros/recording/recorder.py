@@ -39,19 +39,27 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Union
+from typing import Any
 
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_parameter_events
 
-from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of_text
-from .tf import (TF_QOS_DEPTH, TF_TOPIC, TFMESSAGE_MSG, TFMESSAGE_TYPE, tf_from_pose_array,
-                 tfmessage_type_hash)
-from .cdr import serialize_canonical
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.param_values import metadata_from_values
+
+from .bag import PARAMETERS_METADATA, BagError, BagWriter, message_definition_of_text
+from .cdr import serialize_canonical
+from .tf import (
+    TF_QOS_DEPTH,
+    TF_TOPIC,
+    TFMESSAGE_MSG,
+    TFMESSAGE_TYPE,
+    tf_from_pose_array,
+    tfmessage_type_hash,
+)
 
 __all__ = ['RunRecorder', 'RunLayout', 'RECORDING_METADATA', 'PARAMETERS_METADATA',
            'PARAMETER_EVENTS_TOPIC', 'HEAD_TYPES', 'FRAMES_TYPE', 'stamp_ns', 'expand_record_path',
@@ -128,12 +136,13 @@ class RunLayout:
 
     @classmethod
     def for_node(cls, node_fqn: str, chains: Sequence[str],
-                 head_topic: Optional[str] = None, frames: Sequence[str] = (),
-                 frame_topics: Sequence[str] = ()) -> 'RunLayout':
+                 head_topic: str | None = None, frames: Sequence[str] = (),
+                 frame_topics: Sequence[str] = ()) -> RunLayout:
         """The topics of a ``PonytailNode`` named ``node_fqn`` (relative names resolved in its
         namespace, as the node does); ``frame_topics`` as configured (``<frame>.topic``)."""
         namespace = node_fqn.rsplit('/', 1)[0]
         chains = tuple(chains)
+        poses: tuple[str, ...]
         if len(chains) == 1:
             poses = (f'{namespace}/segment_poses',)
         else:
@@ -143,7 +152,7 @@ class RunLayout:
                    marker_topic=f'{namespace}/segment_markers', frames=tuple(frames),
                    frame_topics=tuple(resolve_topic(node_fqn, t) for t in frame_topics))
 
-    def to_metadata(self) -> Dict[str, str]:
+    def to_metadata(self) -> dict[str, str]:
         meta = {'node': self.node, 'chains': json.dumps(list(self.chains)),
                 'head_topic': self.head_topic, 'pose_topics': json.dumps(list(self.pose_topics)),
                 'tick_topic': self.pose_topics[0], 'marker_topic': self.marker_topic,
@@ -155,16 +164,19 @@ class RunLayout:
         return meta
 
     @classmethod
-    def from_metadata(cls, record: Mapping[str, str]) -> 'RunLayout':
+    def from_metadata(cls, record: Mapping[str, str]) -> RunLayout:
         """Inverse of :meth:`to_metadata` (raises ``KeyError``/``ValueError`` if malformed); a
         recording without frames (older ones too) has none."""
         frames = tuple(json.loads(record.get('frames', '[]')))
         frame_topics = tuple(json.loads(record.get('frame_topics', '[]')))
         if len(frame_topics) != len(frames):
             raise ValueError('frames and frame_topics differ in length')
-        return cls(node=record['node'], chains=tuple(json.loads(record['chains'])),
-                   head_topic=record['head_topic'],
-                   pose_topics=tuple(json.loads(record['pose_topics'])),
+        chains = tuple(json.loads(record['chains']))
+        pose_topics = tuple(json.loads(record['pose_topics']))
+        if len(pose_topics) != len(chains):
+            raise ValueError('chains and pose_topics differ in length')
+        return cls(node=record['node'], chains=chains, head_topic=record['head_topic'],
+                   pose_topics=pose_topics,
                    marker_topic=record['marker_topic'],
                    diagnostics_topic=record.get('diagnostics_topic', '/diagnostics'),
                    parameter_events_topic=record.get('parameter_events_topic',
@@ -214,12 +226,12 @@ class RunRecorder:
         BagError: the file cannot be created (exists, folder missing, not writable).
     """
 
-    def __init__(self, path: Union[str, os.PathLike], layout: RunLayout,
+    def __init__(self, path: str | os.PathLike, layout: RunLayout,
                  parameters: Mapping[str, Any], *, head_type: str = HEAD_TYPES[0],
-                 frame_types: Optional[Sequence[str]] = None,
-                 qos: Optional[Mapping[str, QoSProfile]] = None,
-                 info: Optional[Mapping[str, str]] = None,
-                 on_error: Optional[Callable[[str], None]] = None,
+                 frame_types: Sequence[str] | None = None,
+                 qos: Mapping[str, QoSProfile] | None = None,
+                 info: Mapping[str, str] | None = None,
+                 on_error: Callable[[str], None] | None = None,
                  canonical: bool = True, overwrite: bool = False, chunk_size: int = 64 * 1024,
                  chunk_duration_ns: int = 500_000_000, tf: bool = True, tf_prefix: str = '',
                  background: bool = True):
@@ -234,7 +246,7 @@ class RunRecorder:
         self._writer = BagWriter(path, overwrite=overwrite, chunk_size=chunk_size,
                                  chunk_duration_ns=chunk_duration_ns, background=background)
         #: pose topic -> chain name, for the chains' TF frames (empty without tf)
-        self._tf_chains = dict(zip(layout.pose_topics, layout.chains)) if tf else {}
+        self._tf_chains = dict(zip(layout.pose_topics, layout.chains, strict=True)) if tf else {}
         self._tf_prefix = tf_prefix
         self.path = self._writer.path
         qos = dict(qos or {})
@@ -252,7 +264,7 @@ class RunRecorder:
                                                                          HEAD_QOS))
             types = list(frame_types or [HEAD_TYPES[0]] * len(layout.frame_topics))
             added = {layout.head_topic}
-            for topic, type_name in zip(layout.frame_topics, types):
+            for topic, type_name in zip(layout.frame_topics, types, strict=True):
                 if topic not in added:        # (two inputs on one topic: one channel)
                     added.add(topic)
                     self._writer.add_topic(topic, type_name, qos.get(topic, HEAD_QOS))
@@ -279,7 +291,7 @@ class RunRecorder:
 
     # -- writing -------------------------------------------------------------------------------
     @property
-    def error(self) -> Optional[BagError]:
+    def error(self) -> BagError | None:
         """The I/O error that stopped recording, or None."""
         return self._writer.error
 
@@ -364,8 +376,8 @@ class RunRecorder:
 
     def parameters_changed(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
         """An accepted live change (name -> new plain value), as a ``ParameterEvent``."""
-        from rcl_interfaces.msg import ParameterEvent
         from builtin_interfaces.msg import Time
+        from rcl_interfaces.msg import ParameterEvent
         event = ParameterEvent(node=self.layout.node)
         event.stamp = Time(sec=log_time_ns // 1_000_000_000, nanosec=log_time_ns % 1_000_000_000)
         event.changed_parameters = [Parameter(name, value=value).to_parameter_msg()
@@ -373,7 +385,7 @@ class RunRecorder:
         self.write(self.layout.parameter_events_topic, event, log_time_ns)
 
     # -- the tick's output interface (app/sink.py: TickSink) -----------------------------------
-    def on_input(self, source: Optional[int], msg: Any, log_time_ns: int) -> None:
+    def on_input(self, source: int | None, msg: Any, log_time_ns: int) -> None:
         """The head pose (``source`` None) or frame ``source``'s, as received (a message, or
         a ``ReceivedPose``: recorded from its fields)."""
         if source is None:
@@ -400,7 +412,7 @@ class RunRecorder:
     def on_parameters(self, changed: Mapping[str, Any], log_time_ns: int) -> None:
         self.parameters_changed(changed, log_time_ns)
 
-    def mark_partial(self, reason: str, until_ns: Optional[int]) -> None:
+    def mark_partial(self, reason: str, until_ns: int | None) -> None:
         """Say in the file that it holds only part of the run: ``reason`` (e.g. "interrupted by
         SIGINT") and the log time (ns) up to which it is complete. Written as a new
         ``ponytail_ros/recording`` record (the last of a name wins) with ``partial: true``,
@@ -426,7 +438,7 @@ class RunRecorder:
         if self._writer.error is not None:
             self._report_error()
 
-    def _report_error(self, text: Optional[str] = None) -> None:
+    def _report_error(self, text: str | None = None) -> None:
         if self._error_reported:
             return
         self._error_reported = True
@@ -438,7 +450,7 @@ class RunRecorder:
     def for_node(cls, node, record_path: str, chains: Sequence[str], head_subscription,
                  pose_publishers: Sequence[Any], marker_publisher, diagnostics_publisher,
                  frames: Sequence[str] = (), frame_subscriptions: Sequence[Any] = (),
-                 tf_prefix: str = '') -> Optional['RunRecorder']:
+                 tf_prefix: str = '') -> RunRecorder | None:
         """A recorder for a running ``PonytailNode``, or None (error logged) if the file cannot
         be created; the node then goes on without recording.
 

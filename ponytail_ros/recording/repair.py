@@ -23,7 +23,6 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Union
 
 import yaml
 from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
@@ -50,8 +49,8 @@ class RepairResult:
     topics: int = 0
     metadata: int = 0
     attachments: int = 0
-    truncation: Optional[Problem] = None
-    damage: List[Problem] = field(default_factory=list)
+    truncation: Problem | None = None
+    damage: list[Problem] = field(default_factory=list)
     input_size: int = 0
     #: The input was already complete and undamaged (the output is a re-indexed copy).
     was_complete: bool = False
@@ -71,7 +70,7 @@ class RepairResult:
         return f'{input_path} -> {self.output}: kept {kept}; {state}'
 
 
-def repair(input_path: Union[str, os.PathLike], output_path: Union[str, os.PathLike], *,
+def repair(input_path: str | os.PathLike, output_path: str | os.PathLike, *,
            overwrite: bool = False) -> RepairResult:
     """Rewrite ``input_path`` as a complete, indexed MCAP file ``output_path``.
 
@@ -143,13 +142,13 @@ class _Copier:
         self.writer = Writer(stream, compression=CompressionType.NONE, enable_data_crcs=True)
         self.result = result
         self.started = False
-        self.schema_ids: Dict[int, int] = {}
-        self.channel_ids: Dict[int, int] = {}
-        self.channels: Dict[int, Channel] = {}
-        self.schemas: Dict[int, Schema] = {}
-        self.counts: Dict[int, int] = {}
+        self.schema_ids: dict[int, int] = {}
+        self.channel_ids: dict[int, int] = {}
+        self.channels: dict[int, Channel] = {}
+        self.schemas: dict[int, Schema] = {}
+        self.counts: dict[int, int] = {}
         self.first, self.last = _MAX_TIME_NS, 0
-        self.rosbag2: Optional[Dict[str, str]] = None
+        self.rosbag2: dict[str, str] | None = None
 
     def start(self, profile: str = '', library: str = '') -> None:
         if not self.started:
@@ -213,8 +212,8 @@ class _Copier:
         self.writer.finish()
 
 
-def _final_rosbag2(record: Dict[str, str], channels, schemas, counts, first: int, last: int,
-                   file_name: str) -> Dict[str, str]:
+def _final_rosbag2(record: dict[str, str], channels, schemas, counts, first: int, last: int,
+                   file_name: str) -> dict[str, str]:
     """The input's last ``rosbag2`` record with the counts and times of what was kept."""
     from .bag.metadata import _dump_yaml
     try:

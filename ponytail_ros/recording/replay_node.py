@@ -2,7 +2,8 @@
 through a ``TickSink`` (``app/sink.py``), the recorder of the offline replay."""
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from ponytail_ros.app.messages import ReceivedPose, ReceivedPoses
 from ponytail_ros.app.node_core import NodeCore, time_msg
@@ -31,8 +32,8 @@ class ReplayNode:
         self._head_type = head_type
         self._frame_types = list(frame_types) or [HEAD_TYPES[0]] * len(self.core.frames)
         self._diag_period_ns = int(round(self.core.values['diagnostics_period'] * 1e9))
-        self._diag_next_ns = None
-        self._diag_last_ns = None
+        self._diag_next_ns: int | None = None
+        self._diag_last_ns: int | None = None
         #: A zero header stamp is a real stamp (a simulator clock starting at 0), not "no
         #: stamp", when the stream has other non-zero stamps.
         self._zero_stamp_valid = zero_stamp_valid

@@ -23,8 +23,9 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
-from functools import lru_cache
-from typing import Iterable, Sequence, Tuple
+from collections.abc import Iterable, Sequence
+from functools import cache
+from typing import Any
 
 from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, segment_frame
 
@@ -50,7 +51,7 @@ def _string(out: bytearray, text: str) -> None:
     out += _U32.pack(len(data)) + data
 
 
-def tf_message_cdr(transforms: Iterable[Tuple[int, int, str, str, Sequence[float],
+def tf_message_cdr(transforms: Iterable[tuple[int, int, str, str, Sequence[float],
                                               Sequence[float]]]) -> bytes:
     """CDR of a ``TFMessage`` holding ``(sec, nanosec, frame_id, child_frame_id, (x, y, z),
     (qx, qy, qz, qw))`` transforms. Alignment is relative to the end of the 4-byte
@@ -88,7 +89,8 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     ``rosidl_generator_type_description.calculate_type_hash`` does. '' if a dependency has no
     type description installed."""
     from .bag.msgdefs import _interface_file
-    described = {type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
+    described: dict[str, dict[str, Any]] = {
+        type_name: {'type_name': type_name, 'fields': [dict(f) for f in fields]}}
     pending = [f['type']['nested_type_name'] for f in fields if f['type']['nested_type_name']]
     while pending:
         name = pending.pop()
@@ -122,7 +124,7 @@ def type_description_hash(type_name: str, fields: Sequence[dict]) -> str:
     return 'RIHS01_' + hashlib.sha256(text.encode('utf-8')).hexdigest()
 
 
-@lru_cache(maxsize=None)
+@cache
 def tfmessage_type_hash() -> str:
     """The ``RIHS01`` hash of ``tf2_msgs/msg/TFMessage``."""
     return type_description_hash(TFMESSAGE_TYPE, [{

@@ -34,17 +34,16 @@ The motion itself is ROS-free (``ponytail_ros/app/head_script.py``).
 """
 import sys
 
+import numpy as np
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from geometry_msgs.msg import PoseArray, PoseStamped
 
-import numpy as np
-
-from ponytail_ros.core.head import StillMotion, SwayYawMotion
 from ponytail_ros.app.crowd import crowd_offsets
 from ponytail_ros.app.head_script import HeadScript
 from ponytail_ros.app.wire import pose_array_layout
+from ponytail_ros.core.head import StillMotion, SwayYawMotion
 from ponytail_ros.ros.spin import run_node
 
 __all__ = ['HeadDemoNode', 'make_motion', 'main', 'namespace_prefix']
@@ -171,6 +170,7 @@ class HeadDemoNode(Node):
     def _make_tf(self, neck_height):
         """The /tf publisher (the tree's moving edges); /tf_static gets base_link -> neck now."""
         from rclpy.qos import DurabilityPolicy
+
         from ponytail_ros.app.head_tree import TREE_FRAMES, neck_transform
         from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC
         tf_message, transform_stamped = _tf_types()

@@ -64,33 +64,50 @@ callback only if the parameter's annotation *is* the class.
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from rclpy.serialization import deserialize_message
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
 from rclpy.timer import TimerInfo
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
 from visualization_msgs.msg import MarkerArray
 
-from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
-from ponytail_ros.core.stages import CONTACT_STAGES
-from ponytail_ros.app.messages import (TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses,
-                                       tf_cdr)
+from ponytail_ros.app.messages import TF_QOS_DEPTH, TF_TOPIC, ReceivedPose, ReceivedPoses, tf_cdr
 from ponytail_ros.app.node_core import OVERLOADED, NodeCore, NodeTick
 from ponytail_ros.app.param_values import closest_name, unknown_parameter_warning
-from ponytail_ros.app.parameters import (CHAIN_PARAMS, COLLIDER_PARAMS, DEFAULT_COLORS,
-                                         FRAME_PARAMS, GLOBAL_PARAMS, NODE_PARAMS,
-                                         ParameterError,
-                                         chain_param_name, check_names, definition)
+from ponytail_ros.app.parameters import (
+    CHAIN_PARAMS,
+    COLLIDER_PARAMS,
+    DEFAULT_COLORS,
+    FRAME_PARAMS,
+    GLOBAL_PARAMS,
+    NODE_PARAMS,
+    ParameterError,
+    chain_param_name,
+    check_names,
+    definition,
+)
 from ponytail_ros.app.sink import HEAD, Sinks
 from ponytail_ros.app.tf_input import TF_STATIC_TOPIC
 from ponytail_ros.app.wire import tf_message_fields
+from ponytail_ros.core.compile import compile_kernels, say_compiles, stages_for
+from ponytail_ros.core.stages import CONTACT_STAGES
+
 from .spin import run_node, timer_callback
 
 __all__ = ['PonytailNode', 'main', 'node_help', 'OUTPUT_QOS', 'INPUT_QOS', 'TF_QOS',
@@ -247,7 +264,7 @@ class _Publishers:
 
     def on_tick(self, tick, log_time_ns):
         # The poses as encoded by the core (CDR bytes): rclpy publishes them raw.
-        for pub, poses in zip(self.poses, tick.segments):
+        for pub, poses in zip(self.poses, tick.segments, strict=True):
             pub.publish(poses.cdr)
         self.poses_published_at = time.perf_counter()
         if self.tf is not None:
@@ -337,7 +354,7 @@ class PonytailNode(Node):
         #: Input name ('head' or a frame's) -> its resolved topic (log messages).
         self._input_topics = {'head': self._head_sub.topic_name,
                               **{f: sub.topic_name
-                                 for f, sub in zip(self._frames, self._frame_subs)}}
+                                 for f, sub in zip(self._frames, self._frame_subs, strict=True)}}
         tf_frames = set()
         if tf_in is not None:
             for source in tf_in.sources:
@@ -381,7 +398,8 @@ class PonytailNode(Node):
         inputs = ', '.join([tf_in.describe('head') if tf_in is not None else 'head_pose']
                            + list(dict.fromkeys(self._input_topics[f] if f in tf_frames else t
                                                 for f, t in zip(self._frames,
-                                                                self.core.frame_topics))))
+                                                                self.core.frame_topics,
+                                                                strict=True))))
         #: Set (and logged once) when another node with this node's name is in the graph.
         self.duplicate_name_warning = None
         self._name_checks = 0
@@ -482,7 +500,7 @@ class PonytailNode(Node):
                                      f'{self.core.frames_topic!r} is not allowed: it resolves '
                                      f'to {resolved}, which the head (head_pose) already reads')
             return
-        for frame, topic in zip(self.core.frames, self.core.frame_topics):
+        for frame, topic in zip(self.core.frames, self.core.frame_topics, strict=True):
             resolved = self.resolve_topic_name(topic)
             name = chain_param_name(frame, 'topic')
             if resolved in seen:
@@ -699,7 +717,7 @@ class PonytailNode(Node):
             logger.warning(text)
 
     # -- the tick --------------------------------------------------------------------------
-    def _on_tick(self, info: TimerInfo = None) -> None:
+    def _on_tick(self, info: TimerInfo | None = None) -> None:
         wall0 = time.perf_counter()
         timing = self._timing
         if info is not None:

@@ -80,9 +80,10 @@ def timer_callback(method):
     executor inspects a timer callback's signature at every call to find a ``TimerInfo``
     parameter (``inspect.signature`` of a bound method: a visible share of an idle node's
     main thread); a plain function carrying its ``__signature__`` answers at once."""
-    def callback(info: TimerInfo = None):     # (a real annotation: rclpy matches the type)
+    # The annotation is exactly ``TimerInfo`` (rclpy compares it with ``==``: not Optional).
+    def callback(info: TimerInfo = None):  # type: ignore[assignment]
         return method(info)
-    callback.__signature__ = inspect.signature(callback)   # type: ignore[attr-defined]
+    callback.__signature__ = inspect.signature(callback)
     return callback
 
 

@@ -15,9 +15,18 @@ Units SI, frames REP 103 (positions in the head poses' frame, quaternions ``(x, 
 """
 from typing import Any
 
-from .checks import (CheckFailed, assert_energy_does_not_grow, assert_joints_closed,
-                     assert_no_penetration, assert_no_resets, assert_tips_close,
-                     assert_within_joint_limits, joint_gaps, max_penetration, tip_distance)
+from .checks import (
+    CheckFailed,
+    assert_energy_does_not_grow,
+    assert_joints_closed,
+    assert_no_penetration,
+    assert_no_resets,
+    assert_tips_close,
+    assert_within_joint_limits,
+    joint_gaps,
+    max_penetration,
+    tip_distance,
+)
 from .config import Config, ParameterError, load_config
 from .motion import Motion, PoseSample, head_samples, sample_motion, still
 from .offline import n_ticks, run_offline, tick_period_ns

@@ -12,7 +12,7 @@ rclpy.
 """
 from __future__ import annotations
 
-from typing import Iterable, List, Optional, Sequence, Tuple
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -27,7 +27,7 @@ class CheckFailed(AssertionError):
     """A physical check failed; ``str()`` is the readable reason."""
 
 
-def _window(trace: Trace, since: Optional[float]) -> np.ndarray:
+def _window(trace: Trace, since: float | None) -> np.ndarray:
     """Indices of the ticks judged."""
     if trace.n_ticks == 0:
         raise CheckFailed('the run has no published tick: nothing to check (no head pose '
@@ -39,7 +39,7 @@ def _window(trace: Trace, since: Optional[float]) -> np.ndarray:
     return idx
 
 
-def _segment_name(trace: Trace, i: int) -> Tuple[str, int]:
+def _segment_name(trace: Trace, i: int) -> tuple[str, int]:
     """(chain, 1-based segment number) of row ``i``."""
     for c in trace.chains:
         sl = trace.segments(c)
@@ -75,7 +75,7 @@ def joint_gaps(trace: Trace) -> np.ndarray:
 
 
 def assert_joints_closed(trace: Trace, tolerance: float = 1e-6,
-                         since: Optional[float] = None) -> float:
+                         since: float | None = None) -> float:
     """Every joint of every published chain closed within ``tolerance`` m (no stretch, no
     segment drifting off its neighbour, the root on the head); returns the largest gap, m."""
     idx = _window(trace, since)
@@ -93,7 +93,7 @@ def assert_joints_closed(trace: Trace, tolerance: float = 1e-6,
     return worst
 
 
-def max_penetration(trace: Trace, since: Optional[float] = None) -> float:
+def max_penetration(trace: Trace, since: float | None = None) -> float:
     """The deepest penetration of any segment into any collider over the judged ticks, m
     (<= 0: never touching; -inf: nothing collides)."""
     idx = _window(trace, since)
@@ -103,8 +103,8 @@ def max_penetration(trace: Trace, since: Optional[float] = None) -> float:
 
 
 def assert_no_penetration(trace: Trace, max_depth: float = 1e-3,
-                          since: Optional[float] = None,
-                          colliders: Optional[Sequence[str]] = None) -> float:
+                          since: float | None = None,
+                          colliders: Sequence[str] | None = None) -> float:
     """No segment (a capsule of the chain's radius along its whole length) deeper than
     ``max_depth`` m inside any collider of the scene (or of ``colliders``, by name), each
     placed on the head as the node estimated it for the published instant; returns the
@@ -134,14 +134,14 @@ def assert_no_penetration(trace: Trace, max_depth: float = 1e-3,
 
 
 def assert_within_joint_limits(trace: Trace, tolerance: float = 2e-5,
-                               since: Optional[float] = None) -> float:
+                               since: float | None = None) -> float:
     """Every swing (cone) and twist angle within its limit (``swing_limit(s)``,
     ``twist_limit(s)``) plus ``tolerance`` rad; returns the largest excess, rad (<= 0:
     within). Joints without a limit are not judged."""
     idx = _window(trace, since)
     model_limits = _limits(trace)
     worst_value = -np.inf
-    worst: Optional[Tuple[str, int, int, float, float, int]] = None
+    worst: tuple[str, int, int, float, float, int] | None = None
     for kind, angles, limit in (('swing', trace.swing[idx], model_limits[0]),
                                 ('twist', np.abs(trace.twist[idx]), model_limits[1])):
         on = np.isfinite(limit)
@@ -165,7 +165,7 @@ def assert_within_joint_limits(trace: Trace, tolerance: float = 2e-5,
     return worst_value
 
 
-def _limits(trace: Trace) -> Tuple[np.ndarray, np.ndarray]:
+def _limits(trace: Trace) -> tuple[np.ndarray, np.ndarray]:
     swing, twist = [], []
     for c in trace.config.scene.chains:
         swing.append(c.joint_limits('swing_limit'))
@@ -173,7 +173,7 @@ def _limits(trace: Trace) -> Tuple[np.ndarray, np.ndarray]:
     return np.concatenate(swing), np.concatenate(twist)
 
 
-def tip_distance(a: Trace, b: Trace, chain: Optional[str] = None) -> np.ndarray:
+def tip_distance(a: Trace, b: Trace, chain: str | None = None) -> np.ndarray:
     """``(T,)`` distance, m, between ``chain``'s tip (its last segment's far end) in two runs
     at the same tick times (both runs must have ticked at the same instants)."""
     if a.n_ticks != b.n_ticks or not np.array_equal(a.t, b.t):
@@ -183,8 +183,8 @@ def tip_distance(a: Trace, b: Trace, chain: Optional[str] = None) -> np.ndarray:
     return np.linalg.norm(a.tips(chain) - b.tips(chain), axis=1)
 
 
-def assert_tips_close(a: Trace, b: Trace, max_distance: float, rms: Optional[float] = None,
-                      chain: Optional[str] = None, since: Optional[float] = None) -> float:
+def assert_tips_close(a: Trace, b: Trace, max_distance: float, rms: float | None = None,
+                      chain: str | None = None, since: float | None = None) -> float:
     """The tip trajectories of two runs (a tuning change, a replayed take against its
     reference) within ``max_distance`` m at every judged tick, and their RMS distance within
     ``rms`` m if given; returns the largest distance, m."""
@@ -207,8 +207,8 @@ def assert_tips_close(a: Trace, b: Trace, max_distance: float, rms: Optional[flo
 
 
 def assert_energy_does_not_grow(trace: Trace, tolerance: float = 1e-6,
-                                since: Optional[float] = None,
-                                chains: Optional[Iterable[str]] = None) -> float:
+                                since: float | None = None,
+                                chains: Iterable[str] | None = None) -> float:
     """On a head held still from ``since`` on, no chain's energy (kinetic + gravitational,
     J) ever rises more than ``tolerance`` J above the lowest value it had before: damping,
     drag, contacts and limits only take energy out. Returns the largest rise, J."""
@@ -231,14 +231,14 @@ def assert_energy_does_not_grow(trace: Trace, tolerance: float = 1e-6,
     return worst
 
 
-def assert_no_resets(trace: Trace, reasons: Optional[Iterable[str]] = None,
-                     since: Optional[float] = None) -> None:
+def assert_no_resets(trace: Trace, reasons: Iterable[str] | None = None,
+                     since: float | None = None) -> None:
     """No reset at rest (``reasons``: only these, e.g. ``['guard']``; default any: guard,
     teleport, frame_changed, clock_backwards, rebuild) from ``since`` on. A guard reset means
     the step was too coarse for the motion (see docs/limits.md)."""
     chosen = None if reasons is None else set(reasons)
     t0 = -np.inf if since is None else since - 1e-12
-    bad: List = [r for r in trace.resets if r.t >= t0 and (chosen is None or r.reason in chosen)]
+    bad: list = [r for r in trace.resets if r.t >= t0 and (chosen is None or r.reason in chosen)]
     # A run without a tick fails, like every check here: nothing simulated is not a pass.
     _window(trace, since)
     if bad:

@@ -3,19 +3,24 @@ exactly as ``PonytailNode`` declares them (``ponytail_ros.app.param_values``). D
 rclpy."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Union
+from typing import Any, TypeAlias
 
-from ponytail_ros.core.scene import Scene
-from ponytail_ros.app.param_values import (complete_values, scene_and_settings, unknown_names,
-                                           values_from_params_file)
+from ponytail_ros.app.param_values import (
+    complete_values,
+    scene_and_settings,
+    unknown_names,
+    values_from_params_file,
+)
 from ponytail_ros.app.parameters import ParameterError, collider_names, frame_names, frame_topics
 from ponytail_ros.app.runner import RunnerSettings
+from ponytail_ros.core.scene import Scene
 
 __all__ = ['Config', 'load_config', 'ParameterError']
 
-PathLike = Union[str, Path]
+PathLike: TypeAlias = str | Path
 
 
 @dataclass(frozen=True)
@@ -34,13 +39,13 @@ class Config:
         settings: the runner's input-handling settings.
     """
 
-    values: Dict[str, Any]
-    params_file: Optional[Path]
-    overrides: Dict[str, Any]
-    chains: List[str]
-    colliders: List[str]
-    frames: List[str]
-    frame_topics: List[str]
+    values: dict[str, Any]
+    params_file: Path | None
+    overrides: dict[str, Any]
+    chains: list[str]
+    colliders: list[str]
+    frames: list[str]
+    frame_topics: list[str]
     scene: Scene
     settings: RunnerSettings
 
@@ -50,13 +55,13 @@ class Config:
         return float(self.values['rate'])
 
     @property
-    def pose_topics(self) -> List[str]:
+    def pose_topics(self) -> list[str]:
         """The node's ``PoseArray`` topics (relative), one per chain, in chain order."""
         if len(self.chains) == 1:
             return ['segment_poses']
         return [f'segment_poses/{c}' for c in self.chains]
 
-    def with_overrides(self, **overrides: Any) -> 'Config':
+    def with_overrides(self, **overrides: Any) -> Config:
         """This configuration with more overrides (``'ponytail.damping'`` style names;
         ``__`` in a keyword stands for ``.``: ``ponytail__damping=2e-3``)."""
         merged = dict(self.overrides)
@@ -64,8 +69,8 @@ class Config:
         return load_config(self.params_file, merged)
 
 
-def load_config(params_file: Optional[PathLike] = None,
-                overrides: Optional[Mapping[str, Any]] = None,
+def load_config(params_file: PathLike | None = None,
+                overrides: Mapping[str, Any] | None = None,
                 node_fqn: str = '/ponytail') -> Config:
     """The parameters a node named ``node_fqn`` would run with, given a ROS 2 params file
     (``/**: ros__parameters: ...``; None: the node's defaults) and ``overrides`` (dotted
@@ -77,7 +82,7 @@ def load_config(params_file: Optional[PathLike] = None,
             message names the parameter.
     """
     path = Path(params_file) if params_file is not None else None
-    partial: Dict[str, Any] = values_from_params_file(path, node_fqn) if path is not None else {}
+    partial: dict[str, Any] = values_from_params_file(path, node_fqn) if path is not None else {}
     extra = dict(overrides or {})
     partial.update(extra)
     unknown = [n for n in unknown_names(partial) if n in extra]

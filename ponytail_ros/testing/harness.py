@@ -27,24 +27,25 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
-from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rosgraph_msgs.msg import Clock
 from visualization_msgs.msg import MarkerArray
 
+from ponytail_ros.app.node_core import NodeCore, NodeTick, time_msg
 from ponytail_ros.node import PonytailNode
-from ponytail_ros.app.node_core import NodeTick, time_msg
 
 from .config import Config, load_config
 from .motion import HeadInput, PoseSample, head_samples, stamp_ns
@@ -62,7 +63,7 @@ TIMEOUT_SCALE = float(os.environ.get('PONYTAIL_TEST_TIMEOUT_SCALE', '4'))
 
 #: A head motion for the wall-clock stream: wall/node time t (s) -> (position, orientation,
 #: frame_id).
-HeadStream = Callable[[float], Tuple[Sequence[float], Sequence[float], str]]
+HeadStream = Callable[[float], tuple[Sequence[float], Sequence[float], str]]
 
 
 class HarnessError(RuntimeError):
@@ -80,7 +81,7 @@ def default_domain_id() -> int:
 
 
 @contextlib.contextmanager
-def _env(name: str, value: Optional[str]) -> Iterator[None]:
+def _env(name: str, value: str | None) -> Iterator[None]:
     old = os.environ.get(name)
     if value is not None:
         os.environ[name] = value
@@ -94,7 +95,7 @@ def _env(name: str, value: Optional[str]) -> Iterator[None]:
                 os.environ[name] = old
 
 
-def pose_msg(t: Union[float, Time], position: Sequence[float], orientation: Sequence[float],
+def pose_msg(t: float | Time, position: Sequence[float], orientation: Sequence[float],
              frame_id: str = 'world') -> PoseStamped:
     """A ``PoseStamped`` at ``t`` (s, or a ``Time``); ``orientation`` ``(x, y, z, w)``."""
     m = PoseStamped()
@@ -106,7 +107,7 @@ def pose_msg(t: Union[float, Time], position: Sequence[float], orientation: Sequ
     return m
 
 
-def pose_array_msg(t: Union[float, Time], positions: Any, orientations: Any,
+def pose_array_msg(t: float | Time, positions: Any, orientations: Any,
                    frame_id: str = 'world') -> PoseArray:
     """A ``PoseArray`` of poses ``positions`` ``(n, 3)`` and ``orientations`` ``(n, 4)`` (x, y,
     z, w) stamped ``t`` (s or a ``Time``): the frames' poses on ``frames_topic``."""
@@ -115,7 +116,7 @@ def pose_array_msg(t: Union[float, Time], positions: Any, orientations: Any,
     m.header.frame_id = frame_id
     poses = []
     for p, q in zip(np.asarray(positions, float).tolist(), np.asarray(orientations,
-                                                                     float).tolist()):
+                                                                     float).tolist(), strict=True):
         pose = Pose()
         pose.position.x, pose.position.y, pose.position.z = p
         pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
@@ -124,41 +125,54 @@ def pose_array_msg(t: Union[float, Time], positions: Any, orientations: Any,
     return m
 
 
-def _batched(frames: Sequence[str], per_frame: List[List[PoseSample]]) -> List[PoseSample]:
+class _FramesSample(NamedTuple):
+    """Every frame's pose at one stamp: ``t`` s, ``position`` ``(F, 3)`` m, ``orientation``
+    ``(F, 4)`` ``(x, y, z, w)``."""
+
+    t: float
+    position: np.ndarray
+    orientation: np.ndarray
+
+
+#: A head or frame sample, or the frames' batched one.
+_Sample = TypeVar('_Sample', PoseSample, _FramesSample)
+
+
+def _batched(frames: Sequence[str], per_frame: list[list[PoseSample]]) -> list[_FramesSample]:
     """The frames' samples as one sample per stamp with ``(F, 3)`` / ``(F, 4)`` poses (what a
     ``frames_topic`` publisher sends): every frame needs a sample at every stamp."""
     if not per_frame:
         return []
     stamps = [s.t for s in per_frame[0]]
-    for name, rows in zip(frames, per_frame):
+    for name, rows in zip(frames, per_frame, strict=True):
         if [s.t for s in rows] != stamps:
             raise HarnessError(f'with frames_topic every frame needs a pose at the same stamps '
                                f'(frame {name} differs from frame {frames[0]})')
-    return [PoseSample(t, np.array([rows[k].position for rows in per_frame]),
-                       np.array([rows[k].orientation for rows in per_frame]))
+    return [_FramesSample(t, np.array([rows[k].position for rows in per_frame]),
+                          np.array([rows[k].orientation for rows in per_frame]))
             for k, t in enumerate(stamps)]
 
 
-def _pose_arrays(msg: PoseArray) -> Tuple[np.ndarray, np.ndarray]:
+def _pose_arrays(msg: PoseArray) -> tuple[np.ndarray, np.ndarray]:
     o = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=float)
     q = np.array([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
                   for p in msg.poses], dtype=float)
     return o.reshape(-1, 3), q.reshape(-1, 4)
 
 
-def diagnostic_values(msg: DiagnosticArray) -> Dict[str, str]:
+def diagnostic_values(msg: DiagnosticArray) -> dict[str, str]:
     """key -> value of the node's status in a ``/diagnostics`` message."""
     return {kv.key: kv.value for kv in msg.status[0].values}
 
 
-class BagSamples(List[PoseSample]):
+class BagSamples(list[PoseSample]):
     """A bag's head poses as ``PoseSample``s, times in s from its first head pose
     (:attr:`start_ns`, the absolute stamp of ``t = 0``, integer ns)."""
 
     start_ns: int = 0
 
 
-def bag_samples(path: Union[str, Path], head_topic: Optional[str] = None) -> BagSamples:
+def bag_samples(path: str | Path, head_topic: str | None = None) -> BagSamples:
     """The head poses (``PoseStamped`` or ``TransformStamped``) of a rosbag2 bag (a bag folder,
     its ``metadata.yaml``, or a ``.mcap`` / ``.db3`` file), in log-time order, timed by their
     ``header.stamp`` **rebased to the first head pose** (``t = 0``; the absolute stamp of that
@@ -180,7 +194,8 @@ def bag_samples(path: Union[str, Path], head_topic: Optional[str] = None) -> Bag
         out.append(PoseSample(0.0, p, q))
     if stamps:
         out.start_ns = stamps[0]
-        out[:] = [s._replace(t=(t - out.start_ns) * 1e-9) for s, t in zip(out, stamps)]
+        out[:] = [s._replace(t=(t - out.start_ns) * 1e-9)
+                  for s, t in zip(out, stamps, strict=True)]
     return out
 
 
@@ -219,12 +234,12 @@ class Harness:
     fails with the parameter named before any node exists.
     """
 
-    def __init__(self, params: Union[str, Path, None] = None,
-                 overrides: Optional[Mapping[str, Any]] = None, *, sim_time: bool = True,
-                 namespace: Optional[str] = None, domain_id: Optional[int] = None,
-                 discovery: Optional[str] = 'OFF', topics: Optional[Sequence[str]] = None,
-                 head_qos: Union[int, QoSProfile] = 10, timeout: float = 10.0,
-                 node_name: str = 'ponytail', measure: Optional[bool] = None) -> None:
+    def __init__(self, params: str | Path | None = None,
+                 overrides: Mapping[str, Any] | None = None, *, sim_time: bool = True,
+                 namespace: str | None = None, domain_id: int | None = None,
+                 discovery: str | None = 'OFF', topics: Sequence[str] | None = None,
+                 head_qos: int | QoSProfile = 10, timeout: float = 10.0,
+                 node_name: str = 'ponytail', measure: bool | None = None) -> None:
         self.config: Config = load_config(params, overrides)
         self.sim_time = bool(sim_time)
         self._measure = self.sim_time if measure is None else bool(measure)
@@ -234,21 +249,21 @@ class Harness:
         with _env('ROS_AUTOMATIC_DISCOVERY_RANGE', discovery):
             rclpy.init(context=self.context, domain_id=self.domain_id)
         self._closed = False
-        self._extra: List[Node] = []
+        self._extra: list[Node] = []
         try:
             self._make_nodes(params, namespace, topics, head_qos, node_name)
         except BaseException:
             rclpy.try_shutdown(context=self.context)
             raise
 
-    def _make_nodes(self, params: Union[str, Path, None], namespace: Optional[str],
-                    topics: Optional[Sequence[str]], head_qos: Union[int, QoSProfile],
+    def _make_nodes(self, params: str | Path | None, namespace: str | None,
+                    topics: Sequence[str] | None, head_qos: int | QoSProfile,
                     node_name: str) -> None:
         cli = ['--ros-args', '--params-file', str(params)] if params is not None else None
         overrides = [Parameter(k, value=v) for k, v in self.config.overrides.items()]
         if self.sim_time:
             overrides.append(Parameter('use_sim_time', value=True))
-        kw: Dict[str, Any] = {'namespace': namespace} if namespace else {}
+        kw: dict[str, Any] = {'namespace': namespace} if namespace else {}
         #: The node under test.
         self.node = PonytailNode(node_name, context=self.context, cli_args=cli,
                                  parameter_overrides=overrides, **kw)
@@ -266,11 +281,11 @@ class Harness:
             PoseArray, self.config.values['frames_topic'], head_qos) if batched else None)
         topics = list(topics) if topics is not None else self.config.pose_topics
         #: Every ``PoseArray`` received, per topic, in arrival order.
-        self.poses: Dict[str, List[PoseArray]] = {tp: [] for tp in topics}
+        self.poses: dict[str, list[PoseArray]] = {tp: [] for tp in topics}
         #: Every ``MarkerArray`` received on ``segment_markers``.
-        self.markers: List[MarkerArray] = []
+        self.markers: list[MarkerArray] = []
         #: Every ``DiagnosticArray`` received on ``/diagnostics``.
-        self.diagnostics: List[DiagnosticArray] = []
+        self.diagnostics: list[DiagnosticArray] = []
         for tp in topics:
             self.tester.create_subscription(PoseArray, tp, self.poses[tp].append, 100)
         self.tester.create_subscription(MarkerArray, 'segment_markers', self.markers.append, 100)
@@ -281,12 +296,12 @@ class Harness:
         self.executor.add_node(self.tester)
         # Instrumentation (in this process, on the node's own objects): what it receives and
         # what every tick publishes, measured with the core's maths.
-        core = self.node.core
+        core: NodeCore = self.node.core
         self._received = 0
         #: Per published tick: (t_ns, per chain (origins, orientations), markers published).
-        self._ticks: List[Tuple[int, List[Tuple[np.ndarray, np.ndarray]], bool]] = []
+        self._ticks: list[tuple[int, list[tuple[np.ndarray, np.ndarray]], bool]] = []
         self._tick_calls = 0
-        self._last_tick_ns: Optional[int] = None
+        self._last_tick_ns: int | None = None
         self._builder = TraceBuilder(self.config)
         push_head, push_frame, tick = core.push_head, core.push_frame, core.tick
         push_frames = core.push_frames
@@ -299,7 +314,7 @@ class Harness:
             self._received += 1
             push_frame(*args, **kwargs)
 
-        def measured_tick(t_ns: int) -> Optional[NodeTick]:
+        def measured_tick(t_ns: int) -> NodeTick | None:
             result = tick(t_ns)
             self._tick_calls += 1
             self._last_tick_ns = t_ns
@@ -320,13 +335,13 @@ class Harness:
         core.push_frames = counting_push_frames  # type: ignore[method-assign]
         core.tick = measured_tick  # type: ignore[method-assign]
         # Wall-clock head stream (sim_time=False): published at 100 Hz while set.
-        self.head: Optional[HeadStream] = None
-        self.last_sent: Optional[float] = None
+        self.head: HeadStream | None = None
+        self.last_sent: float | None = None
         if not self.sim_time:
             self.tester.create_timer(0.01, self._publish_head)
         self._clock_ns = 0
         self._sent: int = 0
-        self._checked: Dict[str, int] = {}
+        self._checked: dict[str, int] = {}
         self._wall = 0.0          # s of wall time spent in run()
 
     # -- wall clock --------------------------------------------------------------------------
@@ -369,19 +384,19 @@ class Harness:
         return bool(pred())
 
     def _wait(self, pred: Callable[[], bool], what: str,
-              timeout: Optional[float] = None) -> None:
+              timeout: float | None = None) -> None:
         timeout = self.timeout if timeout is None else float(timeout)
         if not self.spin_until(pred, timeout):
             raise HarnessTimeout(f'timed out after {timeout * TIMEOUT_SCALE:g} s of wall '
                                  f'time waiting for {what}')
 
-    def last_diagnostics(self, since: int = 0, timeout: Optional[float] = None) -> Dict[str, str]:
+    def last_diagnostics(self, since: int = 0, timeout: float | None = None) -> dict[str, str]:
         """Values of the newest ``/diagnostics`` message received after ``since`` of them
         (waits up to ``timeout`` s, default the harness's, times ``TIMEOUT_SCALE``)."""
         self._wait(lambda: len(self.diagnostics) > since, 'a /diagnostics message', timeout)
         return diagnostic_values(self.diagnostics[-1])
 
-    def fresh_diagnostics(self, timeout: Optional[float] = None) -> Dict[str, str]:
+    def fresh_diagnostics(self, timeout: float | None = None) -> dict[str, str]:
         """Values of a ``/diagnostics`` message whose whole window started after this call."""
         n = len(self.diagnostics)
         self._wait(lambda: len(self.diagnostics) > n + 1, 'two /diagnostics messages', timeout)
@@ -393,7 +408,7 @@ class Harness:
         """Timer callbacks of the node so far (a tick publishes once the head is known)."""
         return self._tick_calls
 
-    def publish_diagnostics(self) -> Dict[str, str]:
+    def publish_diagnostics(self) -> dict[str, str]:
         """Make the node publish ``/diagnostics`` now (its window since the last one) and wait
         for it; its values."""
         n = len(self.diagnostics)
@@ -402,7 +417,7 @@ class Harness:
         return diagnostic_values(self.diagnostics[-1])
 
     def run(self, head: HeadInput, duration: float, *, input_rate: float = 100.0,
-            frame_id: str = 'world', frames: Optional[Mapping[str, HeadInput]] = None) -> Trace:
+            frame_id: str = 'world', frames: Mapping[str, HeadInput] | None = None) -> Trace:
         """Drive the node by ``/clock`` for ``duration`` s of sim time more, feeding ``head``.
 
         ``head``: samples (``PoseSample`` / ``(t, position, orientation)``, stamps in s of sim
@@ -423,19 +438,21 @@ class Harness:
         end = stamp_ns(self._clock_ns * 1e-9 + duration)
         after = self._clock_ns if self._clock_ns > 0 else -1
 
-        def window(inputs: List[PoseSample]) -> List[PoseSample]:
+        def window(inputs: list[_Sample]) -> list[_Sample]:
             return [s for s in inputs if after < stamp_ns(s.t) <= end]
         given = head_samples(head, end * 1e-9, input_rate)
         if self._sent == 0:
             check_samples_reach(given, end, 'Harness.run')
-        feeds = [(self.head_pub, 'head pose', window(given))]
+        feeds: list[tuple[Any, str, list[PoseSample] | list[_FramesSample]]] = [
+            (self.head_pub, 'head pose', window(given))]
         per_frame = _frame_samples(self.config, frames, end * 1e-9, input_rate)
         if self.frames_pub is not None:
             feeds.append((self.frames_pub, 'poses of the frames',
                           window(_batched(self.config.frames, per_frame))))
         else:
-            for name, pub, rows in zip(self.config.frames, self.frame_pubs, per_frame):
-                feeds.append((pub, f'pose of frame {name}', window(rows)))
+            for name, pub, samples in zip(self.config.frames, self.frame_pubs, per_frame,
+                                          strict=True):
+                feeds.append((pub, f'pose of frame {name}', window(samples)))
         nexts = [0] * len(feeds)
         for k in range(k0 + 1, k0 + n_ticks(duration, self.config.rate) + 1):
             t_ns = k * period
@@ -443,7 +460,7 @@ class Harness:
                 while nexts[j] < len(rows) and stamp_ns(rows[nexts[j]].t) <= t_ns:
                     s = rows[nexts[j]]
                     pub.publish(pose_array_msg(s.t, s.position, s.orientation, frame_id)
-                                if pub is self.frames_pub else
+                                if isinstance(s, _FramesSample) else
                                 pose_msg(s.t, s.position, s.orientation, frame_id))
                     self._sent += 1
                     nexts[j] += 1
@@ -521,7 +538,7 @@ class Harness:
         finally:
             rclpy.try_shutdown(context=self.context)
 
-    def __enter__(self) -> 'Harness':
+    def __enter__(self) -> Harness:
         return self
 
     def __exit__(self, *exc: Any) -> None:

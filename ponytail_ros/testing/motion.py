@@ -8,8 +8,8 @@ A head pose is the pose of the head frame in the world frame (the frame every po
 from __future__ import annotations
 
 import math
-from typing import Callable, Iterable, List, NamedTuple, Optional, Sequence, Tuple, Union
-
+from collections.abc import Callable, Iterable, Sequence
+from typing import NamedTuple, TypeAlias
 
 __all__ = ['PoseSample', 'Motion', 'HeadInput', 'sample_motion', 'head_samples', 'still',
            'stamp_ns']
@@ -19,16 +19,16 @@ class PoseSample(NamedTuple):
     """One head pose: ``t`` s (sim time), ``position`` m, ``orientation`` ``(x, y, z, w)``."""
 
     t: float
-    position: Tuple[float, float, float]
-    orientation: Tuple[float, float, float, float]
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
 
 
 #: A head motion: sim time ``t`` (s) -> ``(position (3,), orientation (4,) as (x, y, z, w))``.
-Motion = Callable[[float], Tuple[Sequence[float], Sequence[float]]]
+Motion = Callable[[float], tuple[Sequence[float], Sequence[float]]]
 #: What a run accepts as head input: samples (``PoseSample`` or ``(t, position, orientation)``
 #: tuples, stamps increasing) or a ``Motion`` (sampled at ``input_rate``).
-SampleLike = Union[PoseSample, Tuple[float, Sequence[float], Sequence[float]]]
-HeadInput = Union[Motion, Iterable[SampleLike]]
+SampleLike: TypeAlias = PoseSample | tuple[float, Sequence[float], Sequence[float]]
+HeadInput: TypeAlias = Motion | Iterable[SampleLike]
 
 
 def stamp_ns(t: float) -> int:
@@ -46,7 +46,7 @@ def _sample(t: float, position: Sequence[float], orientation: Sequence[float]) -
 
 
 def sample_motion(motion: Motion, duration: float, input_rate: float = 100.0,
-                  start: float = 0.0) -> List[PoseSample]:
+                  start: float = 0.0) -> list[PoseSample]:
     """``motion`` sampled every ``1 / input_rate`` s over ``[start, start + duration]``
     (sim time, s; both ends included)."""
     if not (input_rate > 0.0 and math.isfinite(input_rate)):
@@ -60,8 +60,8 @@ def sample_motion(motion: Motion, duration: float, input_rate: float = 100.0,
     return out
 
 
-def head_samples(head: HeadInput, duration: Optional[float] = None,
-                 input_rate: float = 100.0) -> List[PoseSample]:
+def head_samples(head: HeadInput, duration: float | None = None,
+                 input_rate: float = 100.0) -> list[PoseSample]:
     """Normalise a ``HeadInput`` to a list of ``PoseSample`` (a motion function needs
     ``duration``)."""
     if callable(head):

@@ -13,8 +13,9 @@ builds); needs no ROS graph, no DDS, no sleeping.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Union
+from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
@@ -44,8 +45,8 @@ def stamp_msg(t: float) -> Time:
     return time_msg(stamp_ns(t))
 
 
-def _frame_samples(config: Config, frames: Optional[Mapping[str, HeadInput]],
-                   duration: float, input_rate: float) -> List[List[PoseSample]]:
+def _frame_samples(config: Config, frames: Mapping[str, HeadInput] | None,
+                   duration: float, input_rate: float) -> list[list[PoseSample]]:
     """Per frame of the config (in its order) its samples; a frame not given has none."""
     given = dict(frames or {})
     unknown = sorted(set(given) - set(config.frames))
@@ -55,17 +56,17 @@ def _frame_samples(config: Config, frames: Optional[Mapping[str, HeadInput]],
             for f in config.frames]
 
 
-def _config(params: Union[Config, str, Path, None],
-            overrides: Optional[Mapping[str, Any]]) -> Config:
+def _config(params: Config | str | Path | None,
+            overrides: Mapping[str, Any] | None) -> Config:
     if isinstance(params, Config):
         return params.with_overrides(**overrides) if overrides else params
     return load_config(params, overrides)
 
 
-def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duration: float, *,
-                overrides: Optional[Mapping[str, Any]] = None, input_rate: float = 100.0,
+def run_offline(params: Config | str | Path | None, head: HeadInput, duration: float, *,
+                overrides: Mapping[str, Any] | None = None, input_rate: float = 100.0,
                 frame_id: str = 'world', keep_markers: bool = False,
-                frames: Optional[Mapping[str, HeadInput]] = None) -> Trace:
+                frames: Mapping[str, HeadInput] | None = None) -> Trace:
     """Run the node's core on sim time for ``duration`` s (ticks at ``k / rate``).
 
     Args:
@@ -89,7 +90,7 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         ``diagnostics_period`` s of sim time.
     """
     config = _config(params, overrides)
-    samples: List[PoseSample] = head_samples(head, duration, input_rate)
+    samples: list[PoseSample] = head_samples(head, duration, input_rate)
     if samples and all(stamp_ns(s.t) > stamp_ns(duration) for s in samples):
         raise ValueError(
             f'run_offline: all {len(samples)} head samples are stamped after the run\'s end '
@@ -101,9 +102,9 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
     core = NodeCore(config.values)
     builder = TraceBuilder(config)
     topics = config.pose_topics
-    poses: Dict[str, List[Any]] = {tp: [] for tp in topics}
-    markers: List[Any] = []
-    diagnostics: List[Any] = []
+    poses: dict[str, list[Any]] = {tp: [] for tp in topics}
+    markers: list[Any] = []
+    diagnostics: list[Any] = []
     period = tick_period_ns(config.rate)
     diag_period = stamp_ns(float(config.values['diagnostics_period']))
     next_diag = diag_period
@@ -127,7 +128,7 @@ def run_offline(params: Union[Config, str, Path, None], head: HeadInput, duratio
         if tick is not None:
             builder.record(core.runner, tick.output, tick.frame_id)
             # (each tick's messages are its own: built from its bytes when asked for)
-            for tp, msg in zip(topics, tick.poses):
+            for tp, msg in zip(topics, tick.poses, strict=True):
                 poses[tp].append(msg)
             if keep_markers and tick.markers is not None:
                 markers.append(tick.markers)

@@ -17,8 +17,9 @@ Nothing here imports rclpy until ``ponytail`` is used.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterator, List, Mapping, Optional, Union
+from typing import Any, TypeAlias
 
 import pytest
 
@@ -26,7 +27,7 @@ from .motion import HeadInput
 from .offline import run_offline
 from .trace import Trace
 
-ParamsArg = Union[str, Path, None]
+ParamsArg: TypeAlias = str | Path | None
 
 
 @pytest.fixture
@@ -39,9 +40,9 @@ def ponytail_params() -> ParamsArg:
 def ponytail(ponytail_params: ParamsArg) -> Iterator[Callable[..., Any]]:
     """Factory of :class:`ponytail_ros.testing.Harness` objects, closed after the test."""
     from .harness import Harness
-    made: List[Harness] = []
+    made: list[Harness] = []
 
-    def make(params: ParamsArg = None, overrides: Optional[Mapping[str, Any]] = None,
+    def make(params: ParamsArg = None, overrides: Mapping[str, Any] | None = None,
              **options: Any) -> Harness:
         h = Harness(params if params is not None else ponytail_params, overrides, **options)
         made.append(h)

@@ -8,17 +8,18 @@ clock (sim time) seconds; energies J; angles rad. Does not import rclpy.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any
 
 import numpy as np
 
+from ponytail_ros.app.runner import ChainRunner, TickOutput
 from ponytail_ros.core.collision import segment_depths
 from ponytail_ros.core.limits import joint_angles
 from ponytail_ros.core.model import Model
 from ponytail_ros.core.scene import Scene
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.app.runner import ChainRunner, TickOutput
 
 from .config import Config
 
@@ -84,20 +85,20 @@ class Trace:
     kinetic: np.ndarray
     potential: np.ndarray
     steps: np.ndarray
-    resets: List[Reset]
+    resets: list[Reset]
     frame_id: str
-    poses: Dict[str, List[Any]] = field(default_factory=dict)
-    markers: List[Any] = field(default_factory=list)
-    diagnostics: List[Any] = field(default_factory=list)
+    poses: dict[str, list[Any]] = field(default_factory=dict)
+    markers: list[Any] = field(default_factory=list)
+    diagnostics: list[Any] = field(default_factory=list)
     wall_time: float = 0.0
 
     # -- layout ------------------------------------------------------------------------------
     @property
-    def chains(self) -> List[str]:
+    def chains(self) -> list[str]:
         return list(self.config.chains)
 
     @property
-    def colliders(self) -> List[str]:
+    def colliders(self) -> list[str]:
         return list(self.config.colliders)
 
     @property
@@ -134,17 +135,17 @@ class Trace:
         h = half_vectors(np.tile(self.lengths(), self.n_ticks), flat_q).reshape(self.origins.shape)
         return self.origins + 2.0 * h
 
-    def tips(self, chain: Optional[str] = None) -> np.ndarray:
+    def tips(self, chain: str | None = None) -> np.ndarray:
         """``(T, 3)`` the far end of ``chain``'s last segment (default: the only chain), m."""
         chain = self._one_chain(chain)
         return self.distal()[:, self.segments(chain).stop - 1]
 
-    def energy(self, chain: Optional[str] = None) -> np.ndarray:
+    def energy(self, chain: str | None = None) -> np.ndarray:
         """``(T,)`` kinetic + potential energy of ``chain`` (default: the only chain), J."""
         i = self.chain_index(self._one_chain(chain))
         return self.kinetic[:, i] + self.potential[:, i]
 
-    def _one_chain(self, chain: Optional[str]) -> str:
+    def _one_chain(self, chain: str | None) -> str:
         if chain is not None:
             return chain
         if len(self.config.chains) != 1:
@@ -178,10 +179,10 @@ class TickMeter:
     it."""
 
     def __init__(self) -> None:
-        self._scene: Optional[Scene] = None
-        self._depth_models: List[Model] = []
+        self._scene: Scene | None = None
+        self._depth_models: list[Model] = []
 
-    def _models(self, scene: Scene) -> List[Model]:
+    def _models(self, scene: Scene) -> list[Model]:
         if scene is not self._scene:
             far = tuple(replace(c, attach=(_FAR, _FAR, _FAR)) for c in scene.chains)
             self._depth_models = [Model(scene.replace(chains=far, colliders=(col,)))
@@ -225,8 +226,8 @@ class TraceBuilder:
     def __init__(self, config: Config) -> None:
         self.config = config
         self.meter = TickMeter()
-        self.ticks: List[_Measured] = []
-        self.resets: List[Reset] = []
+        self.ticks: list[_Measured] = []
+        self.resets: list[Reset] = []
         self.frame_id = ''
 
     def record(self, runner: ChainRunner, out: TickOutput, frame_id: str) -> None:
@@ -235,14 +236,14 @@ class TraceBuilder:
         if out.reset_reason is not None:
             self.resets.append(Reset(out.t, out.reset_reason, str(runner.last_reset)))
 
-    def build(self, poses: Optional[Dict[str, List[Any]]] = None,
-              markers: Optional[Sequence[Any]] = None,
-              diagnostics: Optional[Sequence[Any]] = None, wall_time: float = 0.0) -> Trace:
+    def build(self, poses: dict[str, list[Any]] | None = None,
+              markers: Sequence[Any] | None = None,
+              diagnostics: Sequence[Any] | None = None, wall_time: float = 0.0) -> Trace:
         n = self.config.scene.n_segments
         c, k = len(self.config.chains), len(self.config.colliders)
         ticks = self.ticks
 
-        def stack(name: str, shape: Tuple[int, ...]) -> np.ndarray:
+        def stack(name: str, shape: tuple[int, ...]) -> np.ndarray:
             if not ticks:
                 return np.zeros((0,) + shape)
             shapes = {np.shape(getattr(m, name)) for m in ticks}

@@ -5,17 +5,16 @@ moves exactly as the same chain alone: ``batch.csv/json``.
 """
 import time
 from dataclasses import replace
-from typing import Optional
 
 import numpy as np
 
+from ponytail_ros.app.motions import crowd_motion
 from ponytail_ros.core.head import HeadMotion, KinematicState
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
-from ponytail_ros.app.motions import crowd_motion
-from ..scenes import ponytail_chain
 from ..profiles import Profile
+from ..scenes import ponytail_chain
 from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = 'C chains in one scene vs one chain alone vs C simulators'
@@ -42,11 +41,11 @@ def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
 
 
 def _batched_rows(prof: Profile, n: int, solver: SolverSpec,
-                  log: Log) -> tuple[list[Row], Optional[float]]:
+                  log: Log) -> tuple[list[Row], float | None]:
     """C chains in one scene, for each C of the profile; and the cost of one chain alone."""
     rows: list[Row] = []
     dt, steps = DT, prof['batch_steps']
-    alone: Optional[float] = None
+    alone: float | None = None
     check: dict[int, float] = {}
     for C in prof['batch_c']:
         motion = crowd_motion(C)
@@ -88,7 +87,7 @@ def _deviation_from_solo(sc: Scene, C: int, n: int, solver: SolverSpec) -> float
 
 
 def _separate_rows(prof: Profile, n: int, solver: SolverSpec,
-                   alone: Optional[float]) -> list[Row]:
+                   alone: float | None) -> list[Row]:
     """C separate simulators of one chain each, stepped in turn (C up to ``batch_loop_max``)."""
     rows: list[Row] = []
     dt, steps = DT, prof['batch_steps']

@@ -5,23 +5,21 @@
 """
 import os
 import time
-from typing import Optional
 
 import numpy as np
 
 from ponytail_ros.core.head import StillMotion
 from ponytail_ros.core.scene import Scene, SolverSpec
 
-from .. import measure as M
-from .. import plots
-from ..scenes import BenchScene, ponytail_chain
+from .. import measure as M, plots
 from ..profiles import Profile
+from ..scenes import BenchScene, ponytail_chain
 from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = 'energy drift per integrator and step, still anchor, no damping'
 
 
-def energy_scene(solver: Optional[SolverSpec] = None) -> BenchScene:
+def energy_scene(solver: SolverSpec | None = None) -> BenchScene:
     """5 segments of the reference ponytail on a still anchor, released 45° from vertical."""
     a = np.radians(45.0)
     chain = ponytail_chain(5, rest_direction=(np.sin(a), 0.0, -np.cos(a)))

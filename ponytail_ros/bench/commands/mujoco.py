@@ -6,20 +6,15 @@ empty table saying so) when the optional ``mujoco`` package is not installed.
 """
 import os
 import time
-from typing import Optional
 import warnings
 
 import numpy as np
 
 from ponytail_ros.core.simulator import Simulator
 
-from .. import measure as M
-from .. import mujoco_chain as MJ
-from .. import plots
-from ..profiles import RK4, S
-from ..scenes import REFERENCE_DIR, make_scene
-from ..profiles import Profile
-from ..scenes import BenchScene
+from .. import measure as M, mujoco_chain as MJ, plots
+from ..profiles import RK4, Profile, S
+from ..scenes import REFERENCE_DIR, BenchScene, make_scene
 from ..tables import Column, Log, Meta, Row, print_table, write_table
 from .trade import draw_pareto
 
@@ -27,7 +22,7 @@ HELP = 'the same chain in MuJoCo side by side (optional mujoco package)'
 
 
 def _vs_shared(b: BenchScene, ts: np.ndarray,
-               tips: np.ndarray) -> tuple[Optional[float], Optional[float]]:
+               tips: np.ndarray) -> tuple[float | None, float | None]:
     """Tip RMS/max (mm) against the shared file over its whole run, at the common sample times
     (every 10 ms when dt divides it; 1/240 s meets the 10 ms grid every 50 ms)."""
     if not b.shared:

@@ -10,9 +10,8 @@ from typing import Any
 from ponytail_ros.core.scene import SolverSpec
 
 from .. import measure as M
-from ..profiles import RK4, S
+from ..profiles import RK4, Profile, S
 from ..scenes import REFERENCE_DIR, make_scene
-from ..profiles import Profile
 from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = "RK4 against every file of ../shared/reference/"

@@ -5,8 +5,8 @@ Also written at the end of ``all``.
 import json
 import os
 
-from ..recommend import recommendation, summary_line
 from ..profiles import Profile
+from ..recommend import recommendation, summary_line
 from ..tables import Column, Log, Meta, load_rows, md_table
 from .trade import REFCHECK_COLS, TRADE_COLS
 

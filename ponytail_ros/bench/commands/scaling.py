@@ -9,16 +9,14 @@ import warnings
 
 import numpy as np
 
+from ponytail_ros.app.motions import reference_motion
 from ponytail_ros.core.head import HeadMotion
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
 
-from .. import mujoco_chain as MJ
-from .. import plots
-from ponytail_ros.app.motions import reference_motion
-from ..profiles import RATTLE, RK4, SE
+from .. import mujoco_chain as MJ, plots
+from ..profiles import RATTLE, RK4, SE, Profile
 from ..scenes import make_scene, ponytail_chain
-from ..profiles import Profile
 from ..tables import Log, Meta, Row, print_table, write_table
 
 HELP = 'cost per step vs segment count 1..1000 (banded, dense, MuJoCo)'

@@ -11,13 +11,16 @@ import os
 import time
 from typing import Any
 
-from .. import measure as M
-from .. import plots
-from ..recommend import (TARGET_ENERGY_DRIFT, TARGET_GAP_M, TARGET_TIP_RMS_MM, recommendation,
-                         summary_line)
-from ..scenes import REFERENCE_DIR, make_scene
+from .. import measure as M, plots
 from ..profiles import Profile
-from ..scenes import BenchScene
+from ..recommend import (
+    TARGET_ENERGY_DRIFT,
+    TARGET_GAP_M,
+    TARGET_TIP_RMS_MM,
+    recommendation,
+    summary_line,
+)
+from ..scenes import REFERENCE_DIR, BenchScene, make_scene
 from ..tables import Column, Log, Meta, Row, load_rows, print_table, write_table
 
 HELP = 'the sweep on the named scenes: cost, tip error, gap, energy; Pareto plot'

@@ -8,9 +8,10 @@ timestamp), so ``order='file'`` gives log-time order too.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, Optional, Tuple, Union
+from typing import Any
 
 from rclpy.serialization import deserialize_message
 
@@ -31,11 +32,11 @@ class Db3FileReader:
 
     #: A .db3 is complete or SQLite says otherwise.
     finished = True
-    truncation: Optional[str] = None
+    truncation: str | None = None
 
-    def __init__(self, path: Union[str, os.PathLike],
-                 decompress: Optional[Callable[[bytes], bytes]] = None,
-                 label: Union[str, os.PathLike, None] = None):
+    def __init__(self, path: str | os.PathLike,
+                 decompress: Callable[[bytes], bytes] | None = None,
+                 label: str | os.PathLike | None = None):
         self.path = Path(path)
         self.label = Path(label) if label is not None else self.path
         self._decompress = decompress
@@ -60,17 +61,17 @@ class Db3FileReader:
         finally:
             reader.close()
 
-    def check(self) -> Optional[str]:
+    def check(self) -> str | None:
         return None
 
-    def topics(self) -> Dict[str, str]:
+    def topics(self) -> dict[str, str]:
         return dict(self._topics)
 
-    def metadata(self) -> Dict[str, Dict[str, str]]:
+    def metadata(self) -> dict[str, dict[str, str]]:
         return {}
 
     def messages(self, topics=None, order: str = 'log_time', raw: bool = False
-                 ) -> Iterator[Tuple[str, str, Any, int]]:
+                 ) -> Iterator[tuple[str, str, Any, int]]:
         """As ``McapFileReader.messages``: ``(topic, type, message or CDR bytes, log_time_ns)``
         in log-time order."""
         if order not in ('log_time', 'file'):

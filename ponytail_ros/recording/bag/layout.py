@@ -22,7 +22,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Union
+from typing import Any
 
 import yaml
 
@@ -52,11 +52,11 @@ class BagLayout:
 
     path: Path
     name: str
-    files: List[Path]
+    files: list[Path]
     storage: str
     compression_mode: str = ''
-    info: Optional[Dict[str, Any]] = None
-    notes: List[str] = field(default_factory=list)
+    info: dict[str, Any] | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def is_folder(self) -> bool:
@@ -77,7 +77,7 @@ def zstd_module():
     return zstd
 
 
-def _read_metadata(folder: Path) -> Dict[str, Any]:
+def _read_metadata(folder: Path) -> dict[str, Any]:
     meta = folder / _METADATA
     try:
         tree = yaml.safe_load(meta.read_text())
@@ -119,17 +119,17 @@ def _from_metadata(folder: Path, given: Path) -> BagLayout:
                      compression_mode=mode, info=info)
 
 
-def _storage_of(path: Path) -> Optional[str]:
+def _storage_of(path: Path) -> str | None:
     """The storage of a file by its suffix (``.zstd`` whole-file compression looked through)."""
     suffix = Path(path.stem).suffix if path.suffix == '.zstd' else path.suffix
     return _SUFFIX_STORAGE.get(suffix)
 
 
-def _storage_files(folder: Path) -> List[Path]:
+def _storage_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and _storage_of(p))
 
 
-def _unindexed_split(folder: Path) -> Optional[List[Path]]:
+def _unindexed_split(folder: Path) -> list[Path] | None:
     """``<folder>_<N>.<ext>`` files of one storage: a bag without its metadata, in N order."""
     files = _storage_files(folder)
     pattern = re.compile(re.escape(folder.name) + r'_(\d+)$')
@@ -145,7 +145,7 @@ def _unindexed_split(folder: Path) -> Optional[List[Path]]:
     return [f for _, f in sorted(numbered)]
 
 
-def bags_in(folder: Union[str, os.PathLike]) -> List[Path]:
+def bags_in(folder: str | os.PathLike) -> list[Path]:
     """The bags a folder holds when it is not one bag itself: its sub-folders with a
     ``metadata.yaml`` and its storage files (``.mcap``, ``.db3``), sorted by name."""
     folder = Path(folder)
@@ -158,7 +158,7 @@ def bags_in(folder: Union[str, os.PathLike]) -> List[Path]:
     return out
 
 
-def is_one_bag(path: Union[str, os.PathLike]) -> bool:
+def is_one_bag(path: str | os.PathLike) -> bool:
     """A file, a ``metadata.yaml``, a bag folder, or a folder of one bag's unindexed files."""
     path = Path(path)
     if not path.is_dir():
@@ -166,7 +166,7 @@ def is_one_bag(path: Union[str, os.PathLike]) -> bool:
     return (path / _METADATA).is_file() or _unindexed_split(path) is not None
 
 
-def resolve_bag(path: Union[str, os.PathLike]) -> BagLayout:
+def resolve_bag(path: str | os.PathLike) -> BagLayout:
     """The bag at ``path`` (folder, its ``metadata.yaml``, or a storage file).
 
     Raises:

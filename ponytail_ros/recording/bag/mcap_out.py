@@ -17,12 +17,22 @@ from __future__ import annotations
 
 import struct
 import zlib
-from typing import IO, Dict, List
+from typing import IO
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import (Channel, ChunkIndex, DataEnd, Footer, Header, Metadata,
-                          MetadataIndex, Schema, Statistics, SummaryOffset)
+from mcap.records import (
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.writer import MCAP0_MAGIC
 
 __all__ = ['McapOut']
@@ -43,21 +53,21 @@ class McapOut:
         self._stream = stream
         self._offset = 0                  # bytes written to the stream
         self._records = RecordBuilder()   # rare records, written out by _flush_records
-        self._schemas: Dict[int, Schema] = {}
-        self._channels: Dict[int, Channel] = {}
-        self._chunk_indices: List[ChunkIndex] = []
-        self._metadata_indices: List[MetadataIndex] = []
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._chunk_indices: list[ChunkIndex] = []
+        self._metadata_indices: list[MetadataIndex] = []
         self._metadata_count = 0
         self._chunk_count = 0
         self._message_count = 0
         self._message_start = 0
         self._message_end = 0
         #: channel id -> messages (in the order of their first message, as mcap counts them)
-        self._channel_counts: Dict[int, int] = {}
+        self._channel_counts: dict[int, int] = {}
         # The chunk being built: its records, their message index entries per channel (first
         # message order), its messages and log-time span.
         self._chunk = bytearray()
-        self._chunk_index: Dict[int, List[int]] = {}
+        self._chunk_index: dict[int, list[int]] = {}
         self._chunk_messages = 0
         self._chunk_start = 0
         self._chunk_end = 0
@@ -75,7 +85,7 @@ class McapOut:
         Header(profile, library).write(self._records)
         self._flush_records()
 
-    def add_metadata(self, name: str, data: Dict[str, str]) -> None:
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._flush_records()
         offset = self._offset
         self._metadata_count += 1
@@ -97,7 +107,7 @@ class McapOut:
         return schema_id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int,
-                         metadata: Dict[str, str]) -> int:
+                         metadata: dict[str, str]) -> int:
         channel_id = len(self._channels) + 1
         channel = Channel(id=channel_id, topic=topic, message_encoding=message_encoding,
                           schema_id=schema_id, metadata=metadata)
@@ -160,7 +170,7 @@ class McapOut:
         self._write(head)
         self._write(data)
         message_index_start = self._offset
-        offsets: Dict[int, int] = {}
+        offsets: dict[int, int] = {}
         parts = []
         at = 0
         for channel_id, entries in self._chunk_index.items():

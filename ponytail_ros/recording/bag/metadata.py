@@ -7,7 +7,11 @@ from typing import Any
 
 import yaml
 from rclpy.qos import (
-    QoSDurabilityPolicy, QoSHistoryPolicy, QoSLivelinessPolicy, QoSProfile, QoSReliabilityPolicy,
+    QoSDurabilityPolicy,
+    QoSHistoryPolicy,
+    QoSLivelinessPolicy,
+    QoSProfile,
+    QoSReliabilityPolicy,
 )
 
 __all__ = ['PARAMETERS_METADATA']

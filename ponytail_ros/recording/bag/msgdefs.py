@@ -10,9 +10,8 @@ import json
 import os
 import re
 import sys
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Optional, Tuple, Union
 
 from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
@@ -35,7 +34,7 @@ _TYPE_NAME = re.compile(rf'({_ROS_NAME})/(?:({_ROS_NAME})/)?({_ROS_NAME})')
 _DELIMITER = '=' * 80 + '\n'
 
 
-def _split_type(type_name: str) -> Tuple[str, str, str]:
+def _split_type(type_name: str) -> tuple[str, str, str]:
     """``'pkg/msg/Type'`` or ``'pkg/Type'`` -> ``('pkg', 'msg', 'Type')``."""
     match = _TYPE_NAME.fullmatch(type_name)
     if match is None:
@@ -44,7 +43,7 @@ def _split_type(type_name: str) -> Tuple[str, str, str]:
     return package, namespace or 'msg', name
 
 
-def _type_string(msg_type: Union[str, type]) -> str:
+def _type_string(msg_type: str | type) -> str:
     """Full type name ``pkg/msg/Type`` of a message class or type string."""
     if isinstance(msg_type, str):
         return '/'.join(_split_type(msg_type))
@@ -101,7 +100,7 @@ def _msg_dependencies(text: str, package: str) -> set:
     return dependencies
 
 
-@lru_cache(maxsize=None)
+@cache
 def message_definition(type_name: str) -> str:
     """The ``ros2msg`` schema text of a type, byte for byte as rosbag2 writes it.
 
@@ -111,13 +110,13 @@ def message_definition(type_name: str) -> str:
     return message_definition_of_text(type_name, None)
 
 
-def message_definition_of_text(type_name: str, text: Optional[str]) -> str:
+def message_definition_of_text(type_name: str, text: str | None) -> str:
     """:func:`message_definition` of a type whose own ``.msg`` text is ``text`` (for a type
     whose package is not installed, e.g. ``tf2_msgs``), its dependencies read from the
     installed packages; ``text`` None: read it too."""
     seen = set()
 
-    def full_text(name: str, own: Optional[str] = None) -> str:
+    def full_text(name: str, own: str | None = None) -> str:
         if own is not None:
             text = own
         else:
@@ -136,7 +135,7 @@ def message_definition_of_text(type_name: str, text: Optional[str]) -> str:
     return full_text(type_name, text)
 
 
-@lru_cache(maxsize=None)
+@cache
 def type_hash(type_name: str) -> str:
     """The ``RIHS01_<sha256>`` type description hash rosidl generated for a type.
 

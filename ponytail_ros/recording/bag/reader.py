@@ -14,16 +14,16 @@ import itertools
 import os
 import struct
 import tempfile
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterable, Iterator, Mapping, Optional, Tuple, Union
+from typing import Any
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
 from rclpy.serialization import deserialize_message
 
-from ..mcap_scan import MAGIC as _MCAP_MAGIC
-from ..mcap_scan import McapScan, ScanError, is_finished
+from ..mcap_scan import MAGIC as _MCAP_MAGIC, McapScan, ScanError, is_finished
 from .errors import BagError
 from .layout import BagLayout, resolve_bag, zstd_module
 from .msgdefs import _message_class
@@ -53,9 +53,9 @@ class McapFileReader:
         BagError: the file does not exist, cannot be read, or is not MCAP.
     """
 
-    def __init__(self, path: Union[str, os.PathLike],
-                 decompress: Optional[Callable[[bytes], bytes]] = None,
-                 label: Union[str, os.PathLike, None] = None):
+    def __init__(self, path: str | os.PathLike,
+                 decompress: Callable[[bytes], bytes] | None = None,
+                 label: str | os.PathLike | None = None):
         self.path = Path(path)
         self.label = Path(label) if label is not None else self.path
         self._decompress = decompress
@@ -69,7 +69,7 @@ class McapFileReader:
             raise BagError(f'{self.label} is not an MCAP file')
         #: Where and why the file is cut short ("truncated at byte N of M: ..."), known after a
         #: full read (:meth:`metadata`, :meth:`messages`); None for a complete file.
-        self.truncation: Optional[str] = None
+        self.truncation: str | None = None
         #: Messages of the last :meth:`messages` call stored before one with a later log time.
         self.out_of_order = 0
 
@@ -85,7 +85,7 @@ class McapFileReader:
                         f'"ponytail_replay repair {self.label} FIXED.mcap" keeps every intact '
                         f'record')
 
-    def _scan(self, expand_chunks: bool = True) -> Iterator[Tuple[int, Any]]:
+    def _scan(self, expand_chunks: bool = True) -> Iterator[tuple[int, Any]]:
         """``(offset, record)`` in file order; damage raises, a cut sets :attr:`truncation`."""
         try:
             scan = McapScan(self.path)
@@ -101,7 +101,7 @@ class McapFileReader:
         for _, record in self._scan(expand_chunks=not emit_chunks):
             yield record
 
-    def check(self) -> Optional[str]:
+    def check(self) -> str | None:
         """Read every record (chunk CRCs included); the truncation text or None.
 
         Raises:
@@ -111,7 +111,7 @@ class McapFileReader:
             pass
         return self.truncation
 
-    def topics(self) -> Dict[str, str]:
+    def topics(self) -> dict[str, str]:
         """Topic name -> message type ``pkg/msg/Type``."""
         if self._finished:
             try:
@@ -123,8 +123,8 @@ class McapFileReader:
                 return {channel.topic: summary.schemas[channel.schema_id].name
                         for channel in summary.channels.values()
                         if channel.schema_id in summary.schemas}
-        schemas: Dict[int, str] = {}
-        topics: Dict[str, str] = {}
+        schemas: dict[int, str] = {}
+        topics: dict[str, str] = {}
         for record in self._records():
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
@@ -132,9 +132,9 @@ class McapFileReader:
                 topics[record.topic] = schemas.get(record.schema_id, '')
         return topics
 
-    def messages(self, topics: Union[None, str, Iterable[str], Mapping[str, Union[str, type]]]
+    def messages(self, topics: None | str | Iterable[str] | Mapping[str, str | type]
                  = None, order: str = 'log_time', raw: bool = False
-                 ) -> Iterator[Tuple[str, str, Any, int]]:
+                 ) -> Iterator[tuple[str, str, Any, int]]:
         """Yield ``(topic, 'pkg/msg/Type', deserialised message, log_time_ns)``.
 
         Args:
@@ -188,10 +188,10 @@ class McapFileReader:
             sequence += 1
         yield from due(float('inf'))
 
-    def _message_records(self, wanted: set) -> Iterator[Tuple[int, str, str, Message]]:
+    def _message_records(self, wanted: set) -> Iterator[tuple[int, str, str, Message]]:
         """``(offset, topic, type, Message record)`` of the ``wanted`` topics in file order."""
-        schemas: Dict[int, str] = {}
-        channels: Dict[int, Tuple[str, str]] = {}
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, str]] = {}
         for offset, record in self._scan():
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
@@ -205,13 +205,13 @@ class McapFileReader:
                 if name in wanted:
                     yield offset, name, type_name, record
 
-    def _wanted_topics(self, topics, raw: bool) -> Tuple[set, Dict[str, str]]:
+    def _wanted_topics(self, topics, raw: bool) -> tuple[set, dict[str, str]]:
         """The topics :meth:`messages` reads (checked against what was recorded), and the
         recorded topic -> type."""
         recorded = self.topics()
         return wanted_topics(self.label, recorded, topics, raw), recorded
 
-    def _chunk_bounds(self) -> Dict[int, float]:
+    def _chunk_bounds(self) -> dict[int, float]:
         """Log-time order with bounded memory: chunk offset -> the earliest log time it or any
         later chunk may hold (each chunk's ``message_start_time``, suffix minimum), which says
         which buffered messages are due. A file already in order buffers at most one chunk."""
@@ -219,14 +219,14 @@ class McapFileReader:
             units = McapScan(self.path).chunk_start_times()
         except OSError as exc:
             raise BagError(f'cannot read bag {self.label}: {exc.strerror or exc}') from None
-        bound: Dict[int, float] = {}
+        bound: dict[int, float] = {}
         low = float('inf')
         for offset, start in reversed(units):
             low = min(low, start)
             bound[offset] = low
         return bound
 
-    def metadata(self) -> Dict[str, Dict[str, str]]:
+    def metadata(self) -> dict[str, dict[str, str]]:
         """Metadata records, name -> key/value dict (the last record of a name wins, as in
         rosbag2), e.g. ``rosbag2`` and :data:`PARAMETERS_METADATA`."""
         return {record.name: dict(record.metadata)
@@ -249,7 +249,7 @@ class BagReader:
             is not MCAP / sqlite3, or (reading) is damaged.
     """
 
-    def __init__(self, path: Union[str, os.PathLike]):
+    def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self.layout: BagLayout = resolve_bag(self.path)
         self.notes = list(self.layout.notes)
@@ -261,7 +261,7 @@ class BagReader:
             cls = Db3FileReader
         self.files = [cls(disk, unpack, label)
                       for disk, label in self._storage_files()]
-        self._topics: Optional[Dict[str, str]] = None
+        self._topics: dict[str, str] | None = None
         self._file_topics: list = []
 
     def _storage_files(self):
@@ -300,7 +300,7 @@ class BagReader:
         return all(f.finished for f in self.files)
 
     @property
-    def truncation(self) -> Optional[str]:
+    def truncation(self) -> str | None:
         """Where the bag is cut short ("truncated at byte N of M: ..."), known after a full read
         (:meth:`metadata`, :meth:`messages`); None for a complete bag."""
         cut = [(f, f.truncation) for f in self.files if f.truncation]
@@ -316,7 +316,7 @@ class BagReader:
         time (within a file)."""
         return sum(f.out_of_order for f in self.files)
 
-    def check(self) -> Optional[str]:
+    def check(self) -> str | None:
         """Read every record of every file; the truncation text or None.
 
         Raises:
@@ -326,12 +326,12 @@ class BagReader:
             f.check()
         return self.truncation
 
-    def topics(self) -> Dict[str, str]:
+    def topics(self) -> dict[str, str]:
         """Topic name -> message type ``pkg/msg/Type`` (over all files)."""
         if self._topics is None:
             self._file_topics = [f.topics() for f in self.files]
-            merged: Dict[str, str] = {}
-            for f, topics in zip(self.files, self._file_topics):
+            merged: dict[str, str] = {}
+            for f, topics in zip(self.files, self._file_topics, strict=True):
                 for name, type_name in topics.items():
                     if merged.setdefault(name, type_name) != type_name:
                         raise BagError(f'{self.path}: topic {name} holds {merged[name]} in one '
@@ -339,9 +339,9 @@ class BagReader:
             self._topics = merged
         return dict(self._topics)
 
-    def messages(self, topics: Union[None, str, Iterable[str], Mapping[str, Union[str, type]]]
+    def messages(self, topics: None | str | Iterable[str] | Mapping[str, str | type]
                  = None, order: str = 'log_time', raw: bool = False
-                 ) -> Iterator[Tuple[str, str, Any, int]]:
+                 ) -> Iterator[tuple[str, str, Any, int]]:
         """Yield ``(topic, 'pkg/msg/Type', deserialised message, log_time_ns)``.
 
         Args:
@@ -368,7 +368,7 @@ class BagReader:
             for name in wanted:
                 _message_class(recorded[name])     # (not installed: said before any read)
         streams = []
-        for f, in_file in zip(self.files, self._file_topics):
+        for f, in_file in zip(self.files, self._file_topics, strict=True):
             mine = {name: recorded[name] for name in sorted(wanted) if name in in_file}
             if mine:
                 streams.append(f.messages(mine, order=order, raw=raw))
@@ -379,11 +379,11 @@ class BagReader:
         else:
             yield from heapq.merge(*streams, key=lambda m: m[3])
 
-    def metadata(self) -> Dict[str, Dict[str, str]]:
+    def metadata(self) -> dict[str, dict[str, str]]:
         """Metadata records, name -> key/value dict (the last record of a name wins, as in
         rosbag2), e.g. ``rosbag2`` and :data:`PARAMETERS_METADATA`. For a bag folder the
         ``rosbag2`` entry is its ``metadata.yaml`` (the whole bag's counts)."""
-        out: Dict[str, Dict[str, str]] = {}
+        out: dict[str, dict[str, str]] = {}
         for f in self.files:
             out.update(f.metadata())
         if self.layout.info is not None:
@@ -392,7 +392,7 @@ class BagReader:
                 {'rosbag2_bagfile_information': self.layout.info}, sort_keys=False)}
         return out
 
-    def span_ns(self) -> Optional[Tuple[int, int]]:
+    def span_ns(self) -> tuple[int, int] | None:
         """(first, last) log time of a finished bag (its rosbag2 metadata or MCAP summary),
         else None."""
         if not self.finished:

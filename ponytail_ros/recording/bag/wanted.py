@@ -1,7 +1,8 @@
 """Which topics a ``messages`` call reads: the request checked against what was recorded."""
 from __future__ import annotations
 
-from typing import Any, Dict, Mapping, Set
+from collections.abc import Mapping
+from typing import Any
 
 from .errors import BagError
 from .msgdefs import _message_class, _type_string
@@ -9,7 +10,7 @@ from .msgdefs import _message_class, _type_string
 __all__ = ['wanted_topics']
 
 
-def wanted_topics(label, recorded: Dict[str, str], topics, raw: bool) -> Set[str]:
+def wanted_topics(label, recorded: dict[str, str], topics, raw: bool) -> set[str]:
     """The topic names to read.
 
     Args:
@@ -30,7 +31,7 @@ def wanted_topics(label, recorded: Dict[str, str], topics, raw: bool) -> Set[str
                 except BagError:
                     wanted.discard(name)
         return wanted
-    expected: Dict[str, Any] = (
+    expected: dict[str, Any] = (
         dict(topics) if isinstance(topics, Mapping)
         else dict.fromkeys([topics] if isinstance(topics, str) else topics))
     missing = sorted(set(expected) - set(recorded))

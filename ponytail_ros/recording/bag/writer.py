@@ -9,9 +9,10 @@ import os
 import queue
 import signal
 import threading
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterable, Mapping, Optional, Union
+from typing import Any
 
 from mcap import __version__ as _MCAP_VERSION
 from rclpy.qos import QoSProfile
@@ -19,8 +20,14 @@ from rclpy.qos import QoSProfile
 from ..cdr import serialize_canonical
 from .errors import BagError
 from .mcap_out import McapOut
-from .metadata import (_DEFAULT_ROS_DISTRO, _MAX_TIME_NS, _ROSBAG2_METADATA_VERSION,
-                       _ROSBAG2_RECORD, _dump_yaml, _qos_dict)
+from .metadata import (
+    _DEFAULT_ROS_DISTRO,
+    _MAX_TIME_NS,
+    _ROSBAG2_METADATA_VERSION,
+    _ROSBAG2_RECORD,
+    _dump_yaml,
+    _qos_dict,
+)
 from .msgdefs import _message_class, _type_string, message_definition, type_hash
 
 __all__ = ['BagWriter']
@@ -37,7 +44,7 @@ class _Topic:
 
     name: str
     type_name: str
-    msg_class: type
+    msg_class: type | None      # None: a type not installed (written serialised only)
     definition: str
     qos: dict
     type_hash: str
@@ -75,7 +82,7 @@ class BagWriter:
             not writable, or the first bytes cannot be written.
     """
 
-    def __init__(self, path: Union[str, os.PathLike], *, overwrite: bool = False,
+    def __init__(self, path: str | os.PathLike, *, overwrite: bool = False,
                  chunk_size: int = 64 * 1024, chunk_duration_ns: int = 500_000_000,
                  background: bool = True):
         if chunk_size <= 0 or chunk_duration_ns <= 0:
@@ -84,16 +91,16 @@ class BagWriter:
         self._chunk_size = chunk_size
         self._chunk_duration_ns = chunk_duration_ns
         self._ros_distro = os.environ.get('ROS_DISTRO') or _DEFAULT_ROS_DISTRO
-        self._topics: Dict[str, _Topic] = {}
+        self._topics: dict[str, _Topic] = {}
         #: rosbag2's ``custom_data`` (str -> str) of the final metadata record (e.g. that the
         #: run is partial); set it before :meth:`close`.
-        self.custom_data: Dict[str, str] = {}
+        self.custom_data: dict[str, str] = {}
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._error: Optional[BagError] = None
+        self._error: BagError | None = None
         self._closed = False
         # Writer-thread state: the chunk being built (the message statistics: McapOut's).
-        self._schema_ids: Dict[str, int] = {}
-        self._chunk_start_ns: Optional[int] = None
+        self._schema_ids: dict[str, int] = {}
+        self._chunk_start_ns: int | None = None
         self._chunk_bytes = 0
 
         self._stream = self._open(self.path, overwrite)
@@ -107,7 +114,7 @@ class BagWriter:
         except OSError as exc:
             _close_quietly(self._stream)
             raise BagError(f'cannot write bag {self.path}: {_reason(exc)}') from None
-        self._thread: Optional[threading.Thread] = None
+        self._thread: threading.Thread | None = None
         self._finished = False
         if background:
             self._thread = threading.Thread(target=self._run,
@@ -130,13 +137,13 @@ class BagWriter:
         raise BagError(f'cannot create bag {path}: {reason}')
 
     @property
-    def error(self) -> Optional[BagError]:
+    def error(self) -> BagError | None:
         """The I/O error that stopped recording, or None while all is well."""
         return self._error
 
-    def add_topic(self, name: str, msg_type: Union[str, type],
-                  qos: Union[QoSProfile, int] = 10, *, definition: Optional[str] = None,
-                  type_hash_: Optional[str] = None) -> None:
+    def add_topic(self, name: str, msg_type: str | type,
+                  qos: QoSProfile | int = 10, *, definition: str | None = None,
+                  type_hash_: str | None = None) -> None:
         """Declare a topic before writing to it.
 
         Args:
@@ -172,7 +179,7 @@ class BagWriter:
         self._submit(('topic', topic))
 
     def write(self, topic: str, msg: Any, log_time_ns: int,
-              publish_time_ns: Optional[int] = None) -> None:
+              publish_time_ns: int | None = None) -> None:
         """Serialise ``msg`` and queue it for writing; never waits on the disk.
 
         Args:
@@ -195,7 +202,7 @@ class BagWriter:
         self.write_serialized(topic, serialize_canonical(msg), log_time_ns, publish_time_ns)
 
     def write_serialized(self, topic: str, data: bytes, log_time_ns: int,
-                         publish_time_ns: Optional[int] = None) -> None:
+                         publish_time_ns: int | None = None) -> None:
         """Queue an already CDR-serialised message; arguments as :meth:`write`."""
         entry = self._topics.get(topic)
         if entry is None:
@@ -268,7 +275,7 @@ class BagWriter:
 
             signal.signal(signum, handler)
 
-    def __enter__(self) -> 'BagWriter':
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, exc_type, exc, traceback) -> None:
@@ -368,7 +375,7 @@ class BagWriter:
                 self._error = BagError(f'finalising bag {self.path} failed: {_reason(exc)}')
             _close_quietly(self._stream)
 
-    def _rosbag2_metadata(self) -> Dict[str, str]:
+    def _rosbag2_metadata(self) -> dict[str, str]:
         """The ``rosbag2`` record: rosbag2_storage's YAML encoding of BagMetadata (version 9)."""
         message_count, first_ns, last_ns = self._mcap.stats()
         if message_count:
