@@ -47,7 +47,7 @@ def test_atan_nonneg_is_within_two_ulps_of_atan2():
 
     from numba import njit
 
-    from ponytail_ros.core.limit_kernels import atan_nonneg, qto_rotvec
+    from ponytail_ros.core.vec import atan_nonneg, qto_rotvec
 
     @njit
     def atan_rows(s, c, out):

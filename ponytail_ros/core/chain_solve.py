@@ -14,23 +14,48 @@ solve is multiplications only: no square root and no division in either pass. Di
 square roots cost ten multiplications each and lie on the recursion's critical path; a
 block Cholesky would need six per joint. O(n) in time and memory, no LAPACK call.
 
+Joint i's block row, from the segments' mass properties (Hecker's A of Eq. 14, per joint):
+
+    A_ii = (1/m_i + 1/m_{i-1}) 1 - G_i - G_{i-1},   A_i,i-1 = -(1/m_{i-1} 1 + G_{i-1}),
+    G_i = [h_i]× I_i⁻¹ [h_i]×,   h_i = (l_i/2) e_i (centre to distal joint, e_i the +X axis),
+
+(the terms of segment i-1 only below a parent segment). ``joint_row`` is that equation and
+its pivot, in scalars: ``factor`` runs it over a range of whole chains, and the steps that
+fuse the factorisation with their own sweep (``step_rk4``'s accelerations, ``lanes``' SIMD
+blocks) call it per joint, so every caller forms and factorises A with the same operations.
+
 ``factor`` returns False (nothing is raised inside compiled code) when a pivot is not positive
 definite (Sylvester's criterion on P_i): A is then not positive definite, which a valid chain
 never produces (a blow-up does).
 """
+from collections import namedtuple
+
 import numba as nb
 
 from .kernel_cache import ensure_fresh
+from .vec import qaxis_x_s, qmatrix_s
 
 ensure_fresh()          # before any kernel's cache is loaded (see ``kernel_cache``)
 
-__all__ = ['factor', 'solve', 'solve_from', 'solve_many', 'invert_pivot', 'pivot']
+__all__ = ['JointModel', 'factor', 'solve', 'solve_from', 'solve_many', 'invert_pivot', 'pivot',
+           'joint_row', 'store_factors', 'blocks_ldl', 'mass_properties', 'segment_G',
+           'G_axisymmetric', 'G_general', 'inv_inertia_axisymmetric', 'store_block', 'block',
+           'mul9', 'ZERO6', 'ZERO9']
 
-_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-_ZERO6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+#: What ``factor`` reads of a model (``step.StepModel`` has these fields too): ``length``
+#: ``(n,)`` m, ``inv_mass`` ``(n,)`` 1/kg, ``inv_inertia`` ``(n, 3)`` inverse principal
+#: moments (axial first) 1/(kg·m²), ``is_first`` ``(n,)`` bool, ``axisymmetric`` bool (every
+#: segment's two perpendicular moments equal).
+JointModel = namedtuple('JointModel', ['length', 'inv_mass', 'inv_inertia', 'is_first',
+                                       'axisymmetric'])
+
+_inline = nb.njit(cache=True, inline='always')
+
+ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+ZERO6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@nb.njit(cache=True, inline='always')
+@_inline
 def invert_pivot(p):
     """``(ok, P⁻¹)`` for the symmetric 3×3 P given by its upper triangle
     ``p = (P00, P01, P02, P11, P12, P22)`` (P⁻¹ likewise, by cofactors); ok False unless P is
@@ -42,13 +67,13 @@ def invert_pivot(p):
     c02 = s01 * s12 - s02 * s11
     det = s00 * c00 + s01 * c01 + s02 * c02
     if not (s00 > 0.0 and s00 * s11 - s01 * s01 > 0.0 and det > 0.0):
-        return False, _ZERO6
+        return False, ZERO6
     r = 1.0 / det
     return True, (c00 * r, c01 * r, c02 * r, (s00 * s22 - s02 * s02) * r,
                   (s01 * s02 - s00 * s12) * r, (s00 * s11 - s01 * s01) * r)
 
 
-@nb.njit(cache=True, inline='always')
+@_inline
 def pivot(d, l, pp):
     """One block row of the factorisation, in scalars: ``(ok, 𝓛_i, P_i⁻¹)`` from the row's
     diagonal block D_i (symmetric: its upper triangle ``(00, 01, 02, 11, 12, 22)``), its
@@ -77,7 +102,7 @@ def pivot(d, l, pp):
     return ok, (o00, o01, o02, o10, o11, o12, o20, o21, o22), pinv
 
 
-@nb.njit(cache=True, inline='always')
+@_inline
 def store_factors(Pinv, Lo, i, pinv, lo):
     """Row i's factors into ``Pinv[i]`` (from its upper triangle) and ``Lo[i]``."""
     Pinv[i, 0, 0], Pinv[i, 0, 1], Pinv[i, 0, 2] = pinv[0], pinv[1], pinv[2]
@@ -88,19 +113,167 @@ def store_factors(Pinv, Lo, i, pinv, lo):
     Lo[i, 2, 0], Lo[i, 2, 1], Lo[i, 2, 2] = lo[6], lo[7], lo[8]
 
 
+# -- a segment's mass properties and G = [h]× I⁻¹ [h]× (scalars: no 3×3 scratch arrays) ---------
+@_inline
+def inv_inertia_axisymmetric(e0, e1, e2, ia, ip):
+    """World I⁻¹ = I_p⁻¹ 1 + (I_a⁻¹ - I_p⁻¹) e eᵀ (row-major 9-tuple) of an axisymmetric
+    segment of axis e, inverse moments ``ia`` (axial), ``ip`` (1/(kg·m²))."""
+    k = ia - ip
+    ke0, ke1, ke2 = k * e0, k * e1, k * e2
+    return (ke0 * e0 + ip, ke0 * e1, ke0 * e2,
+            ke1 * e0, ke1 * e1 + ip, ke1 * e2,
+            ke2 * e0, ke2 * e1, ke2 * e2 + ip)
+
+
+@_inline
+def _rdr(Ra, Rb, d):
+    """(R diag(d) Rᵀ)_ab from rows a and b of R."""
+    s = 0.0
+    s += Ra[0] * Rb[0] * d[0]
+    s += Ra[1] * Rb[1] * d[1]
+    s += Ra[2] * Rb[2] * d[2]
+    return s
+
+
+@_inline
+def _inv_inertia_general(R, d):
+    """World I⁻¹ = R diag(d) Rᵀ (row-major 9-tuple), d the inverse principal moments."""
+    R0, R1, R2 = R
+    return (_rdr(R0, R0, d), _rdr(R0, R1, d), _rdr(R0, R2, d),
+            _rdr(R1, R0, d), _rdr(R1, R1, d), _rdr(R1, R2, d),
+            _rdr(R2, R0, d), _rdr(R2, R1, d), _rdr(R2, R2, d))
+
+
+@_inline
+def mass_properties(axisymmetric, x, y, z, w, i0, i1, i2):
+    """Axis e (the body +X axis in the world) and world I⁻¹ (row-major 9-tuple) of a segment
+    at orientation (x, y, z, w), inverse principal moments (i0, i1, i2) (axial first)."""
+    if axisymmetric:
+        e0, e1, e2 = qaxis_x_s(x, y, z, w)
+        return e0, e1, e2, inv_inertia_axisymmetric(e0, e1, e2, i0, i1)
+    R = qmatrix_s(x, y, z, w)
+    return R[0][0], R[1][0], R[2][0], _inv_inertia_general(R, (i0, i1, i2))
+
+
+@_inline
+def G_axisymmetric(h0, h1, h2, ip):
+    """G = [h]× I⁻¹ [h]× = (h hᵀ - |h|² 1) / I_p of an axisymmetric segment (h ∥ its axis):
+    the upper triangle (00, 01, 02, 11, 12, 22)."""
+    hh = h0 * h0 + h1 * h1 + h2 * h2
+    return ((h0 * h0 - hh) * ip, h0 * h1 * ip, h0 * h2 * ip, (h1 * h1 - hh) * ip,
+            h1 * h2 * ip, (h2 * h2 - hh) * ip)
+
+
+@_inline
+def G_general(h0, h1, h2, X):
+    """G = [h]× I⁻¹ [h]× for the world I⁻¹ ``X`` (row-major), with
+    [h]× = ((0, -h2, h1), (h2, 0, -h0), (-h1, h0, 0)): the upper triangle."""
+    a00 = -h2 * X[3] + h1 * X[6]
+    a01 = -h2 * X[4] + h1 * X[7]
+    a02 = -h2 * X[5] + h1 * X[8]
+    a10 = h2 * X[0] - h0 * X[6]
+    a11 = h2 * X[1] - h0 * X[7]
+    a12 = h2 * X[2] - h0 * X[8]
+    a20 = -h1 * X[0] + h0 * X[3]
+    a21 = -h1 * X[1] + h0 * X[4]
+    return (a01 * h2 - a02 * h1, -a00 * h2 + a02 * h0, a00 * h1 - a01 * h0,
+            -a10 * h2 + a12 * h0, a10 * h1 - a11 * h0, a20 * h1 - a21 * h0)
+
+
+@_inline
+def segment_G(axisymmetric, h0, h1, h2, ip, X):
+    """G of a segment (``G_axisymmetric`` with its perpendicular inverse moment ``ip``, else
+    ``G_general`` with its world I⁻¹ ``X``)."""
+    if axisymmetric:
+        return G_axisymmetric(h0, h1, h2, ip)
+    return G_general(h0, h1, h2, X)
+
+
+@_inline
+def block(X, i):
+    """The 3×3 block ``X[i]`` as a row-major 9-tuple."""
+    return (X[i, 0, 0], X[i, 0, 1], X[i, 0, 2], X[i, 1, 0], X[i, 1, 1], X[i, 1, 2],
+            X[i, 2, 0], X[i, 2, 1], X[i, 2, 2])
+
+
+@_inline
+def store_block(X, i, b):
+    """The row-major 9-tuple ``b`` into the 3×3 block ``X[i]``."""
+    X[i, 0, 0], X[i, 0, 1], X[i, 0, 2] = b[0], b[1], b[2]
+    X[i, 1, 0], X[i, 1, 1], X[i, 1, 2] = b[3], b[4], b[5]
+    X[i, 2, 0], X[i, 2, 1], X[i, 2, 2] = b[6], b[7], b[8]
+
+
+@_inline
+def mul9(X, v0, v1, v2):
+    """The row-major 3×3 ``X`` times v."""
+    return (X[0] * v0 + X[1] * v1 + X[2] * v2,
+            X[3] * v0 + X[4] * v1 + X[5] * v2,
+            X[6] * v0 + X[7] * v1 + X[8] * v2)
+
+
+# -- the factorisation ----------------------------------------------------------------------------
+@_inline
+def joint_row(first, pinv_prev, im, imp, g, gp):
+    """Joint i's block row of A (the module docstring's equation), factorised (``pivot``):
+    ``(ok, 𝓛_i, P_i⁻¹)``. ``g``, ``gp``: G of the child segment and of the parent (upper
+    triangles), ``im``, ``imp`` their inverse masses; ``first``: no parent segment (``imp``,
+    ``gp`` unused), ``pinv_prev``: the previous row's P⁻¹ (upper triangle)."""
+    g00, g01, g02, g11, g12, g22 = g
+    if first:
+        ok, pinv = invert_pivot((im - g00, -g01, -g02, im - g11, -g12, im - g22))
+        return ok, ZERO9, pinv
+    p00, p01, p02, p11, p12, p22 = gp
+    s = im + imp
+    d = (s - g00 - p00, -g01 - p01, -g02 - p02, s - g11 - p11, -g12 - p12, s - g22 - p22)
+    l = (-imp - p00, -p01, -p02, -p01, -imp - p11, -p12, -p02, -p12, -imp - p22)
+    return pivot(d, l, pinv_prev)
+
+
 @nb.njit(cache=True, _nrt=False)
-def factor(D, L, is_first, Pinv, Lo):
-    """Factorise A (blocks ``D``, ``L`` ``(n, 3, 3)``; D's upper triangle is read) into
-    ``Pinv`` and ``Lo`` (in place).
+def factor(J, q, s, e, hv, Iinv, Pinv, Lo):
+    """A = J M⁻¹ Jᵀ of the whole chains of segments ``s:e`` at orientations ``q`` ``(n, 4)``,
+    factorised row by row (``joint_row``) into ``Pinv`` = P⁻¹ and ``Lo`` = 𝓛 ``(n, 3, 3)``,
+    with the half-vectors ``hv`` ``(n, 3)`` (h = (l/2) e, m) and world inverse inertias
+    ``Iinv`` ``(n, 3, 3)`` it is formed from written on the way (rows ``s:e`` of each; chains
+    do not couple, so a range's factors do not depend on the other chains). ``J``: the model
+    (``JointModel``, or any structure with its fields, such as ``step.StepModel``).
+
+    Returns True on success, False if A is not positive definite.
+    """
+    g = pinv = ZERO6
+    for i in range(s, e):
+        e0, e1, e2, X = mass_properties(J.axisymmetric, q[i, 0], q[i, 1], q[i, 2], q[i, 3],
+                                        J.inv_inertia[i, 0], J.inv_inertia[i, 1],
+                                        J.inv_inertia[i, 2])
+        store_block(Iinv, i, X)
+        hl = 0.5 * J.length[i]
+        h0, h1, h2 = hl * e0, hl * e1, hl * e2
+        hv[i, 0], hv[i, 1], hv[i, 2] = h0, h1, h2
+        gp = g
+        g = segment_G(J.axisymmetric, h0, h1, h2, J.inv_inertia[i, 1], X)
+        first = J.is_first[i]
+        imp = 0.0 if first else J.inv_mass[i - 1]
+        ok, lo, pinv = joint_row(first, pinv, J.inv_mass[i], imp, g, gp)
+        if not ok:
+            return False
+        store_factors(Pinv, Lo, i, pinv, lo)
+    return True
+
+
+@nb.njit(cache=True, _nrt=False)
+def blocks_ldl(D, L, is_first, Pinv, Lo):
+    """Factorise A given as its blocks (``D``, ``L`` ``(n, 3, 3)``; D's upper triangle is
+    read) into ``Pinv`` and ``Lo`` (in place): the pivots of ``factor`` without forming A.
 
     Returns True on success, False if A is not positive definite.
     """
     n = D.shape[0]
-    pinv = _ZERO6
+    pinv = ZERO6
     for i in range(n):
         d = (D[i, 0, 0], D[i, 0, 1], D[i, 0, 2], D[i, 1, 1], D[i, 1, 2], D[i, 2, 2])
         if is_first[i]:
-            lo = _ZERO9
+            lo = ZERO9
             ok, pinv = invert_pivot(d)
         else:
             l = (L[i, 0, 0], L[i, 0, 1], L[i, 0, 2], L[i, 1, 0], L[i, 1, 1], L[i, 1, 2],

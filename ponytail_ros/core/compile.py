@@ -20,7 +20,7 @@ kernels are compiled in stages (``STAGES``), each by running a small scene throu
 ``stages_for`` says which a scene uses: a scene without colliders or joint limits compiles
 no contact stage, one of fewer than ``lanes.MIN_CHAINS`` equal chains no lanes, an RK4 scene
 no other integrator (numba prunes the branches a scene does not take from the versions it
-compiles: ``None`` arguments, ``step._chain_steps``).
+compiles: ``None`` arguments, ``step.chain_steps``).
 
 Before compiling, one line says so, with an estimate from the stages whose kernels are not in
 the cache; then each stage's progress: on a terminal (stderr a TTY) one line updated in

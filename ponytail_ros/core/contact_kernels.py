@@ -31,15 +31,16 @@ import math
 import numpy as np
 from numba import njit
 
-from .chain_solve import factor as _chain_factor
+from .chain_solve import blocks_ldl as _chain_factor
 from .chain_solve import invert_pivot as _invert_pivot
 from .chain_solve import pivot as _pivot
 from .chain_solve import solve as _chain_solve
 from .chain_solve import solve_from
 from .chain_solve import store_factors as _store_factors
-from .limit_kernels import (add, cross, dot, limit_terms, norm, project_limits, q4, qaxis_x,
-                            qfrom_rotvec, qmatrix, qmul, qnormalize, qrotate, scale, sub, v3)
+from .limit_kernels import limit_terms, project_limits
 from .stages import PROFILE_POSITIONS, PROFILE_ROWS, PROFILE_VELOCITIES, cycles
+from .vec import (add, cross, dot, norm, q4, qaxis_x, qfrom_rotvec, qmatrix, qmul, qnormalize,
+                  qrotate, scale, sub, v3)
 
 POSITION_ITERATIONS = 4      # passes of the position LCP per step, at most
 POSITION_TOLERANCE = 1e-5    # m (contacts), rad (limits): stop once no violation exceeds this

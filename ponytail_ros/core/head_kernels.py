@@ -27,8 +27,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .limit_kernels import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
-                            qto_rotvec, scale)
+from .vec import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, qto_rotvec,
+                  scale)
 
 __all__ = ['loess_fit', 'states_fit', 'fits_at', 'fit_time', 'svd_lstsq', 'track_table',
            'point_kinematics', 'frame_ends', 'frame_tables', 'median_interval', 'add_samples',

@@ -16,7 +16,7 @@ compiled uncached with ``debug=True, boundscheck=False`` for line numbers):
     lane count: every address in a lane loop is a constant offset from one base, so LLVM
     proves the loop free of dependences (with one array per field, as a first version had,
     it could not tell them apart from each other or from the arguments and gave up);
-  * ``sqrt`` is LLVM's intrinsic (``_sqrt``), not numba's call to libm's ``sqrt`` (a call
+  * ``sqrt`` is LLVM's intrinsic (``vec.sqrt_ieee``), not numba's call to libm's ``sqrt`` (a call
     stops the vectoriser; both are IEEE's correctly rounded square root, so the same bits);
   * ``error_model='numpy'``: a division is then a plain ``fdiv``, not a test for zero that
     raises (only a blown-up chain divides by zero: its status or the guard reports it);
@@ -27,13 +27,13 @@ updates, the step's start and the applied forces' gravity are vectorised (<4 x d
 first joint's loop, the projection, the joint damping and the drag loops are not (LLVM asks
 for runtime checks it will not make there) and run lane by lane: the same bits, more time.
 The bending stiffness takes three passes (``_joint_torques``): its rotation vectors' factors in
-one flat loop over every joint of the block, which vectorises (``limit_kernels.rotvec_factor``:
+one flat loop over every joint of the block, which vectorises (``vec.rotvec_factor``:
 no call, no branch).
 
 Covered (the rest goes to ``step.advance``, see ``supports``): RK4, axisymmetric segments
 (the gyroscopic term ω × Iω), gravity, explicit joint damping, bending stiffness, linear and
 quadratic drag with wind, external forces and torques, the O(n) joint solve
-(``chain_solve``'s block LDLᵀ, as ``step._accelerations`` does it), the projection
+(``chain_solve``'s block LDLᵀ, as ``step_rk4``'s accelerations does it), the projection
 (positions and velocities rebuilt from the anchor), every chain of the same segment count.
 ``advance_lanes`` transposes the state into the lane layout once per call and back at its
 end; ``crowd_records`` and ``step_blocks`` take one step at a time, the state gathered and
@@ -49,12 +49,10 @@ import numba as nb
 import numpy as np
 
 from . import step
-from .chain_solve import invert_pivot, pivot
+from .chain_solve import ZERO6, G_axisymmetric, inv_inertia_axisymmetric, joint_row
 from .kernel_cache import ensure_fresh
-from .limit_kernels import rotvec_factor
-from .limit_kernels import sqrt_ieee as _sqrt
-from .step import (JOINT_SOLVE_FAILED, OK, RK4, _G_axisymmetric, _cross,
-                   _inv_inertia_axisymmetric, _qmul, _qrot)
+from .step_model import JOINT_SOLVE_FAILED, OK, RK4
+from .vec import cross_s, qaxis_x_s, qmul_s, qrot_s, rotvec_factor, sqrt_ieee
 
 ensure_fresh()
 
@@ -188,7 +186,7 @@ def _start(m, R):
     for i in range(m):
         for l in range(LANES):
             qx, qy, qz, qw = R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l]
-            b0, b1, b2 = _qrot(-qx, -qy, -qz, qw, R[i, _W, l], R[i, _W + 1, l],
+            b0, b1, b2 = qrot_s(-qx, -qy, -qz, qw, R[i, _W, l], R[i, _W + 1, l],
                                R[i, _W + 2, l])
             R[i, _WB, l], R[i, _WB + 1, l], R[i, _WB + 2, l] = b0, b1, b2
             for a in range(3):
@@ -196,13 +194,13 @@ def _start(m, R):
                 R[i, _VS + a, l] = R[i, _V + a, l]
             R[i, _WBS, l], R[i, _WBS + 1, l], R[i, _WBS + 2, l] = b0, b1, b2
             R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l] = qx, qy, qz, qw
-            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = _qrot(qx, qy, qz, qw, b0, b1, b2)
+            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = qrot_s(qx, qy, qz, qw, b0, b1, b2)
 
 
 @_inline
 def _applied(m, row, R, E, S, wind0, wind1, wind2, explicit_damping, stiffness_on, drag_on,
              external_on):
-    """Applied forces and torques (N, N·m, world) at the stage state, ``step._applied``'s
+    """Applied forces and torques (N, N·m, world) at the stage state, ``applied_terms``'
     terms in its order: gravity, the joint torques (damping, then bending stiffness: τ on the
     child, -τ on the parent), drag, external."""
     for i in range(m):
@@ -249,11 +247,11 @@ def _joint_damping(m, row, R, E):
 @_inline
 def _deviation(R, i, l, px, py, pz, pw, S):
     """Joint i's deviation from rest in lane l, its parent's orientation p given: q = p ⊗
-    q_rest ⊗ q_err, q_err = (p ⊗ q_rest)* ⊗ q into ``S``'s quaternions (``step._applied``'s
+    q_rest ⊗ q_err, q_err = (p ⊗ q_rest)* ⊗ q into ``S``'s quaternions (``applied_terms``'
     expressions, so the same bits)."""
-    rx, ry, rz, rw = _qmul(px, py, pz, pw, R[i, _QR, l], R[i, _QR + 1, l], R[i, _QR + 2, l],
+    rx, ry, rz, rw = qmul_s(px, py, pz, pw, R[i, _QR, l], R[i, _QR + 1, l], R[i, _QR + 2, l],
                            R[i, _QR + 3, l])
-    ex, ey, ez, ew = _qmul(-rx, -ry, -rz, rw, R[i, _QS, l], R[i, _QS + 1, l],
+    ex, ey, ez, ew = qmul_s(-rx, -ry, -rz, rw, R[i, _QS, l], R[i, _QS + 1, l],
                            R[i, _QS + 2, l], R[i, _QS + 3, l])
     Sq = S[0]
     k = i * LANES + l
@@ -263,10 +261,10 @@ def _deviation(R, i, l, px, py, pz, pw, S):
 @_inline
 def _joint_torques(m, row, R, E, S, explicit_damping):
     """Joint damping (if ``explicit_damping``) and bending stiffness at every joint: τ =
-    -c (ω_child - ω_parent) - k θ_err (summed in ``step._applied``'s order), on the child, and
+    -c (ω_child - ω_parent) - k θ_err (summed in ``applied_terms``' order), on the child, and
     -τ on the parent. In three passes over the block's joints: their deviations q_err into
     the scratch ``S`` (``stiffness_scratch``), the rotation vectors' factors
-    (``limit_kernels.rotvec_factor``, one flat loop over every joint of every lane: it
+    (``vec.rotvec_factor``, one flat loop over every joint of every lane: it
     vectorises, where called per lane it ran lane by lane), then the torques."""
     for l in range(LANES):              # the first joint: the anchor body is the parent
         _deviation(R, 0, l, E[row, _AQ, l], E[row, _AQ + 1, l], E[row, _AQ + 2, l],
@@ -293,7 +291,7 @@ def _joint_torques(m, row, R, E, S, explicit_damping):
                 tau2 -= c * (R[i, _WS + 2, l] - pw2)
             k = i * LANES + l
             f = Sf[k]
-            s0, s1, s2 = _qrot(R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l],
+            s0, s1, s2 = qrot_s(R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l],
                                R[i, _QS + 3, l], Sq[0, k] * f, Sq[1, k] * f, Sq[2, k] * f)
             stiff = R[i, _STIFF, l]
             tau0 -= stiff * s0
@@ -325,16 +323,14 @@ def _drag(m, R, wind0, wind1, wind2):
             u0 = R[i, _VS, l] - wind0
             u1 = R[i, _VS + 1, l] - wind1
             u2 = R[i, _VS + 2, l] - wind2
-            speed = _sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            speed = sqrt_ieee(u0 * u0 + u1 * u1 + u2 * u2)
             c1 = R[i, _DL, l]
             k = (c1 + R[i, _DQ, l] * speed) * R[i, _LEN, l]
             R[i, _F, l] -= k * u0
             R[i, _F + 1, l] -= k * u1
             R[i, _F + 2, l] -= k * u2
             x, y, z, w = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
-            e0 = 1.0 - 2.0 * (y * y + z * z)
-            e1 = 2.0 * (x * y + w * z)
-            e2 = 2.0 * (x * z - w * y)
+            e0, e1, e2 = qaxis_x_s(x, y, z, w)
             w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
             wa = w0 * e0 + w1 * e1 + w2 * e2
             kt = R[i, _KT, l]
@@ -345,20 +341,18 @@ def _drag(m, R, wind0, wind1, wind2):
 
 @_inline
 def _free(R, i, l):
-    """Segment i's part of ``step._accelerations``' root-to-tip sweep, stored in the record:
+    """Segment i's part of ``step_rk4``'s accelerations' root-to-tip sweep, stored in the record:
     its world I⁻¹, h = (l/2) e, free accelerations α (rad/s²) and a (m/s², without f_c), G;
     returns a, G and t = α × h + ω × (ω × h), the acceleration of its distal point relative
     to its centre."""
     qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
     w0, w1, w2 = R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l]
-    e0 = 1.0 - 2.0 * (qy * qy + qz * qz)
-    e1 = 2.0 * (qx * qy + qw * qz)
-    e2 = 2.0 * (qx * qz - qw * qy)
-    X = _inv_inertia_axisymmetric(e0, e1, e2, R[i, _II0, l], R[i, _II1, l])
+    e0, e1, e2 = qaxis_x_s(qx, qy, qz, qw)
+    X = inv_inertia_axisymmetric(e0, e1, e2, R[i, _II0, l], R[i, _II1, l])
     hl = R[i, _HALF, l]
     h0, h1, h2 = hl * e0, hl * e1, hl * e2
     s = (R[i, _I0, l] - R[i, _I1, l]) * (e0 * w0 + e1 * w1 + e2 * w2)    # ω × Iω
-    c0, c1, c2 = _cross(w0, w1, w2, e0, e1, e2)
+    c0, c1, c2 = cross_s(w0, w1, w2, e0, e1, e2)
     y0, y1, y2 = s * c0, s * c1, s * c2
     v0, v1, v2 = R[i, _T, l] - y0, R[i, _T + 1, l] - y1, R[i, _T + 2, l] - y2
     a0 = X[0] * v0 + X[1] * v1 + X[2] * v2
@@ -366,10 +360,10 @@ def _free(R, i, l):
     a2 = X[6] * v0 + X[7] * v1 + X[8] * v2
     im = R[i, _IM, l]
     ac0, ac1, ac2 = R[i, _F, l] * im, R[i, _F + 1, l] * im, R[i, _F + 2, l] * im
-    c0, c1, c2 = _cross(a0, a1, a2, h0, h1, h2)
-    u0, u1, u2 = _cross(w0, w1, w2, h0, h1, h2)              # ω × h
-    d0, d1, d2 = _cross(w0, w1, w2, u0, u1, u2)
-    g = _G_axisymmetric(h0, h1, h2, R[i, _II1, l])
+    c0, c1, c2 = cross_s(a0, a1, a2, h0, h1, h2)
+    u0, u1, u2 = cross_s(w0, w1, w2, h0, h1, h2)              # ω × h
+    d0, d1, d2 = cross_s(w0, w1, w2, u0, u1, u2)
+    g = G_axisymmetric(h0, h1, h2, R[i, _II1, l])
     for j in range(9):
         R[i, _IINV + j, l] = X[j]
     for j in range(6):
@@ -382,7 +376,7 @@ def _free(R, i, l):
 
 @_inline
 def _forward(m, row, R, E):
-    """Root to tip (``step._accelerations``' first sweep): per segment its free motion, joint
+    """Root to tip (``step_rk4``'s accelerations' first sweep): per segment its free motion, joint
     i's right-hand side (parent point minus child point acceleration), joint i's row of
     A = J M⁻¹ Jᵀ factorised (``_C`` = P⁻¹, ``_LO`` = 𝓛) and the right-hand side
     forward-substituted (``_FC``). ``_BAD`` counts, root to segment, the pivots that were not
@@ -392,13 +386,11 @@ def _forward(m, row, R, E):
         for j in range(3):
             R[0, _FC + j, l] = E[row, _AA + j, l] - (ac[j] - t[j])
             R[0, _PA + j, l] = ac[j] + t[j]
-        im = R[0, _IM, l]
-        g00, g01, g02, g11, g12, g22 = g
-        ok, pinv = invert_pivot((im - g00, -g01, -g02, im - g11, -g12, im - g22))
+        ok, lo, pinv = joint_row(True, ZERO6, R[0, _IM, l], 0.0, g, ZERO6)
         for j in range(6):
             R[0, _C + j, l] = pinv[j]
         for j in range(9):
-            R[0, _LO + j, l] = 0.0
+            R[0, _LO + j, l] = lo[j]
         R[0, _BAD, l] = 0.0 if ok else 1.0
     for i in range(1, m):
         for l in range(LANES):
@@ -408,18 +400,11 @@ def _forward(m, row, R, E):
             r2 = R[i - 1, _PA + 2, l] - (ac[2] - t[2])
             for j in range(3):
                 R[i, _PA + j, l] = ac[j] + t[j]
-            im, imp = R[i, _IM, l], R[i - 1, _IM, l]
-            g00, g01, g02, g11, g12, g22 = g
-            p00, p01, p02, p11, p12, p22 = (R[i - 1, _G, l], R[i - 1, _G + 1, l],
-                                            R[i - 1, _G + 2, l], R[i - 1, _G + 3, l],
-                                            R[i - 1, _G + 4, l], R[i - 1, _G + 5, l])
-            s = im + imp
-            d = (s - g00 - p00, -g01 - p01, -g02 - p02, s - g11 - p11, -g12 - p12,
-                 s - g22 - p22)
-            lb = (-imp - p00, -p01, -p02, -p01, -imp - p11, -p12, -p02, -p12, -imp - p22)
+            gp = (R[i - 1, _G, l], R[i - 1, _G + 1, l], R[i - 1, _G + 2, l],
+                  R[i - 1, _G + 3, l], R[i - 1, _G + 4, l], R[i - 1, _G + 5, l])
             pp = (R[i - 1, _C, l], R[i - 1, _C + 1, l], R[i - 1, _C + 2, l],
                   R[i - 1, _C + 3, l], R[i - 1, _C + 4, l], R[i - 1, _C + 5, l])
-            ok, lo, pinv = pivot(d, lb, pp)
+            ok, lo, pinv = joint_row(False, pp, R[i, _IM, l], R[i - 1, _IM, l], g, gp)
             for j in range(6):
                 R[i, _C + j, l] = pinv[j]
             for j in range(9):
@@ -444,7 +429,7 @@ def _failed(m, R):
 
 @_inline
 def _pinv_z(R, i, l):
-    """P_i⁻¹ z_i (P⁻¹ symmetric, from its upper triangle, as ``step._block`` reads it)."""
+    """P_i⁻¹ z_i (P⁻¹ symmetric, from its upper triangle, as ``chain_solve.block`` reads it)."""
     p0, p1, p2 = R[i, _C, l], R[i, _C + 1, l], R[i, _C + 2, l]
     p3, p4, p5 = R[i, _C + 3, l], R[i, _C + 4, l], R[i, _C + 5, l]
     z0, z1, z2 = R[i, _FC, l], R[i, _FC + 1, l], R[i, _FC + 2, l]
@@ -455,14 +440,14 @@ def _pinv_z(R, i, l):
 @_inline
 def _joint_forces(R, i, l, f0, f1, f2, g0, g1, g2):
     """Segment i's joint forces applied: + λ_i = f at its proximal end, - λ_{i+1} = g at its
-    distal end (``step._accelerations``' second sweep); λ_i stored as f_c."""
+    distal end (``step_rk4``'s accelerations' second sweep); λ_i stored as f_c."""
     R[i, _FC, l], R[i, _FC + 1, l], R[i, _FC + 2, l] = f0, f1, f2
     im = R[i, _IM, l]
     R[i, _ACC, l] += (f0 - g0) * im
     R[i, _ACC + 1, l] += (f1 - g1) * im
     R[i, _ACC + 2, l] += (f2 - g2) * im
     # (-h) × f_c + h × (-f_next) = (f_c + f_next) × h
-    t0, t1, t2 = _cross(f0 + g0, f1 + g1, f2 + g2, R[i, _HV, l], R[i, _HV + 1, l],
+    t0, t1, t2 = cross_s(f0 + g0, f1 + g1, f2 + g2, R[i, _HV, l], R[i, _HV + 1, l],
                         R[i, _HV + 2, l])
     for a in range(3):
         R[i, _ALPHA + a, l] += (R[i, _IINV + 3 * a, l] * t0 + R[i, _IINV + 3 * a + 1, l] * t1
@@ -492,9 +477,9 @@ def _backward(m, R):
 def _derivatives(R, i, l):
     """Stage derivatives of segment i: ẋ = v, v̇ = a, ω̇_b = Rᵀ α, q̇ = ½ q ⊗ ω_b."""
     qx, qy, qz, qw = R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l]
-    d0, d1, d2, d3 = _qmul(qx, qy, qz, qw, R[i, _WBS, l], R[i, _WBS + 1, l],
+    d0, d1, d2, d3 = qmul_s(qx, qy, qz, qw, R[i, _WBS, l], R[i, _WBS + 1, l],
                            R[i, _WBS + 2, l], 0.0)
-    e0, e1, e2 = _qrot(-qx, -qy, -qz, qw, R[i, _ALPHA, l], R[i, _ALPHA + 1, l],
+    e0, e1, e2 = qrot_s(-qx, -qy, -qz, qw, R[i, _ALPHA, l], R[i, _ALPHA + 1, l],
                        R[i, _ALPHA + 2, l])
     return ((R[i, _VS, l], R[i, _VS + 1, l], R[i, _VS + 2, l]),
             (R[i, _ACC, l], R[i, _ACC + 1, l], R[i, _ACC + 2, l]),
@@ -503,7 +488,7 @@ def _derivatives(R, i, l):
 
 @_inline
 def _stage_sum(s, weight, total, d):
-    """``step._rk4_sum``: d for the first stage, else total + weight·d (a select, not a
+    """``step_rk4``'s stage sum: d for the first stage, else total + weight·d (a select, not a
     branch: the loop stays vectorisable)."""
     return d if s == 0 else total + weight * d
 
@@ -527,7 +512,7 @@ def _next_stage(m, s, weight, c, R):
                 R[i, _WBS + a, l] = R[i, _WB + a, l] + c * dwb[a]
             for a in range(4):
                 R[i, _QS + a, l] = R[i, _Q + a, l] + c * dq[a]
-            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = _qrot(
+            R[i, _WS, l], R[i, _WS + 1, l], R[i, _WS + 2, l] = qrot_s(
                 R[i, _QS, l], R[i, _QS + 1, l], R[i, _QS + 2, l], R[i, _QS + 3, l],
                 R[i, _WBS, l], R[i, _WBS + 1, l], R[i, _WBS + 2, l])
 
@@ -549,10 +534,10 @@ def _finish(m, h, R):
             q1 = R[i, _Q + 1, l] + sixth * (R[i, _SQ + 1, l] + dq[1])
             q2 = R[i, _Q + 2, l] + sixth * (R[i, _SQ + 2, l] + dq[2])
             q3 = R[i, _Q + 3, l] + sixth * (R[i, _SQ + 3, l] + dq[3])
-            r = 1.0 / _sqrt(q0 ** 2 + q1 ** 2 + q2 ** 2 + q3 ** 2)
+            r = 1.0 / sqrt_ieee(q0 ** 2 + q1 ** 2 + q2 ** 2 + q3 ** 2)
             q0, q1, q2, q3 = q0 * r, q1 * r, q2 * r, q3 * r
             R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l] = q0, q1, q2, q3
-            R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l] = _qrot(
+            R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l] = qrot_s(
                 q0, q1, q2, q3, R[i, _WB, l], R[i, _WB + 1, l], R[i, _WB + 2, l])
 
 
@@ -560,14 +545,13 @@ def _finish(m, h, R):
 def _project_segment(R, i, l, p0, p1, p2, u0, u1, u2):
     """Segment i's centre on its proximal joint at p (velocity u); its distal joint's kept."""
     qx, qy, qz, qw = R[i, _Q, l], R[i, _Q + 1, l], R[i, _Q + 2, l], R[i, _Q + 3, l]
+    e0, e1, e2 = qaxis_x_s(qx, qy, qz, qw)
     hl = R[i, _HALF, l]
-    h0 = hl * (1.0 - 2.0 * (qy * qy + qz * qz))
-    h1 = hl * (2.0 * (qx * qy + qw * qz))
-    h2 = hl * (2.0 * (qx * qz - qw * qy))
+    h0, h1, h2 = hl * e0, hl * e1, hl * e2
     x0, x1, x2 = p0 + h0, p1 + h1, p2 + h2
     R[i, _X, l], R[i, _X + 1, l], R[i, _X + 2, l] = x0, x1, x2
     R[i, _PE, l], R[i, _PE + 1, l], R[i, _PE + 2, l] = x0 + h0, x1 + h1, x2 + h2
-    c0, c1, c2 = _cross(R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l], h0, h1, h2)
+    c0, c1, c2 = cross_s(R[i, _W, l], R[i, _W + 1, l], R[i, _W + 2, l], h0, h1, h2)
     v0, v1, v2 = u0 + c0, u1 + c1, u2 + c2
     R[i, _V, l], R[i, _V + 1, l], R[i, _V + 2, l] = v0, v1, v2
     R[i, _UE, l], R[i, _UE + 1, l], R[i, _UE + 2, l] = v0 + c0, v1 + c1, v2 + c2
@@ -576,7 +560,7 @@ def _project_segment(R, i, l, p0, p1, p2, u0, u1, u2):
 @_inline
 def _project(m, row, R, E):
     """Centres rebuilt so every joint closes exactly from the anchor outward, and the centre
-    velocities from the anchor point's velocity and ω (``step._project`` for RK4)."""
+    velocities from the anchor point's velocity and ω (``step``'s projection for RK4)."""
     for l in range(LANES):
         _project_segment(R, 0, l, E[row, _AX, l], E[row, _AX + 1, l], E[row, _AX + 2, l],
                          E[row, _AV, l], E[row, _AV + 1, l], E[row, _AV + 2, l])
@@ -590,7 +574,7 @@ def _project(m, row, R, E):
 # -- the call ----------------------------------------------------------------------------------
 @_inline
 def _block_step(M, k, h, R, E, S):
-    """Step ``k`` of the table for one block (``step._rk4``, then ``step._project``), its
+    """Step ``k`` of the table for one block (``step_rk4.rk4``, then ``step``'s projection), its
     record ``R``, anchors ``E`` and stiffness scratch ``S`` given. Returns ``OK`` or
     ``JOINT_SOLVE_FAILED`` (some lane's A was not positive definite)."""
     m = R.shape[0]

@@ -16,6 +16,8 @@ import math
 
 from numba import njit
 
+from .vec import qaxis_x_s, qrot_s
+
 __all__ = ['chain_numbers', 'collider_numbers']
 
 
@@ -36,9 +38,8 @@ def chain_numbers(origins, quats, lengths, last, origin_rows, tip_rows, capsule_
     for i in range(n):
         x, y, z, w = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         L = lengths[i]
-        a0 = (1.0 - 2.0 * (y * y + z * z)) * L
-        a1 = (2.0 * (x * y + w * z)) * L
-        a2 = (2.0 * (x * z + (w * y) * -1.0)) * L
+        e0, e1, e2 = qaxis_x_s(x, y, z, w)
+        a0, a1, a2 = e0 * L, e1 * L, e2 * L
         r = origin_rows[i]
         joints[r, 0], joints[r, 1], joints[r, 2] = origins[i, 0], origins[i, 1], origins[i, 2]
         if capsules:
@@ -53,22 +54,15 @@ def chain_numbers(origins, quats, lengths, last, origin_rows, tip_rows, capsule_
         x, y, z, w = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         L = lengths[i]
         r = tip_rows[c]
-        joints[r, 0] = origins[i, 0] + (1.0 - 2.0 * (y * y + z * z)) * L
-        joints[r, 1] = origins[i, 1] + (2.0 * (x * y + w * z)) * L
-        joints[r, 2] = origins[i, 2] + (2.0 * (x * z + (w * y) * -1.0)) * L
+        e0, e1, e2 = qaxis_x_s(x, y, z, w)
+        joints[r, 0] = origins[i, 0] + e0 * L
+        joints[r, 1] = origins[i, 1] + e1 * L
+        joints[r, 2] = origins[i, 2] + e2 * L
     if capsules:
         for r in identity_rows:
             for j in range(6):
                 poses[r, j] = 0.0
             poses[r, 6] = 1.0
-
-
-@njit(cache=True)
-def _rotate(u0, u1, u2, w, v0, v1, v2):
-    """``quat_rotate`` of one vector: v + w t + u × t, t = 2 u × v."""
-    t0, t1, t2 = 2.0 * (u1 * v2 - u2 * v1), 2.0 * (u2 * v0 - u0 * v2), 2.0 * (u0 * v1 - u1 * v0)
-    return (v0 + w * t0 + (u1 * t2 - u2 * t1), v1 + w * t1 + (u2 * t0 - u0 * t2),
-            v2 + w * t2 + (u0 * t1 - u1 * t0))
 
 
 @njit(cache=True)
@@ -91,11 +85,11 @@ def collider_numbers(centres, axes, moving, bodies, body_position, body_orientat
         k, b = moving[j], bodies[j]
         u0, u1, u2, w = (body_orientation[b, 0], body_orientation[b, 1],
                          body_orientation[b, 2], body_orientation[b, 3])
-        r0, r1, r2 = _rotate(u0, u1, u2, w, centres[k, 0], centres[k, 1], centres[k, 2])
+        r0, r1, r2 = qrot_s(u0, u1, u2, w, centres[k, 0], centres[k, 1], centres[k, 2])
         centres[k, 0] = body_position[b, 0] + r0
         centres[k, 1] = body_position[b, 1] + r1
         centres[k, 2] = body_position[b, 2] + r2
-        axes[k, 0], axes[k, 1], axes[k, 2] = _rotate(u0, u1, u2, w, axes[k, 0], axes[k, 1],
+        axes[k, 0], axes[k, 1], axes[k, 2] = qrot_s(u0, u1, u2, w, axes[k, 0], axes[k, 1],
                                                      axes[k, 2])
     a0, a1, a2 = 0.0, 0.0, 1.0          # +Z (normalised: unchanged)
     n_degenerate = 0

@@ -11,7 +11,7 @@ import math
 
 from numba import njit
 
-from .limit_kernels import qaxis_x, qfrom_rotvec, qmul
+from .vec import qaxis_x, qfrom_rotvec, qmul
 
 __all__ = ['guard_measures', 'segment_poses', 'MEASURES']
 

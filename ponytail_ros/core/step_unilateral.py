@@ -20,8 +20,8 @@ import numpy as np
 from . import contact_kernels, lanes
 from .kernel_cache import ensure_fresh
 from .stages import cycles
-from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, _chain_starts, _chains_steps,
-                   _workspaces, substeps)
+from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, chain_starts, chains_steps, substeps,
+                   workspaces)
 
 ensure_fresh()
 
@@ -56,8 +56,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     ``(step.PROFILE_SIZE,)`` int64. ``constrained``: None for RK4 (the other integrators
     pruned, as in ``step.advance_rk4``), True for the model's integrator."""
     t_call = cycles()
-    starts, ends = _chain_starts(M, x.shape[0])
-    W, R = _workspaces(starts, ends)
+    starts, ends = chain_starts(M, x.shape[0])
+    W, R = workspaces(starts, ends)
     if in_lanes is not None:
         # The lanes' record, allocated here, where their loops are inlined (``lanes``).
         RL, EL, SL, ML = lanes.crowd_records(M, x.shape[0], in_lanes)
@@ -76,8 +76,8 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             break
         t0 = cycles()
         if in_lanes is None:
-            status = _chains_steps(M, A, k, 1, h, x, q, v, w, ext_F, ext_T, f_c, W, R,
-                                   starts, ends, constrained)
+            status = chains_steps(M, A, k, np.int64(1), h, x, q, v, w, ext_F, ext_T, f_c, W, R,
+                                  starts, ends, constrained)
         else:
             status = lanes.step_blocks(M, A, k, h, x, q, v, w, ext_F, ext_T, f_c, RL, EL, SL,
                                        ML)
