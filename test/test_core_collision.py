@@ -11,7 +11,7 @@ from ponytail_ros.core import collision, limits
 from ponytail_ros.app.motions import ShakeNodHead
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
-from ponytail_ros.core.stabilization import project_velocities
+from oracle.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 from helpers import PENETRATION_TOLERANCE, TwoBodies, total_energy
 

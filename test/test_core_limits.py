@@ -12,7 +12,7 @@ from ponytail_ros.core.limits import joint_angles, limit_rows, project_limits
 from ponytail_ros.core.rotations import (quat_axis_x, quat_conjugate, quat_from_rotvec,
                                          quat_integrate, quat_multiply, quat_rotate)
 from ponytail_ros.core.state import half_vectors
-from ponytail_ros.core.stabilization import project_positions
+from oracle.stabilization import project_positions
 
 from ponytail_ros.app.motions import ShakeNodHead
 from helpers import ANGLE_TOLERANCE, total_energy

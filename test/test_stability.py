@@ -56,7 +56,7 @@ import pytest
 from ponytail_ros.core import (ChainSpec, ChainState, KinematicState, Scene, SceneError, Simulator,
                                SolverSpec, StillMotion)
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
-from ponytail_ros.core.stabilization import project_velocities
+from oracle.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 from ponytail_ros.app.motions import SinusoidHead, SpinHead, reference_motion
 from helpers import chain_sim, reference_ponytail
