@@ -73,10 +73,10 @@ from ponytail_ros.core.rotations import (
     quat_to_matrix,
     skew,
 )
-from ponytail_ros.core.stabilization import project_positions, project_velocities
 from ponytail_ros.core.state import half_vectors
 
 import _oracle_limits as limits
+from oracle.stabilization import project_positions, project_velocities
 
 __all__ = ['Unilateral', 'segment_depths', 'POSITION_TOLERANCE', 'POSITION_ITERATIONS',
            'SPECULATIVE_STEPS']
@@ -404,7 +404,7 @@ class Unilateral:
     model of that chain alone), as ``contact_kernels.resolve_chains_into`` does: chains do
     not touch one another. ``last``: contacts and limits summed, the most position passes."""
 
-    def __init__(self, model, dynamics, dt):
+    def __init__(self, model, dt):
         self.model = model
         self.step = self.dt = dt
         self.colliders = Colliders(model) if model.has_colliders else None
@@ -412,7 +412,7 @@ class Unilateral:
         for c, chain in enumerate(model.scene.chains):
             sub = Model(model.scene.replace(chains=(chain,)))
             if sub.has_colliders or sub.has_limits:
-                self._chains.append((model.chain_slice(c), c, _ChainUnilateral(sub, dynamics, dt)))
+                self._chains.append((model.chain_slice(c), c, _ChainUnilateral(sub, dt)))
         self.last = {'contacts': 0, 'limits': 0, 'position_passes': 0}
 
     def pose(self, bodies):
@@ -460,9 +460,8 @@ class Unilateral:
 class _ChainUnilateral:
     """Contacts and joint limits of one model, resolved after every internal step."""
 
-    def __init__(self, model, dynamics, dt):
+    def __init__(self, model, dt):
         self.model = model
-        self.dynamics = dynamics
         I = model.inertia
         self.axisymmetric = bool(np.allclose(I[:, 1], I[:, 2], rtol=1e-12, atol=0.0))
         self.step = self.dt = dt

@@ -223,7 +223,7 @@ def _recorded_calls(scene, motion, seconds):
 def test_compiled_resolve_matches_the_numpy_oracle(name):
     make_scene, make_motion, seconds = SCENES[name]
     sim, calls = _recorded_calls(make_scene(), make_motion(), seconds)
-    oracle = _oracle_collision.Unilateral(sim.model, sim.dynamics, sim.dt)
+    oracle = _oracle_collision.Unilateral(sim.model, sim.dt)
     worst = 0.0
     active = passes = 0
     for args, anchor, pose, project, dt, out, last, q_rest in calls:
@@ -244,7 +244,7 @@ def test_rows_and_detection_match_the_oracle(name):
     make_scene, make_motion, seconds = SCENES[name]
     sim, calls = _recorded_calls(make_scene(), make_motion(), 0.5 * seconds)
     m = sim.model
-    oracle = _oracle_collision.Unilateral(m, sim.dynamics, sim.dt)
+    oracle = _oracle_collision.Unilateral(m, sim.dt)
     if m.has_colliders:
         det = collision._Detector(m, collision.Colliders(m))
         det_ref = _oracle_collision._Detector(m, _oracle_collision.Colliders(m))

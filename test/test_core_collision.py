@@ -19,10 +19,10 @@ from ponytail_ros.core import (
 )
 from ponytail_ros.core.rotations import quat_rotate
 from ponytail_ros.core.scene import ColliderSpec, SolverSpec
-from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 
 from helpers import PENETRATION_TOLERANCE, TwoBodies, total_energy
+from oracle.stabilization import project_velocities
 
 DT = 1.0 / 240.0
 TOLERANCE = PENETRATION_TOLERANCE

@@ -153,12 +153,36 @@ def test_chain_fields_are_validated_with_name_value_and_range(field, value, frag
     ('integrator', 'euler', "one of ('rk4', 'symplectic_euler', 'rattle')"),
     ('dt', 0.5, '[1e-06, 0.1]'),
     ('max_steps_per_call', 0, '[1, 1000000]'),
-    ('linear_solver', 'lu', 'banded'),
+    ('linear_solver', 'banded', 'was removed'),
 ])
 def test_solver_fields_are_validated(field, value, fragment):
     with pytest.raises(SceneError) as err:
         Scene(solver=SolverSpec(**{field: value}))
     assert err.value.field == f'solver.{field}' and fragment in str(err.value)
+
+
+def test_a_removed_parameter_is_refused_by_name_in_a_params_file(tmp_path):
+    """A params file that still sets ``solver.linear_solver`` gets an error naming it and
+    saying it was removed; a node warns that it ignores it; an older recording that holds it
+    replays (the compiled step it ran with 'banded' is what runs)."""
+    from ponytail_ros.app.param_values import (
+        complete_values,
+        metadata_from_values,
+        unknown_parameter_warning,
+        values_from_metadata,
+        values_from_params_file,
+    )
+    from ponytail_ros.app.parameters import ParameterError
+    path = tmp_path / 'params.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    solver:\n      linear_solver: dense\n')
+    with pytest.raises(ParameterError) as err:
+        complete_values(values_from_params_file(path))
+    assert err.value.names == ('solver.linear_solver',)
+    assert 'solver.linear_solver' in str(err.value) and 'was removed' in str(err.value)
+    assert 'was removed' in unknown_parameter_warning('solver.linear_solver', {})
+    recorded = metadata_from_values(complete_values({}))
+    recorded['solver.linear_solver'] = '"banded"'
+    assert complete_values(values_from_metadata(recorded)) == complete_values({})
 
 
 def test_scene_fields_are_validated():

@@ -18,10 +18,10 @@ from ponytail_ros.core.rotations import (
     quat_multiply,
     quat_rotate,
 )
-from ponytail_ros.core.stabilization import project_positions
 from ponytail_ros.core.state import half_vectors
 
 from helpers import ANGLE_TOLERANCE, total_energy
+from oracle.stabilization import project_positions
 
 DT = 1.0 / 240.0
 

@@ -66,10 +66,10 @@ from ponytail_ros.core import (
     StillMotion,
 )
 from ponytail_ros.core.rotations import quat_axis_x, quat_from_rotvec
-from ponytail_ros.core.stabilization import project_velocities
 from ponytail_ros.core.state import half_vectors
 
 from helpers import chain_sim, reference_ponytail, total_energy as energy
+from oracle.stabilization import project_velocities
 
 hypothesis = pytest.importorskip('hypothesis')
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402

@@ -25,13 +25,16 @@ from ponytail_ros.app.parameters import (
     DEFAULT_COLORS,
     FRAME_PARAMS,
     GLOBAL_PARAMS,
+    REMOVED_PARAMS,
     ParameterError,
     build_runner_settings,
     chain_param_name,
     check_names,
     check_values,
     definition,
+    removed_parameter_error,
 )
+from ponytail_ros.core.scene import REMOVED_SOLVER_FIELDS
 
 __all__ = ['complete_values', 'values_from_params_file', 'values_from_metadata',
            'metadata_from_values', 'default_values', 'scene_and_settings', 'resolve_values',
@@ -121,9 +124,11 @@ def complete_values(partial: Mapping[str, Any]) -> dict[str, Any]:
     :data:`IGNORED_NAMES` silently, the others are returned by :func:`unknown_names`).
 
     Raises:
-        ParameterError: a value of the wrong type or out of range, inconsistent values; the
-            message names the parameter.
+        ParameterError: a value of the wrong type or out of range, inconsistent values, a
+            removed parameter (``REMOVED_PARAMS``); the message names the parameter.
     """
+    for name in sorted(REMOVED_PARAMS & partial.keys()):
+        raise removed_parameter_error(name, partial[name])
     chains = partial.get('chains', [p.default for p in GLOBAL_PARAMS if p.name == 'chains'][0])
     chains = _coerce('chains', 'strings', chains)
     colliders = _coerce('colliders', 'strings', partial.get('colliders', []))
@@ -155,7 +160,11 @@ def closest_name(name: str, known) -> str | None:
 
 
 def unknown_parameter_warning(name: str, known) -> str:
-    """"unknown parameter 'x' ignored (did you mean 'y'?)" for a name not in ``known``."""
+    """"unknown parameter 'x' ignored (did you mean 'y'?)" for a name not in ``known``
+    (for a removed parameter: that it was removed, and why)."""
+    if name in REMOVED_PARAMS:
+        why = REMOVED_SOLVER_FIELDS[name.rpartition('.')[2]]
+        return f'parameter {name!r} ignored: it was removed ({why})'
     close = closest_name(name, known)
     hint = f' (did you mean {close!r}?)' if close else ''
     return f'unknown parameter {name!r} ignored{hint}'
@@ -251,12 +260,16 @@ def metadata_from_values(values: Mapping[str, Any]) -> dict[str, str]:
 
 def values_from_metadata(record: Mapping[str, str]) -> dict[str, Any]:
     """Inverse of :func:`metadata_from_values`; a hand-edited YAML value is accepted too.
+    A removed parameter (``REMOVED_PARAMS``) that an older recording holds is left out: the
+    replay runs what the node runs now.
 
     Raises:
         ParameterError: a value that is neither JSON nor YAML.
     """
     values = {}
     for name, text in record.items():
+        if name in REMOVED_PARAMS:
+            continue
         try:
             values[name] = json.loads(text)
         except ValueError:

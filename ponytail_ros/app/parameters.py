@@ -57,15 +57,16 @@ from ponytail_ros.core.scene import (
     COLLIDER_KINDS,
     DAMPING_METHODS,
     INTEGRATORS,
-    LINEAR_SOLVERS,
     MAX_COLLIDERS,
     MAX_LIMIT,
     MAX_SEGMENTS,
+    REMOVED_SOLVER_FIELDS,
     ChainSpec,
     ColliderSpec,
     Scene,
     SceneError,
     SolverSpec,
+    removed_field_error,
 )
 
 from .runner import OUTPUT_STAMPS, RunnerSettings
@@ -75,7 +76,7 @@ __all__ = ['ParamDef', 'GLOBAL_PARAMS', 'CHAIN_PARAMS', 'COLLIDER_PARAMS', 'FRAM
            'ParameterError', 'chain_param_name', 'check_values', 'build_scene',
            'build_runner_settings', 'check_names', 'collider_names', 'frame_names',
            'frame_topic', 'frame_topics', 'MARKER_STYLES', 'STAMP_SOURCES', 'RESERVED_NAMES',
-           'DEFAULT_COLORS', 'FRAMES', 'MAX_FRAMES']
+           'DEFAULT_COLORS', 'FRAMES', 'MAX_FRAMES', 'REMOVED_PARAMS', 'removed_parameter_error']
 
 MARKER_STYLES = ('capsules', 'line', 'off')
 STAMP_SOURCES = ('header', 'receive')
@@ -251,8 +252,6 @@ GLOBAL_PARAMS = (
              'Most internal steps per tick (bounded work); time beyond is dropped and '
              'reported. Must cover one tick: '
              'max_steps_per_call * dt >= 1/rate.', 1, 1000000, rebuild=True),
-    ParamDef('solver.linear_solver', _SOLVER.linear_solver, 'string', 'Joint force solve: '
-             'banded O(n) or dense O(n^3).', choices=LINEAR_SOLVERS, rebuild=True),
     ParamDef('solver.projection', _SOLVER.projection, 'bool', 'Project positions and '
              'velocities back on the joints after each step.', rebuild=True),
     ParamDef('solver.baumgarte_stiffness', _SOLVER.baumgarte_stiffness, 'double',
@@ -384,6 +383,17 @@ class ParameterError(ValueError):
     def __init__(self, names, message):
         self.names = tuple(names) if isinstance(names, (list, tuple)) else (names,)
         super().__init__(message)
+
+
+#: Parameters that were removed (``scene.REMOVED_SOLVER_FIELDS``): a params file that sets one
+#: is refused (``removed_parameter_error``), a node warns and ignores it.
+REMOVED_PARAMS = frozenset('solver.' + f for f in REMOVED_SOLVER_FIELDS)
+
+
+def removed_parameter_error(name, value):
+    """``ParameterError`` for the removed parameter ``name`` set to ``value``: it names the
+    parameter and says it was removed, and why."""
+    return ParameterError(name, str(removed_field_error(name, value)))
 
 
 def chain_param_name(chain, field):
@@ -625,7 +635,6 @@ def build_scene(values, chains):
     solver = SolverSpec(
         integrator=values['solver.integrator'], dt=float(values['solver.dt']),
         max_steps_per_call=int(values['solver.max_steps_per_call']),
-        linear_solver=values['solver.linear_solver'],
         projection=bool(values['solver.projection']),
         baumgarte_stiffness=float(values['solver.baumgarte_stiffness']),
         baumgarte_damping=float(values['solver.baumgarte_damping']),

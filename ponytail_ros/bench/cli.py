@@ -2,16 +2,16 @@
 
 Subcommands (default ``all``):
 
-``trade``    sweep integrator, internal step, linear solver (banded/dense), stabilisation
-             (projection, Baumgarte), head tick rate and segment count on the named scenes
-             (``scenes``: moving, release, shake, rope); per setting the CPU cost per simulated
+``trade``    sweep integrator, internal step, stabilisation (projection, Baumgarte), head tick
+             rate and segment count on the named scenes (``scenes``: moving, release, shake,
+             rope); per setting the CPU cost per simulated
              second and per step, the tip error (RMS/max, mm) against a converged reference (this
              core's RK4 at a tiny step, itself checked against ``../shared/reference/`` and by
              Richardson), the joint gap and, on still heads, the energy drift. Writes
              ``trade.csv/json``, ``refcheck.csv/json``, ``pareto.png``; prints and stores the
              recommended default (``summary.json``).
-``scaling``  cost per step vs segment count (1..1000), banded RK4 / symplectic Euler / RATTLE,
-             dense, MuJoCo if installed: ``scaling.csv/json``, ``scaling.png``.
+``scaling``  cost per step vs segment count (1..1000), RK4 / symplectic Euler / RATTLE,
+             MuJoCo if installed: ``scaling.csv/json``, ``scaling.png``.
 ``mujoco``   the same chain in MuJoCo (RK4, head driven exactly) side by side with this core for
              several segment counts and steps: ``mujoco.csv/json``, ``mujoco.png``.
 ``batch``    C = 1, 10, 100, 1000 chains of 20 segments in one scene (one banded solve) vs one

@@ -52,7 +52,6 @@ class Setting:
 
     integrator: str = 'rk4'
     dt: float = 1.0 / 240.0
-    linear_solver: str = 'banded'
     projection: bool = True
     baumgarte_stiffness: float = 0.0
     baumgarte_damping: float = 0.0
@@ -61,7 +60,7 @@ class Setting:
 
     def solver(self, max_steps=1_000_000, **kw):
         return SolverSpec(integrator=self.integrator, dt=self.dt, max_steps_per_call=max_steps,
-                          linear_solver=self.linear_solver, projection=self.projection,
+                          projection=self.projection,
                           baumgarte_stiffness=self.baumgarte_stiffness,
                           baumgarte_damping=self.baumgarte_damping, **dict(self.extra), **kw)
 
@@ -69,8 +68,6 @@ class Setting:
     def label(self):
         short = {'rk4': 'RK4', 'symplectic_euler': 'SE', 'rattle': 'RATTLE'}[self.integrator]
         s = f'{short} {fmt_dt(self.dt)}'
-        if self.linear_solver != 'banded':
-            s += ' dense'
         if not self.projection:
             s += ' noproj'
         if self.baumgarte_stiffness or self.baumgarte_damping:

@@ -27,9 +27,7 @@ def pareto_front(points):
 def _style(row):
     color = {'rk4': 'tab:blue', 'rattle': 'tab:green'}.get(row.get('integrator'), 'tab:orange')
     marker = 'o'
-    if row.get('linear_solver') == 'dense':
-        marker = 's'
-    elif row.get('tick_rate'):
+    if row.get('tick_rate'):
         marker = '^'
     elif row.get('baumgarte_stiffness') or row.get('baumgarte_damping'):
         marker = 'D'
@@ -97,7 +95,6 @@ def _pareto_panel(plt, ax, rows, scene, mujoco_rows, recommended):
         plt.Line2D([], [], color='tab:blue', marker='o', ls='', label='RK4'),
         plt.Line2D([], [], color='tab:orange', marker='o', ls='', label='symplectic Euler'),
         plt.Line2D([], [], color='tab:green', marker='o', ls='', label='RATTLE'),
-        plt.Line2D([], [], color='gray', marker='s', ls='', label='dense solve'),
         plt.Line2D([], [], color='gray', marker='x', ls='', label='no projection'),
         plt.Line2D([], [], color='gray', marker='D', ls='', label='Baumgarte, no projection'),
         plt.Line2D([], [], color='gray', marker='^', ls='', label='head at frames (tick)'),
@@ -137,7 +134,7 @@ def scaling_plot(rows, path, title=None):
     for r in rows:
         series.setdefault(r['series'], []).append((r['n_segments'], r['cpu_us_per_step']))
     styles = {'RK4 banded': ('tab:blue', 'o'), 'SE banded': ('tab:orange', 'o'),
-              'RATTLE banded': ('tab:green', 'o'), 'RK4 dense': ('tab:red', 's'),
+              'RATTLE banded': ('tab:green', 'o'),
               'MuJoCo RK4': ('tab:purple', 'P')}
     for name, pts in series.items():
         pts.sort()
@@ -148,11 +145,6 @@ def scaling_plot(rows, path, title=None):
         n_hi, c_hi = ref[-1]
         ns = np.array([1.0, n_hi])
         ax.plot(ns, c_hi * ns / n_hi, 'k:', lw=1.0, label='O(n) guide')
-    dense = series.get('RK4 dense')
-    if dense and len(dense) > 1:
-        n_hi, c_hi = dense[-1]
-        ns = np.array([max(dense[0][0], n_hi / 10.0), n_hi])
-        ax.plot(ns, c_hi * (ns / n_hi) ** 3, color='tab:red', ls=':', lw=1.0, label='O(n³) guide')
     ax.set_xscale('log')
     ax.set_yscale('log')
     ax.set_xlabel('segments in the chain')

@@ -33,8 +33,8 @@ def recommend(rows: Sequence[Row], required: Sequence[str] = ('moving', 'release
     """
     main = [r for r in rows if (r['scene'], r['n_segments']) in
             (('moving', 10), ('release', 10), ('shake', 10), ('rope', 40))]
-    plain = [r for r in main if not r['tick_rate'] and r['linear_solver'] == 'banded'
-             and r['projection'] and not r['baumgarte_stiffness'] and not r['baumgarte_damping']]
+    plain = [r for r in main if not r['tick_rate'] and r['projection']
+             and not r['baumgarte_stiffness'] and not r['baumgarte_damping']]
     by_label: dict[str, dict[str, Row]] = {}
     for r in plain:
         by_label.setdefault(r['setting'], {})[r['scene']] = r

@@ -284,9 +284,6 @@ _NO_POSE = ColliderPose(*(np.zeros((0, 3)) for _ in range(6)), np.zeros(0))
 class Unilateral:
     """Contacts and joint limits of one model, resolved after every internal step.
 
-    ``dynamics`` is not used (the chain's response is computed from the model's masses and
-    inertias in compiled code); the argument is kept for the simulator's call.
-
     For a compiled step loop: ``model_args`` and ``detector_args`` are the constant tuples
     that ``contact_kernels.resolve`` takes (``model_args``: length, 1/m, principal 1/I
     ``(n, 3)``, the largest 1/I, is_first, has_child, parent, chain_of, chain_start,
@@ -297,9 +294,8 @@ class Unilateral:
     were alone with all the colliders (``contact_kernels.resolve_chains_into``).
     """
 
-    def __init__(self, model, dynamics, dt):
+    def __init__(self, model, dt):
         self.model = model
-        self.dynamics = dynamics
         self.step = self.dt = dt
         self.colliders = Colliders(model) if model.has_colliders else None
         self.detector = _Detector(model, self.colliders) if model.has_colliders else None

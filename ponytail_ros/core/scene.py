@@ -26,11 +26,11 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = ['SceneError', 'ChainSpec', 'ColliderSpec', 'SolverSpec', 'Scene', 'cylinder_inertia',
-           'INTEGRATORS', 'LINEAR_SOLVERS', 'DAMPING_METHODS', 'COLLIDER_KINDS', 'MAX_SEGMENTS',
-           'MAX_COLLIDERS', 'MAX_COLLIDING_SEGMENTS']
+           'INTEGRATORS', 'DAMPING_METHODS', 'COLLIDER_KINDS', 'MAX_SEGMENTS',
+           'MAX_COLLIDERS', 'MAX_COLLIDING_SEGMENTS', 'REMOVED_SOLVER_FIELDS',
+           'removed_field_error']
 
 INTEGRATORS = ('rk4', 'symplectic_euler', 'rattle')
-LINEAR_SOLVERS = ('banded', 'dense')
 DAMPING_METHODS = ('auto', 'explicit', 'implicit')
 COLLIDER_KINDS = ('sphere', 'capsule', 'plane')
 MAX_SEGMENTS = 4096
@@ -40,6 +40,11 @@ MAX_SEGMENTS = 4096
 #: ``docs/bench/tick_cost.txt``).
 MAX_COLLIDING_SEGMENTS = 256
 MAX_COLLIDERS = 256
+#: ``SolverSpec`` fields that were removed: name -> why. Setting one (a ``SolverSpec``, a
+#: params file) is refused with ``removed_field_error``, which names it.
+REMOVED_SOLVER_FIELDS = {
+    'linear_solver': 'the compiled step, with its O(n) block-tridiagonal joint solve, always runs',
+}
 
 #: Three numbers: a point (m), a direction or a vector (m/s, m/s²), in the frame the field names.
 Vector3 = Sequence[float]
@@ -59,6 +64,13 @@ class SceneError(ValueError):
         self.value = value
         self.allowed = allowed
         super().__init__(f'{field_name} = {value!r} is not allowed: must be {allowed}')
+
+
+def removed_field_error(name: str, value: object) -> 'SceneError':
+    """The error for a removed field ``name`` (dotted: ``solver.<field>``) set to
+    ``value``: it names the field and says it was removed, and why."""
+    why = REMOVED_SOLVER_FIELDS[name.rpartition('.')[2]]
+    return SceneError(name, value, f'left out: the field was removed ({why})')
 
 
 def cylinder_inertia(mass: npt.ArrayLike, length: npt.ArrayLike,
@@ -304,7 +316,7 @@ class SolverSpec:
             ``'symplectic_euler'`` (a constrained symplectic Euler step, SHAKE/RATTLE type:
             1st order, cheapest, bounded energy error, any spin about a segment's own axis) or
             ``'rattle'`` (the same split into two half kicks: 2nd order, bounded energy error
-            ∝ dt², about the same cost; needs ``projection``). See ``integrators``.
+            ∝ dt², about the same cost; needs ``projection``). See ``step``.
         dt: fixed internal step, s, in [1e-6, 0.1]; default 1/960 s (eight steps per
             120 Hz tick: the cheapest RK4 step that follows violent head motion without a
             guard reset and ordinary motion to about a millimetre, ``docs/bench``). Frames of
@@ -312,8 +324,6 @@ class SolverSpec:
             depend on the frame rate.
         max_steps_per_call: cap on internal steps per ``advance``; time beyond it is dropped
             and reported (a frame hitch must not cause a spiral of death).
-        linear_solver: ``'banded'`` (O(n) banded Cholesky of J M⁻¹ Jᵀ) or ``'dense'`` (O(n³)
-            cross-check).
         projection: after each step, put positions and velocities back on the joint
             constraints (removes drift; on by default). For symplectic Euler it also switches
             its step's own position correction and velocity projection (off: the velocity form
@@ -345,7 +355,6 @@ class SolverSpec:
     integrator: str = 'rk4'
     dt: float = 1.0 / 960.0
     max_steps_per_call: int = 240
-    linear_solver: str = 'banded'
     projection: bool = True
     baumgarte_stiffness: float = 0.0
     baumgarte_damping: float = 0.0
@@ -353,6 +362,12 @@ class SolverSpec:
     guard_max_speed: float = 200.0
     guard_max_gap: float = 1e-3
     guard_max_step_angle: float = 2.5
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
+        # A removed field is refused by name, before the dataclass's own TypeError.
+        for name in REMOVED_SOLVER_FIELDS.keys() & kwargs.keys():
+            raise removed_field_error('solver.' + name, kwargs[name])
+        return super().__new__(cls)
 
     def validate(self, prefix: str = 'solver') -> Self:
         """These settings, if every field is in range (``prefix`` names them), else SceneError."""
@@ -370,9 +385,6 @@ class SolverSpec:
         if self.damping_method not in DAMPING_METHODS:
             raise SceneError(p + 'damping_method', self.damping_method,
                              f'one of {DAMPING_METHODS}')
-        if self.linear_solver not in LINEAR_SOLVERS:
-            raise SceneError(p + 'linear_solver', self.linear_solver,
-                             f'one of {LINEAR_SOLVERS}')
         _check_range(p + 'baumgarte_stiffness', self.baumgarte_stiffness, 0.0, 1e8)
         _check_range(p + 'baumgarte_damping', self.baumgarte_damping, 0.0, 1e4)
         _check_range(p + 'guard_max_speed', self.guard_max_speed, 1e-3, 1e6, lo_open=True)

@@ -1,14 +1,16 @@
 """The simulator: a scene's chains advanced in fixed internal steps, driven by kinematic heads.
 
 Stages of one internal step (as in a physics engine's pipeline):
-    1. anchor kinematics at the stage times (exact motion, or interpolated between frames);
-    2. applied forces (``forces``), then constraint forces by A f_c = b (``solver``);
-    3. integration (``integrators``: RK4, symplectic Euler or RATTLE);
-    4. stabilisation: positions put back on the joints (``stabilization``), and for RK4 the
-       velocities too (symplectic Euler's and RATTLE's steps end with their own, mass-weighted,
-       projection);
-    5. only if the scene has colliders or joint limits: one-sided constraints at the step's end
-       (``collision``: positions, then inelastic velocities, then friction).
+    1. anchor kinematics at the stage times (exact motion, or interpolated between frames),
+       one table per call (``head``, ``head_kernels``);
+    2. the compiled step (``step``; a crowd of equal chains in SIMD lanes, ``lanes``): applied
+       forces, constraint forces by A f_c = b (``chain_solve``), integration (RK4, symplectic
+       Euler or RATTLE), implicit joint damping, and the joints closed again (positions, and
+       for RK4 the velocities; symplectic Euler's and RATTLE's steps end with their own,
+       mass-weighted, projection);
+    3. only if the scene has colliders or joint limits: one-sided constraints at the step's end
+       (``collision``, ``step_unilateral``: positions, then inelastic velocities, then
+       friction).
 
 Time: any frame time is advanced in steps of exactly ``solver.dt`` (an accumulator), so the
 result does not depend on the frame rate; the chain's time lags the requested time by less than
@@ -29,23 +31,16 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from . import collision, contact_kernels, lanes, step_unilateral
-from . import stages
+from . import chain_ops, collision, contact_kernels, lanes, stages, state_kernels, step_unilateral
 from . import step as compiled
+from .chain_ops import carry_with_anchors
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
                    KinematicState, point_table, stack_anchors)
 from .head_kernels import frame_tables
-from .integrators import INTEGRATOR_STEPS
 from .model import Model
-from .forces import applied_forces
-from .rotations import (cross, quat_conjugate, quat_from_two_vectors,
-                        quat_integrate, quat_multiply, quat_normalize, quat_rotate,
-                        quat_to_matrix)
+from .rotations import quat_conjugate, quat_multiply
 from .scene import SceneError, _check_range, _check_vector
-from .solver import Dynamics
-from .stabilization import project_positions, project_velocities
-from .state import ChainState, half_vectors, joint_points
-from . import state_kernels
+from .state import ChainState, joint_points
 
 __all__ = ['Simulator', 'StepReport', 'Rollout', 'TUNABLE_PARAMETERS']
 
@@ -57,8 +52,6 @@ MAX_SUBSTEPS = 8
 # spin Ω) only to dt·Ω ≈ 1 (1.04 gains energy slowly, 1.25 blows up), a swing to ~2.5 (the
 # linear limit is 2.8): the guard holds the precession to guard_max_step_angle / this.
 GYROSCOPIC_REACH_RATIO = 2.5
-
-_X = np.array([1.0, 0.0, 0.0])
 # Collider arguments of a scene without colliders (limits only): no bodies, no colliders.
 _NO_COLLIDER_ARGS = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
                      np.zeros((0, 3)), np.zeros(0))
@@ -124,18 +117,14 @@ class Simulator:
         self.model = Model(scene)
         s = scene.solver
         self.dt = s.dt
-        self._step = INTEGRATOR_STEPS[s.integrator]
-        # RK4's joint projection rebuilds v from ω; symplectic Euler's and RATTLE's steps end
-        # with their own (M-orthogonal) velocity projection, which a rebuild would undo.
         self.integrator = compiled.INTEGRATORS[s.integrator]
-        self._rebuild_velocities = self.integrator.rebuilds_velocities
-        # RK4 integrates the gyroscopic term explicitly (the others: ``rotation_kick``).
+        # RK4 integrates the gyroscopic term explicitly (the others: ``step._rotation_kick``).
         self._explicit_gyroscopic = self.integrator.explicit_gyroscopic
-        self.dynamics = Dynamics(self.model, s.linear_solver,
-                                 (s.baumgarte_stiffness, s.baumgarte_damping))
-        # The compiled step (``step``) runs every banded scene; ``linear_solver: dense`` keeps
-        # the NumPy reference step (``integrators`` + ``solver``) as the cross-check.
-        self._compiled = s.linear_solver == 'banded'
+        self.axisymmetric = chain_ops.is_axisymmetric(self.model)
+        # The model's constant tuple of the compiled joint kernels (``chain_ops``).
+        self._joint_args = chain_ops.joint_args(self.model)
+        # Joint forces f_c (N) on each child at the last stage solved (``constraint_forces``).
+        self.f_c = np.zeros((self.model.n, 3))
         self._half = 0.5 * self.model.length
         self._anchor_body = np.ascontiguousarray(self.model.anchor_body, dtype=np.int64)
         # ``_advance_between``'s points: (bodies K, body indices, points in the bodies).
@@ -152,7 +141,7 @@ class Simulator:
         self.total_resets = 0
         # One-sided constraints: built only when the scene has them (otherwise never touched).
         m = self.model
-        self.unilateral = (collision.Unilateral(m, self.dynamics, self.dt)
+        self.unilateral = (collision.Unilateral(m, self.dt)
                            if m.has_colliders or m.has_limits else None)
         self._needs_bodies = bool(m.has_colliders and np.any(m.collider_body >= 0))
         # A crowd of equal chains steps in SIMD lanes when its terms allow (``lanes``).
@@ -192,7 +181,7 @@ class Simulator:
         m.q_rest[m.is_first] = quat_multiply(quat_conjugate(q_anchor), self.state.q[m.is_first])
         self._last_anchor = (self.t, anchor)
         self._anchor_at = lambda t: anchor          # until a motion or frame says otherwise
-        self.dynamics.last_f_c = np.zeros((m.n, 3))
+        self.f_c = np.zeros((m.n, 3))
         if self._needs_bodies:
             bodies = _body_kinematics(head)
             self._last_bodies = (self.t, bodies)
@@ -200,24 +189,7 @@ class Simulator:
 
     def _rest_state(self, head, anchor):
         """Every chain at rest on ``head`` (``reset``'s state), its anchors ``anchor``."""
-        m = self.model
-        g = m.gravity
-        down = g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, -1.0])
-        local = ~np.isnan(m.rest_direction[:, 0])
-        # Given in the anchor frame: the twist follows the anchor; along gravity: shortest arc.
-        d_local = np.where(local[:, None], m.rest_direction, 1.0)
-        q_chain = np.where(
-            local[:, None],
-            quat_multiply(anchor.orientation,
-                          quat_from_two_vectors(np.broadcast_to(_X, d_local.shape), d_local)),
-            quat_from_two_vectors(_X, down)[None])
-        q = q_chain[m.chain_of]
-        h = half_vectors(m.length, q)
-        x = project_positions(m, anchor.position, h)
-        head_w = head.angular_velocity[m.anchor_body][m.chain_of]
-        w = head_w.copy()
-        v = project_velocities(m, anchor.velocity, w, h)
-        return ChainState(x, q, v, w)
+        return chain_ops.rest_state(self.model, self._joint_args, head, anchor)
 
     def reset_chains(self, chains, head):
         """Put only the chains ``chains`` (indices into the scene's chains) at rest on ``head``
@@ -244,9 +216,9 @@ class Simulator:
         reset_chain = np.isin(np.arange(m.n_chains), chains)[:, None]
         self._last_anchor = (t_last, AnchorKinematics(*(
             np.where(reset_chain, getattr(anchor, f), getattr(last, f)) for f in ANCHOR_FIELDS)))
-        f_c = np.array(self.dynamics.last_f_c, dtype=float, copy=True)
+        f_c = np.array(self.f_c, dtype=float, copy=True)
         f_c[rows] = 0.0
-        self.dynamics.last_f_c = f_c
+        self.f_c = f_c
 
     # -- parameters -----------------------------------------------------------------------
     def set_parameters(self, chain=None, **values):
@@ -299,14 +271,9 @@ class Simulator:
         if not 0 <= segment < m.n:
             raise SceneError('segment', segment, f'an integer in [0, {m.n - 1}]')
         r = np.zeros(3) if point is None else _check_vector('point', point) - st.x[segment]
-        _, _, inv_I, _ = self.dynamics.mass_terms(st.q, st.w)
-        kick = np.zeros((m.n, 3))
-        kick[segment] = cross(r, impulse)
-        st.v[segment] += impulse * m.inv_mass[segment]
-        st.w += inv_I(kick)
-        dv, dw = self.dynamics.velocity_correction(st.x, st.q, st.v, st.w, self._last_anchor[1])
-        st.v += dv
-        st.w += dw
+        if not chain_ops.apply_impulse(m, self._joint_args, st, self._last_anchor[1], segment,
+                                       impulse, r):
+            raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
 
     # -- stepping -------------------------------------------------------------------------
     def advance_to(self, t_target, motion):
@@ -349,7 +316,7 @@ class Simulator:
 
         ``times``: ``(T,)`` increasing sample times (s). Returns a ``Rollout``: the ``T``
         calls' ``StepReport`` and the state after each, ``(T, n, 3|4)`` arrays. Scenes with
-        colliders or joint limits, the dense NumPy step and a sample interval beyond
+        colliders or joint limits and a sample interval beyond
         ``max_steps_per_call`` go through ``advance_to`` itself.
         """
         times = np.asarray(times, dtype=float).reshape(-1)
@@ -366,7 +333,7 @@ class Simulator:
         many were taken."""
         n_targets = np.floor((times - self._t_base) / self.dt + 1e-9).astype(np.int64)
         counts = np.diff(n_targets, prepend=self._n_steps)
-        if (self.unilateral is not None or not self._compiled or np.any(counts < 0)
+        if (self.unilateral is not None or np.any(counts < 0)
                 or np.any(counts > self.scene.solver.max_steps_per_call)):
             for k, t in enumerate(times):
                 out.reports.append(self.advance_to(t, motion))
@@ -456,8 +423,7 @@ class Simulator:
         ends of the anchors' track (and of the colliders' bodies', both from the one estimate)
         and their tables at the stage times of the steps this call will take, in one compiled
         call (``head_kernels.frame_tables``; bit for bit ``frame_ends``, ``AnchorTrack.table``
-        and ``_stage_times``), then the steps (the NumPy reference step, ``linear_solver:
-        dense``, takes the tracks and leaves the tables)."""
+        and ``_stage_times``), then the steps."""
         k = head.n_bodies if self._needs_bodies else 0
         if self._frame_points[0] != k:
             m = self.model
@@ -536,7 +502,7 @@ class Simulator:
             has_child=m.has_child, damping=m.damping, stiffness=m.stiffness,
             drag_linear=m.drag_linear, drag_quadratic=m.drag_quadratic, q_rest=m.q_rest,
             gravity=np.asarray(m.gravity, dtype=float), wind=np.asarray(m.wind, dtype=float),
-            axisymmetric=bool(self.dynamics.axisymmetric),
+            axisymmetric=self.axisymmetric,
             integrator=self.integrator.id, projection=bool(s.projection),
             gravity_on=m.active_terms['gravity'],
             explicit_damping=bool(damping and not m.implicit_damping),
@@ -558,7 +524,7 @@ class Simulator:
         t0 = time.perf_counter()
         status = self._kernel(model)(model, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
         self._call_wall += time.perf_counter() - t0
-        self.dynamics.last_f_c = f_c
+        self.f_c = f_c
         if status == compiled.JOINT_SOLVE_FAILED:
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         if status == compiled.DAMPING_SOLVE_FAILED:
@@ -591,9 +557,6 @@ class Simulator:
             x, q, v, w = carry_with_anchors(m, anchor_at(t_from),
                                             anchor_at(self._t_base + self._n_steps * self.dt),
                                             x, q, v, w)
-        project = self.scene.solver.projection
-        implicit_damping = m.implicit_damping and m.active_terms['damping']
-        system = _System(self, anchor_at)
         failure = None
         self._end_row = None            # the last anchor table's end row: the anchor at self.t
         self._call_wall = self._uni_wall = 0.0
@@ -601,27 +564,15 @@ class Simulator:
         t_start = time.perf_counter()
         try:
             if self.unilateral is not None:
-                x, q, v, w = self._steps_unilateral(max(n_steps, 0), system, anchor_at, bodies_at,
+                x, q, v, w = self._steps_unilateral(max(n_steps, 0), anchor_at, bodies_at,
                                                     x, q, v, w, anchor_table, body_table,
                                                     planned)
-            elif self._compiled:
-                if n_steps > 0:
-                    table, _ = self._tables(n_steps, anchor_at, anchor_table, planned)
-                    x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
-                    self._run_compiled(n_steps, self.dt, table, x, q, v, w)
-                    self._n_steps += n_steps
-                    self._end_row = table
-            else:
-                for _ in range(max(n_steps, 0)):
-                    t = self._t_base + self._n_steps * self.dt
-                    x, q, v, w = self._step(system, t, self.dt, x, q, v, w)
-                    self._n_steps += 1
-                    t1 = self._t_base + self._n_steps * self.dt
-                    if implicit_damping:
-                        a1 = anchor_at(t1)
-                        v, w = self.dynamics.implicit_damping(x, q, v, w, a1, self.dt)
-                    if project:
-                        x, v = self._project(anchor_at(t1), x, q, v, w)
+            elif n_steps > 0:
+                table, _ = self._tables(n_steps, anchor_at, anchor_table, planned)
+                x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+                self._run_compiled(n_steps, self.dt, table, x, q, v, w)
+                self._n_steps += n_steps
+                self._end_row = table
             report.steps = max(n_steps, 0)
         except np.linalg.LinAlgError as err:
             # The state reached a configuration the joint solve cannot handle: reset, and say so.
@@ -644,8 +595,6 @@ class Simulator:
         """``report.timings``' ``integrate`` and ``contacts`` (and the latter's parts): the
         contact step's calls' wall time split by the cycles it counted in each stage, plus the
         free step's (sub-steps after an impact) as ``integrate``."""
-        if not self._compiled:
-            return
         integrate, contacts, total, *parts = self._profile.tolist()
         free, uni = self._call_wall, self._uni_wall
         if total > 0:
@@ -672,16 +621,7 @@ class Simulator:
             report.max_gap = float(np.max(self.joint_gaps(self.anchors(head_at(self.t)))))
         return reason
 
-    def _project(self, anchor, x, q, v, w):
-        """Positions (and for RK4 velocities) put back on the joints at the step's end."""
-        m = self.model
-        h = half_vectors(m.length, q)
-        x = project_positions(m, anchor.position, h)
-        if self._rebuild_velocities:
-            v = project_velocities(m, anchor.velocity, w, h)
-        return x, v
-
-    def _steps_unilateral(self, n_steps, system, anchor_at, bodies_at, x, q, v, w,
+    def _steps_unilateral(self, n_steps, anchor_at, bodies_at, x, q, v, w,
                           anchor_table=None, body_table=None, planned=None):
         """``n_steps`` steps of a scene with colliders or joint limits: each is integrated as
         above, then its contacts and limits are resolved (``collision``), all in one compiled
@@ -690,10 +630,6 @@ class Simulator:
         ``MAX_SUBSTEPS`` equal sub-steps, each resolved likewise: the compiled call stops
         before it, and it is taken here (the anchors at the sub-step times are evaluated for
         it), then the call goes on."""
-        if not self._compiled:
-            for _ in range(n_steps):
-                x, q, v, w = self._substepped(system, anchor_at, bodies_at, x, q, v, w)
-            return x, q, v, w
         uni = self.unilateral
         cols = uni.colliders
         moving = bool(cols is not None and cols.moving.size > 0)
@@ -707,7 +643,7 @@ class Simulator:
             done += k
             self._n_steps += k
             if status == compiled.SUBSTEPS:
-                x, q, v, w = self._substepped(system, anchor_at, bodies_at, x, q, v, w)
+                x, q, v, w = self._substepped(anchor_at, bodies_at, x, q, v, w)
                 x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
                 done += 1
         uni.dt = self.dt
@@ -764,7 +700,7 @@ class Simulator:
             # A step's rows overflowed the tables: the grown ones are kept (``grown``).
             uni.workspace = (ws[:contact_kernels.WS_TABLES] + (tables, ids)
                              + ws[contact_kernels.WS_IDS + 1:])
-        self.dynamics.last_f_c = f_c
+        self.f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                     'position_passes': int(stats[2])}
         if status == compiled.JOINT_SOLVE_FAILED:
@@ -783,11 +719,10 @@ class Simulator:
                 uni.detector is not None)
         return uni.workspace
 
-    def _substepped(self, system, anchor_at, bodies_at, x, q, v, w):
+    def _substepped(self, anchor_at, bodies_at, x, q, v, w):
         """One step split into sub-steps (``_substeps``), each integrated and resolved."""
-        m, dyn, uni = self.model, self.dynamics, self.unilateral
+        m, uni = self.model, self.unilateral
         project = self.scene.solver.projection
-        implicit_damping = m.implicit_damping and m.active_terms['damping']
         t0 = self._t_base + self._n_steps * self.dt
         n_sub = self._substeps(w - m.parent_side(anchor_at(t0).angular_velocity, w))
         h = self.dt / n_sub
@@ -796,16 +731,9 @@ class Simulator:
             t1 = t0 + (k + 1) * h if k + 1 < n_sub else \
                 self._t_base + (self._n_steps + 1) * self.dt
             a1 = anchor_at(t1)
-            if self._compiled:
-                x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
-                self._run_compiled(1, h, stack_anchors([anchor_at(t), anchor_at(t + 0.5 * h),
-                                                        a1]), x, q, v, w)
-            else:
-                x, q, v, w = self._step(system, t, h, x, q, v, w)
-                if implicit_damping:
-                    v, w = dyn.implicit_damping(x, q, v, w, a1, h)
-                if project:
-                    x, v = self._project(a1, x, q, v, w)
+            x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
+            self._run_compiled(1, h, stack_anchors([anchor_at(t), anchor_at(t + 0.5 * h), a1]),
+                               x, q, v, w)
             pose = uni.pose(bodies_at(t1) if bodies_at else None)
             x, q, v, w = uni.resolve(x, q, v, w, a1, pose, project, h)
         self._n_steps += 1
@@ -839,7 +767,7 @@ class Simulator:
         """``state_kernels.guard_measures`` of the state with ``anchor`` (its ``MEASURES``)."""
         m, st = self.model, self.state
         out = np.empty(len(state_kernels.MEASURES))
-        swing_only = not self._explicit_gyroscopic and self.dynamics.axisymmetric
+        swing_only = not self._explicit_gyroscopic and self.axisymmetric
         state_kernels.guard_measures(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
                                      _c(st.q), _c(st.v), _c(st.w), _c(anchor.position),
                                      _c(anchor.angular_velocity), swing_only, out)
@@ -865,8 +793,8 @@ class Simulator:
             return (f'joint angular speed {checked:.3g} rad/s: {h * checked:.3g} rad per step > '
                     f'guard_max_step_angle {s.guard_max_step_angle:g}')
         if self._explicit_gyroscopic:
-            gyro = precession if self.dynamics.axisymmetric else float(
-                np.max(self.dynamics.gyroscopic_rates(self.state.q, self.state.w)))
+            gyro = precession if self.axisymmetric else float(np.max(
+                chain_ops.gyroscopic_rates(self.model, self.state.q, self.state.w)))
             limit = s.guard_max_step_angle / GYROSCOPIC_REACH_RATIO
             if h * gyro > limit:
                 return (f'gyroscopic precession at {gyro:.3g} rad/s (a segment spinning about its '
@@ -888,12 +816,8 @@ class Simulator:
         tau = float(t) - self.t
         if tau <= 0.0:
             return self.state.copy()
-        m, st = self.model, self.state
-        anchor = self._anchor_at(float(t))
-        q = quat_integrate(st.q, st.w, tau)
-        h = half_vectors(m.length, q)
-        return ChainState(project_positions(m, anchor.position, h), q,
-                          project_velocities(m, anchor.velocity, st.w, h), st.w.copy())
+        return chain_ops.state_ahead(self.model, self._joint_args, self.state,
+                                     self._anchor_at(float(t)), tau)
 
     def contact_depths(self, t=None):
         """Deepest penetration of every segment into any collider, ``(n,)``, m (≤ 0: clear,
@@ -949,55 +873,12 @@ class Simulator:
 
     def energy(self):
         """Kinetic and gravitational potential energy of every chain, ``(C,)`` each, J."""
-        m, st = self.model, self.state
-        R = quat_to_matrix(st.q)
-        w_body = np.einsum('nji,nj->ni', R, st.w)
-        ke = 0.5 * m.mass * np.sum(st.v ** 2, axis=1) + 0.5 * np.sum(m.inertia * w_body ** 2, axis=1)
-        pe = -m.mass * (st.x @ m.gravity)
-        per_chain = np.zeros((2, m.n_chains))
-        np.add.at(per_chain[0], m.chain_of, ke)
-        np.add.at(per_chain[1], m.chain_of, pe)
-        return per_chain[0], per_chain[1]
+        return chain_ops.energy(self.model, self.state)
 
     @property
     def constraint_forces(self):
         """Joint forces f_c ``(n, 3)`` on each child at the last stage solved, N."""
-        return self.dynamics.last_f_c
-
-
-class _System:
-    """The chains' dynamics for the integrators (``integrators`` module docstring): applied
-    forces and the joint solve at any time of the step, with the anchors of ``anchor_at``."""
-
-    def __init__(self, sim, anchor_at):
-        self.model, self.dynamics, self.anchor = sim.model, sim.dynamics, anchor_at
-        self.external = sim.external
-        self.projection = sim.scene.solver.projection
-
-    def applied(self, t, x, q, v, w):
-        """Applied forces and torques ``(n, 3)`` each (N, N·m, world) at time ``t``."""
-        anchor = self.anchor(t)
-        return applied_forces(self.model, x, q, v, w, anchor.orientation,
-                              anchor.angular_velocity, self.external)
-
-    def accel(self, t, x, q, v, w):
-        """Accelerations ``(a, α)`` ``(n, 3)`` each (m/s², rad/s², world), joints enforced."""
-        F, T = self.applied(t, x, q, v, w)
-        return self.dynamics.accelerations(x, q, v, w, self.anchor(t), F, T)
-
-
-def carry_with_anchors(model, a0, a1, x, q, v, w):
-    """The chains' state ``(x, q, v, w)`` moved rigidly with their anchor bodies from the
-    ``AnchorKinematics`` ``a0`` to ``a1``: positions and orientations transformed with the
-    anchor, velocities so that the motion relative to the anchor body is kept. Joints that were
-    closed (in position and velocity) stay closed; a static anchor moves nothing."""
-    c = model.chain_of
-    dq = quat_multiply(a1.orientation, quat_conjugate(a0.orientation))[c]
-    p0, w0, w1 = a0.position[c], a0.angular_velocity[c], a1.angular_velocity[c]
-    r = quat_rotate(dq, x - p0)
-    v_rel = v - a0.velocity[c] - cross(w0, x - p0)         # relative to the anchor body
-    return (a1.position[c] + r, quat_normalize(quat_multiply(dq, q)),
-            a1.velocity[c] + cross(w1, r) + quat_rotate(dq, v_rel), w1 + quat_rotate(dq, w - w0))
+        return self.f_c
 
 
 def _memo_last(f, size=2):

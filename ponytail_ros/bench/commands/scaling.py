@@ -1,7 +1,7 @@
 """``scaling``: cost per step against segment count, 1..1000.
 
-Banded RK4, symplectic Euler and RATTLE, dense RK4 (up to the profile's ``dense_max``) and
-MuJoCo if installed: ``scaling.csv/json``, ``scaling.png``.
+RK4, symplectic Euler and RATTLE (the compiled step's banded, O(n) joint solve) and MuJoCo
+if installed: ``scaling.csv/json``, ``scaling.png``.
 """
 import os
 import time
@@ -19,7 +19,7 @@ from ..profiles import RATTLE, RK4, SE, Profile
 from ..scenes import make_scene, ponytail_chain
 from ..tables import Log, Meta, Row, print_table, write_table
 
-HELP = 'cost per step vs segment count 1..1000 (banded, dense, MuJoCo)'
+HELP = 'cost per step vs segment count 1..1000 (RK4, SE, RATTLE, MuJoCo)'
 
 SCALING_DT = 1e-4   # small enough that even 1000 segments of 0.4 mm are stable (cost per step
                     # does not depend on the step)
@@ -47,24 +47,20 @@ def run(prof: Profile, out: str, meta: Meta, log: Log = print) -> list[Row]:
     for n in prof['scaling_n']:
         chain = ponytail_chain(n)
         steps = int(max(5, min(400, prof['scaling_steps_budget'] / (30.0 * n + 300.0))))
-        for series, integ, solver in (('RK4 banded', RK4, 'banded'), ('SE banded', SE, 'banded'),
-                                      ('RATTLE banded', RATTLE, 'banded'),
-                                      ('RK4 dense', RK4, 'dense')):
-            if solver == 'dense' and n > prof['dense_max']:
-                continue
+        for series, integ in (('RK4 banded', RK4), ('SE banded', SE),
+                              ('RATTLE banded', RATTLE)):
             sc = Scene(chains=(chain,), solver=SolverSpec(integrator=integ, dt=SCALING_DT,
-                                                          linear_solver=solver,
                                                           max_steps_per_call=10 ** 6))
-            k = steps if solver == 'banded' else max(3, min(steps, int(2e6 / n ** 2.5)))
+            k = steps
             us, resets = _time_steps_core(sc, motion, k, prof['scaling_repeats'])
-            rows.append(dict(series=series, engine='ours', integrator=integ, linear_solver=solver,
+            rows.append(dict(series=series, engine='ours', integrator=integ,
                              n_segments=n, cpu_us_per_step=us * 1e6, steps_timed=k,
                              repeats=prof['scaling_repeats'], dt=SCALING_DT, resets=resets))
         if MJ.available() and n <= prof['mujoco_scaling_max']:
             mc = MJ.MujocoChain(make_scene('moving', n_segments=n), SCALING_DT)
             k = int(max(5, min(2000, 2e6 / (n ** 2.5 + 100))))
             rows.append(dict(series='MuJoCo RK4', engine='mujoco', integrator='rk4',
-                             linear_solver='mujoco', n_segments=n,
+                             n_segments=n,
                              cpu_us_per_step=mc.time_steps(k, prof['scaling_repeats']) * 1e6,
                              steps_timed=k, repeats=prof['scaling_repeats'], dt=SCALING_DT,
                              resets=int(mc.unstable())))

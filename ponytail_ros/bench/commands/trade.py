@@ -1,11 +1,11 @@
 """``trade``: the speed/accuracy sweep on the named scenes; the Pareto plot; the recommendation.
 
-Integrator, internal step, linear solver (banded/dense), stabilisation (projection,
-Baumgarte), head tick rate and segment count on the named scenes (``--scenes``: moving,
-release, shake, rope); per setting the CPU cost per simulated second and per step, the tip
-error (RMS/max, mm) against a converged reference (this core's RK4 at a tiny step, itself
-checked against ``../shared/reference/`` and by Richardson), the joint gap and, on still
-heads, the energy drift. Writes ``trade.csv/json``, ``refcheck.csv/json``, ``pareto.png``.
+Integrator, internal step, stabilisation (projection, Baumgarte), head tick rate and segment
+count on the named scenes (``--scenes``: moving, release, shake, rope); per setting the CPU
+cost per simulated second and per step, the tip error (RMS/max, mm) against a converged
+reference (this core's RK4 at a tiny step, itself checked against ``../shared/reference/`` and
+by Richardson), the joint gap and, on still heads, the energy drift. Writes ``trade.csv/json``,
+``refcheck.csv/json``, ``pareto.png``.
 """
 import os
 import time

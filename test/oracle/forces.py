@@ -19,7 +19,13 @@ Terms:
 """
 import numpy as np
 
-from .rotations import cross, quat_axis_x, quat_conjugate, quat_multiply, quat_rotate, quat_to_rotvec
+from ponytail_ros.core.rotations import (
+    quat_axis_x,
+    quat_conjugate,
+    quat_multiply,
+    quat_rotate,
+    quat_to_rotvec,
+)
 
 __all__ = ['applied_forces']
 
@@ -48,7 +54,8 @@ def applied_forces(model, x, q, v, w, anchor_q, anchor_w, external=None):
         # q = q_parent ⊗ q_rest ⊗ q_err: q_err is the deviation in the child frame.
         q_parent = model.parent_side(anchor_q, q)
         q_err = quat_multiply(quat_conjugate(quat_multiply(q_parent, model.q_rest)), q)
-        _add_joint_torques(model, -model.stiffness[:, None] * quat_rotate(q, quat_to_rotvec(q_err)), T)
+        phi = quat_rotate(q, quat_to_rotvec(q_err))
+        _add_joint_torques(model, -model.stiffness[:, None] * phi, T)
     if terms['drag']:
         u = v - model.wind
         speed = np.sqrt(np.sum(u * u, axis=1, keepdims=True))

@@ -31,8 +31,15 @@ Quaternions are renormalised. ``system`` provides:
 """
 import numpy as np
 
-from .rotations import (cross, quat_axis_x, quat_conjugate, quat_integrate, quat_multiply,
-                        quat_normalize, quat_rotate)
+from ponytail_ros.core.rotations import (
+    cross,
+    quat_axis_x,
+    quat_conjugate,
+    quat_integrate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 
 __all__ = ['symplectic_euler', 'rattle', 'rk4', 'rotation_kick', 'drift', 'torque_kick',
            'free_rotation', 'INTEGRATOR_STEPS']
@@ -193,7 +200,8 @@ def symplectic_euler(system, t, h, x, q, v, w):
         target = c_dot0
         if dyn.baumgarte_stiffness or dyn.baumgarte_damping:
             gaps0 = _joint_gaps(m, a0.position, x, hv)
-            target = c_dot0 - h * (dyn.baumgarte_damping * c_dot0 + dyn.baumgarte_stiffness * gaps0)
+            target = c_dot0 - h * (dyn.baumgarte_damping * c_dot0
+                                   + dyn.baumgarte_stiffness * gaps0)
         c_dot = _joint_velocity_errors(m, a1.velocity, v_free, w_free, hv)
         r = c_dot + h * (m.parent_side(np.zeros_like(a1.velocity), curvature) + curvature) - target
         lam, (dv, dw) = K.impulse(r)
@@ -264,9 +272,10 @@ def rattle(system, t, h, x, q, v, w):
 
     The kicks are linear in u, so kick and impulses commute and the step is symmetric: 2nd
     order (with axial spin and a turning head too; ``test_core_integrators`` measures it). On
-    a still undamped chain its energy error is bounded and ∝ h². Extra cost over ``symplectic_euler``: the applied forces
-    once more. Needs ``projection`` (step 3 is RATTLE's own). Segments with a custom
-    non-axisymmetric inertia drift with ω held: first order in their gyroscopic term.
+    a still undamped chain its energy error is bounded and ∝ h². Extra cost over
+    ``symplectic_euler``: the applied forces once more. Needs ``projection`` (step 3 is
+    RATTLE's own). Segments with a custom non-axisymmetric inertia drift with ω held: first
+    order in their gyroscopic term.
 
     ``system.dynamics.last_f_c`` is set to (λ + μ)/h, the mean joint forces on the children
     over the step (N).
@@ -329,7 +338,7 @@ def rk4(system, t, h, x, q, v, w):
     k4 = f(t + h, x + h * k3[0], q + h * k3[1], v + h * k3[2], wb + h * k3[3])
     s = h / 6.0
     x1, q1, v1, wb1 = (y + s * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
-                       for y, d1, d2, d3, d4 in zip((x, q, v, wb), k1, k2, k3, k4))
+                       for y, d1, d2, d3, d4 in zip((x, q, v, wb), k1, k2, k3, k4, strict=True))
     q1 = quat_normalize(q1)
     return x1, q1, v1, quat_rotate(q1, wb1)
 

@@ -16,7 +16,7 @@ velocity-level system J M⁻¹ Jᵀ λ = -J u with the same banded factorisation
 """
 import numpy as np
 
-from .rotations import cross
+from ponytail_ros.core.rotations import cross
 
 __all__ = ['project_positions', 'project_velocities', 'segmented_prefix']
 

@@ -27,7 +27,7 @@ first joint that reaction is the one the kinematic head never feels).
 """
 import numpy as np
 
-from .rotations import cross, quat_axis_x, quat_to_matrix, skew
+from ponytail_ros.core.rotations import cross, quat_axis_x, quat_to_matrix, skew
 
 __all__ = ['Dynamics', 'JointResponse']
 
@@ -104,7 +104,8 @@ class Dynamics:
 
             def gyroscopic(w):
                 # L = I_p ω + (I_a - I_p)(e·ω) e, so ω × L = (I_a - I_p)(e·ω) ω × e.
-                return ((m.inertia[:, 0] - m.inertia[:, 1]) * np.sum(e * w, axis=1))[:, None] * cross(w, e)
+                axial = (m.inertia[:, 0] - m.inertia[:, 1]) * np.sum(e * w, axis=1)
+                return axial[:, None] * cross(w, e)
             return h, G, inv_I, gyroscopic
         R = quat_to_matrix(q)
         h = self._half[:, None] * R[:, :, 0]
@@ -294,7 +295,8 @@ class Dynamics:
         rhs[m.is_first, 2] = -anchor.velocity
         _, _, x_sol, info = _linalg().lapack.dgbsv(kl, ku, ab, rhs.reshape(-1), overwrite_ab=1)
         if info != 0:
-            raise np.linalg.LinAlgError(f'implicit damping KKT system is singular (gbsv info={info})')
+            raise np.linalg.LinAlgError(
+                f'implicit damping KKT system is singular (gbsv info={info})')
         sol = x_sol.reshape(n, 3, 3)
         return sol[:, 0], sol[:, 1]
 
@@ -326,12 +328,14 @@ class Dynamics:
         if self.linear_solver == 'banded':
             c, info = _linalg().lapack.dpbtrf(self.band(D, L), lower=0, overwrite_ab=1)
             if info != 0:
-                raise np.linalg.LinAlgError(f'J M⁻¹ Jᵀ is not positive definite (pbtrf info={info})')
+                raise np.linalg.LinAlgError(
+                    f'J M⁻¹ Jᵀ is not positive definite (pbtrf info={info})')
 
             def solve(b):
                 x, info = _linalg().lapack.dpbtrs(c, b.reshape(-1, 1), lower=0)
                 if info != 0:
-                    raise np.linalg.LinAlgError(f'banded triangular solve failed (pbtrs info={info})')
+                    raise np.linalg.LinAlgError(
+                        f'banded triangular solve failed (pbtrs info={info})')
                 return x.reshape(-1, 3)
         else:
             factor = _linalg().cho_factor(self.assemble_dense(D, L))
