@@ -228,59 +228,79 @@ def child_env():
     return env
 
 
+#: The signal each recording node of the durability test gets, by namespace.
+SIGNALS = {'kill': signal.SIGKILL, 'term': signal.SIGTERM, 'int': signal.SIGINT}
+
+
 def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_context, tmp_path):
-    files = {ns: tmp_path / f'{ns}.mcap' for ns in ('kill', 'term', 'int')}
-    procs = {ns: subprocess.Popen(
-        [sys.executable, '-m', 'ponytail_ros.node', '--ros-args', '--params-file',
-         str(CONFIG), '-r', f'__ns:=/{ns}', '-p', f'record_path:={path}',
-         # a light chain: three nodes share a (possibly loaded) test machine
-         '-p', 'ponytail.n_segments:=4', '-p', 'markers.style:=line'],
-        env=child_env(), cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True) for ns, path in files.items()}
+    files = {ns: tmp_path / f'{ns}.mcap' for ns in SIGNALS}
+    procs = {ns: start_recording_node(ns, path) for ns, path in files.items()}
     try:
-        node = rclpy.create_node('driver', context=ros_context)
-        pubs = {ns: node.create_publisher(PoseStamped, f'/{ns}/head_pose', 10) for ns in files}
-        got = {ns: [] for ns in files}
-        for ns in files:
-            node.create_subscription(PoseArray, f'/{ns}/segment_poses',
-                                     lambda m, ns=ns: got[ns].append(stamp_ns(m.header.stamp)),
-                                     100)
-
-        def publish():
-            t = node.get_clock().now().nanoseconds * 1e-9
-            p, q = head_at(t)
-            for pub in pubs.values():
-                pub.publish(pose_msg(t, p, q, 'world'))
-        node.create_timer(0.01, publish)
-        executor = SingleThreadedExecutor(context=ros_context)
-        executor.add_node(node)
-        # Run until every node has published for 1.5 s (several chunks written).
-        deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
-
-        def ran():
-            return all(v and v[-1] - v[0] >= 1_500_000_000 for v in got.values())
-        while time.monotonic() < deadline and not ran():
-            executor.spin_once(timeout_sec=0.005)
-            for ns, p in procs.items():
-                assert p.poll() is None, (ns, p.communicate())
-        assert ran()
-        for ns, sig in (('kill', signal.SIGKILL), ('term', signal.SIGTERM),
-                        ('int', signal.SIGINT)):
-            procs[ns].send_signal(sig)
-        results = {ns: p.communicate(timeout=20) for ns, p in procs.items()}
-        executor.shutdown()
-        node.destroy_node()
+        got, results = record_then_signal(ros_context, procs)
     finally:
         for p in procs.values():
             if p.poll() is None:
                 p.kill()
                 p.communicate()
+    check_killed_recording(files['kill'], procs['kill'], got['kill'])
+    for ns in ('term', 'int'):
+        check_finalised_recording(files[ns], ns, procs[ns], results[ns], got[ns])
 
-    # SIGKILL: no summary, but every message of every complete chunk is there and decodes,
-    # and nothing older than the documented bound (0.5 s of log time, + 0.5 s for a loaded
-    # machine's writer queue) is lost.
-    assert procs['kill'].returncode == -signal.SIGKILL
-    killed = files['kill']
+
+def start_recording_node(ns, path):
+    """A node process in namespace ``ns`` recording to ``path``."""
+    return subprocess.Popen(
+        [sys.executable, '-m', 'ponytail_ros.node', '--ros-args', '--params-file',
+         str(CONFIG), '-r', f'__ns:=/{ns}', '-p', f'record_path:={path}',
+         # a light chain: three nodes share a (possibly loaded) test machine
+         '-p', 'ponytail.n_segments:=4', '-p', 'markers.style:=line'],
+        env=child_env(), cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+
+
+def record_then_signal(ros_context, procs):
+    """Drive every node of ``procs`` (namespace -> process) with head poses until each has
+    published for 1.5 s (several chunks written), then send each its ``SIGNALS`` signal;
+    ``(got, results)``: the stamps (ns) of the segment poses each namespace's subscriber
+    received, and each process's ``(stdout, stderr)``."""
+    node = rclpy.create_node('driver', context=ros_context)
+    pubs = {ns: node.create_publisher(PoseStamped, f'/{ns}/head_pose', 10) for ns in procs}
+    got = {ns: [] for ns in procs}
+    for ns in procs:
+        node.create_subscription(PoseArray, f'/{ns}/segment_poses',
+                                 lambda m, ns=ns: got[ns].append(stamp_ns(m.header.stamp)),
+                                 100)
+
+    def publish():
+        t = node.get_clock().now().nanoseconds * 1e-9
+        p, q = head_at(t)
+        for pub in pubs.values():
+            pub.publish(pose_msg(t, p, q, 'world'))
+    node.create_timer(0.01, publish)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    deadline = time.monotonic() + 30.0 * TIMEOUT_SCALE
+
+    def ran():
+        return all(v and v[-1] - v[0] >= 1_500_000_000 for v in got.values())
+    while time.monotonic() < deadline and not ran():
+        executor.spin_once(timeout_sec=0.005)
+        for ns, p in procs.items():
+            assert p.poll() is None, (ns, p.communicate())
+    assert ran()
+    for ns, sig in SIGNALS.items():
+        procs[ns].send_signal(sig)
+    results = {ns: p.communicate(timeout=20) for ns, p in procs.items()}
+    executor.shutdown()
+    node.destroy_node()
+    return got, results
+
+
+def check_killed_recording(killed, proc, got):
+    """SIGKILL: no summary, but every message of every complete chunk is there and decodes,
+    and nothing older than the documented bound (0.5 s of log time, + 0.5 s for a loaded
+    machine's writer queue) of what the subscriber ``got`` (stamps, ns) is lost."""
+    assert proc.returncode == -signal.SIGKILL
     with open(killed, 'rb') as f:
         assert f.read()[-8:] != b'\x89MCAP0\r\n'          # not finalised
     recovered = list(BagReader(killed).messages())       # every message deserialises
@@ -290,25 +310,26 @@ def test_sigkill_keeps_every_written_chunk_sigterm_and_sigint_finalise(ros_conte
     assert len(recovered) == (len(every) if tf2_msgs_available()
                               else sum(t != '/tf' for t, *_ in every))
     ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in recovered if t == '/kill/segment_poses'}
-    last_seen = max(got['kill'])
-    assert {s for s in got['kill'] if s <= last_seen - 1_000_000_000} <= ticks
+    last_seen = max(got)
+    assert {s for s in got if s <= last_seen - 1_000_000_000} <= ticks
     assert PARAMETERS_METADATA in BagReader(killed).metadata()
 
-    # SIGTERM / SIGINT: clean exit, finalised file (summary, final rosbag2 metadata), every
-    # tick the subscriber saw is recorded.
-    for ns in ('term', 'int'):
-        out, err = results[ns]
-        assert procs[ns].returncode == 0, err
-        assert 'Traceback' not in err, err
-        with open(files[ns], 'rb') as f:
-            summary = make_reader(f).get_summary()
-        assert summary is not None
-        messages = [m for m in BagReader(files[ns]).messages() if m[0] != '/tf']
-        every = sum(1 for _ in BagReader(files[ns]).messages(raw=True))   # /tf too
-        assert summary.statistics.message_count == every
-        assert every - len(messages) == sum(t == f'/{ns}/segment_poses' for t, *_ in messages)
-        bag = yaml.safe_load(BagReader(files[ns]).metadata()['rosbag2']['serialized_metadata'])
-        assert bag['message_count'] == every
-        ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in messages
-                 if t == f'/{ns}/segment_poses'}
-        assert set(got[ns]) <= ticks
+
+def check_finalised_recording(path, ns, proc, result, got):
+    """SIGTERM / SIGINT: clean exit, finalised file (summary, final rosbag2 metadata), every
+    tick the subscriber ``got`` (stamps, ns) is recorded."""
+    out, err = result
+    assert proc.returncode == 0, err
+    assert 'Traceback' not in err, err
+    with open(path, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    messages = [m for m in BagReader(path).messages() if m[0] != '/tf']
+    every = sum(1 for _ in BagReader(path).messages(raw=True))   # /tf too
+    assert summary.statistics.message_count == every
+    assert every - len(messages) == sum(t == f'/{ns}/segment_poses' for t, *_ in messages)
+    bag = yaml.safe_load(BagReader(path).metadata()['rosbag2']['serialized_metadata'])
+    assert bag['message_count'] == every
+    ticks = {stamp_ns(m.header.stamp) for t, _, m, _ in messages
+             if t == f'/{ns}/segment_poses'}
+    assert set(got) <= ticks

@@ -378,51 +378,87 @@ class NodeCore:
                              for k in DROP_REASONS)
         self._dropped_at_diag = dropped_now
         age = r.head_age(t)
+        # The problems in the order the message says them: the inputs, then the run.
+        problems = _Problems()
+        head = self._head_input(t, age, problems)
+        frames = self._frame_inputs(t, problems)
+        tf_kv = self._tf_input(problems)
+        rate = float(self.values['rate'])
+        achieved = tick_rate(win, rate)
+        self._run_problems(win, dropped_window, rate, achieved, problems)
+        timing = timing or {k: 'n/a (replay)' for k in TIMING_KEYS}
+        kv = (self._input_values(win, span, head, age, frames, tf_kv)
+              + self._run_values(win, span, achieved, timing, dropped_now))
+        return DiagnosticStatus(
+            level=problems.level, name=f'ponytail: {name}', hardware_id=name,
+            message='; '.join(problems.texts) if problems.texts else 'ok',
+            values=[KeyValue(key=k, value=v) for k, v in kv])
+
+    def _head_input(self, t: float, age: float | None, problems: '_Problems') -> str:
+        """The head input's state at runner time ``t`` (``'none'``, ``'not needed'``,
+        ``'stale'``, ``'ok'``); a missing or stale head the scene uses, or stamps ``age`` s
+        off the node clock, flagged."""
+        r = self.runner
         if not r.has_head:
             head = 'none' if r.needs_head else 'not needed'
         else:
             head = 'stale' if r.head_stale(t) else 'ok'
-        level, problems = DiagnosticStatus.OK, []
-
-        def flag(lvl, text):
-            nonlocal level
-            level = max(level, lvl)
-            problems.append(text)
         if head == 'none':
-            flag(DiagnosticStatus.WARN, 'no head pose received')
+            problems.flag(DiagnosticStatus.WARN, 'no head pose received')
         elif head == 'stale' and r.needs_head:
-            flag(DiagnosticStatus.WARN, 'head pose stale')
+            problems.flag(DiagnosticStatus.WARN, 'head pose stale')
         elif head == 'ok' and age is not None and abs(age) > max(r.settings.stale_timeout, 0.5):
-            flag(DiagnosticStatus.WARN, f'head pose stamps {age:+.3g} s off the node clock '
-                                        f'(clocks differ? use_sim_time / stamp_source)')
+            problems.flag(DiagnosticStatus.WARN,
+                          f'head pose stamps {age:+.3g} s off the node clock '
+                          f'(clocks differ? use_sim_time / stamp_source)')
+        return head
+
+    def _frame_inputs(self, t: float, problems: '_Problems') -> list[tuple[str, str]]:
+        """``(key, state)`` of every extra frame at runner time ``t`` (state as the head's); a
+        missing or stale frame the scene uses flagged, with its topic."""
+        r = self.runner
         frames = []
         for i, (f, topic) in enumerate(zip(self.frames, self.frame_topics, strict=True)):
             state = ('none' if not r.has_frame(i)
                      else 'stale' if r.frame_stale(i, t) else 'ok')
             frames.append((f'frame {f}', state))
             if r.needs_frame(i) and state == 'none':
-                flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
+                problems.flag(DiagnosticStatus.WARN, f'no pose received for frame {f} ({topic})')
             elif r.needs_frame(i) and state == 'stale':
-                flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
-        tf_kv: list[Any] = []
-        if self.tf is not None:
-            tf_problems, tf_kv = self.tf.diagnostics()
-            for text in tf_problems:
-                flag(DiagnosticStatus.WARN, text)
+                problems.flag(DiagnosticStatus.WARN, f'frame {f} pose stale ({topic})')
+        return frames
+
+    def _tf_input(self, problems: '_Problems') -> list[Any]:
+        """The TF input's key-value pairs (none without one); its problems flagged."""
+        if self.tf is None:
+            return []
+        tf_problems, tf_kv = self.tf.diagnostics()
+        for text in tf_problems:
+            problems.flag(DiagnosticStatus.WARN, text)
+        return tf_kv
+
+    def _run_problems(self, win: '_Window', dropped_window: int, rate: float,
+                      achieved: float | None, problems: '_Problems') -> None:
+        """Flag what went wrong in the run over the window: dropped inputs, dropped simulation
+        time, blow-up resets (an error), tick calls falling behind ``rate`` (overload)."""
         if dropped_window:
-            flag(DiagnosticStatus.WARN, f'{dropped_window} head poses dropped' if not self.frames
-                 else f'{dropped_window} input poses dropped')
+            problems.flag(DiagnosticStatus.WARN,
+                          f'{dropped_window} head poses dropped' if not self.frames
+                          else f'{dropped_window} input poses dropped')
         if win.dropped_time > 0.0:
-            flag(DiagnosticStatus.WARN, f'{win.dropped_time:.3g} s of simulation dropped')
+            problems.flag(DiagnosticStatus.WARN,
+                          f'{win.dropped_time:.3g} s of simulation dropped')
         if win.guard_resets:
-            flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
-        rate = float(self.values['rate'])
-        achieved = tick_rate(win, rate)
+            problems.flag(DiagnosticStatus.ERROR, f'{win.guard_resets} blow-up resets')
         if achieved is not None and achieved < OVERLOAD_FRACTION * rate:
-            flag(DiagnosticStatus.WARN, f'{OVERLOADED}: ticking at {achieved:.1f} Hz of rate '
-                                        f'{rate:g} Hz')
-        timing = timing or {k: 'n/a (replay)' for k in TIMING_KEYS}
-        kv = [
+            problems.flag(DiagnosticStatus.WARN, f'{OVERLOADED}: ticking at {achieved:.1f} Hz '
+                                                 f'of rate {rate:g} Hz')
+
+    def _input_values(self, win: '_Window', span: float, head: str, age: float | None,
+                      frames: list[tuple[str, str]], tf_kv: list[Any]) -> list[Any]:
+        """The status's key-value pairs of the inputs (the head, the frames, TF)."""
+        r = self.runner
+        kv: list[Any] = [
             ('head', head),
             ('head frame', r.frame_id or ''),
             ('head input age (s)', 'n/a' if age is None else f'{age:.4f}'),
@@ -431,8 +467,13 @@ class NodeCore:
         ]
         for (key, state), n in zip(frames, r.frame_accepted_total, strict=True):
             kv += [(key, state), (f'{key} poses accepted', str(n))]
-        kv += tf_kv
-        kv += [
+        return kv + tf_kv
+
+    def _run_values(self, win: '_Window', span: float, achieved: float | None,
+                    timing: Mapping[str, str], dropped_now: dict) -> list[Any]:
+        """The status's key-value pairs of the run: ticks, timing, steps, drops, resets."""
+        r = self.runner
+        kv: list[Any] = [
             ('ticks per s', f'{win.ticks / span:.1f}'),
             ('tick rate (Hz)', 'n/a' if achieved is None else f'{achieved:.1f}'),
         ]
@@ -451,7 +492,17 @@ class NodeCore:
                ('dropped time (s)', f'{r.dropped_time_total:.4f}'),
                ('segments', str(self.scene.n_segments)),
                ('colliders', str(len(self.scene.colliders)))]
-        return DiagnosticStatus(
-            level=level, name=f'ponytail: {name}', hardware_id=name,
-            message='; '.join(problems) if problems else 'ok',
-            values=[KeyValue(key=k, value=v) for k, v in kv])
+        return kv
+
+
+class _Problems:
+    """What a diagnostics window found wrong: the worst level flagged (OK if none) and the
+    texts, in the order flagged."""
+
+    def __init__(self) -> None:
+        self.level = DiagnosticStatus.OK
+        self.texts: list[str] = []
+
+    def flag(self, level, text: str) -> None:
+        self.level = max(self.level, level)
+        self.texts.append(text)

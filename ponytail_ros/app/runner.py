@@ -679,54 +679,80 @@ class ChainRunner:
                 self._pending_frame_resets.add(i)
 
     def _drain_head(self, t_tick):
-        est, s = self.estimator, self.settings
+        """The head's queued samples, in arrival order; how many were accepted."""
         accepted = 0
+        # Quiet: no head sample accepted for ``stale_timeout`` before this tick, so a stream
+        # whose stamps went back may be adopted (until one of this tick's is accepted).
         quiet = (self._last_accept_tick is None
-                 or t_tick - self._last_accept_tick > s.stale_timeout)
-        while self._queue:
-            t, p, q, frame = self._queue.popleft()
-            checked = est.check(t, p, q)            # (the values checked once, here)
-            valid = checked[3] is None
-            if valid:
-                t, p, q = checked[:3]
-            restart = None
-            if self.frame_id is not None and frame != self.frame_id:
-                if not (valid and self._all_quiet(t_tick)):
-                    self._drop('frame_changed', t)
-                    continue
-                restart = 'frame_changed'
-                self._reset_frames()      # in the old frame (all stale)
-            elif valid and est.jumped(p, q, *self._teleport_thresholds(t)):
-                restart = 'teleport'
-            elif valid and quiet and est.last_stamp is not None and t < est.last_stamp:
-                # The stream restarted with an earlier time base (a publisher restarted, a bag
-                # replayed without sim time): adopt it, keep the chain.
-                restart = 'stream_restart'
-            if (valid and restart is None and est.last_stamp is not None
-                    and t - est.last_stamp > s.max_gap):
-                self._gap(est.last_stamp, t)
-            if restart is not None:
-                est.reset()
-                if restart == 'stream_restart':
-                    self.history_restarts += 1
-                else:
-                    self._pending_reset = restart
-            reason = est.add_checked(checked)
-            if reason is not None:
-                self._drop(reason, t)
-                continue
-            accepted += 1
-            quiet = False
-            if len(est) == 1:
-                self._head_start = est.last_stamp
-            self._last_accept_tick = t_tick
-            if self.frame_id is None or restart == 'frame_changed':
-                self.frame_id = frame
-            self._newest_stamp = est.last_stamp
+                 or t_tick - self._last_accept_tick > self.settings.stale_timeout)
+        queue = self._queue
+        while queue:
+            if self._take_head_sample(*queue.popleft(), t_tick, quiet):
+                accepted += 1
+                quiet = False
         self.accepted_total += accepted
         if accepted:
             self._judge_rate()
         return accepted
+
+    def _take_head_sample(self, t, p, q, frame, t_tick, quiet):
+        """One head sample checked and added (or dropped, counted); True if accepted. A pose in
+        another frame is adopted only while every input is quiet (the world frame changes:
+        every history restarts); a teleport or a stream restart restarts the head's."""
+        est = self.estimator
+        checked = est.check(t, p, q)            # (the values checked once, here)
+        valid = checked[3] is None
+        if valid:
+            t, p, q = checked[:3]
+        if self.frame_id is not None and frame != self.frame_id:
+            if not (valid and self._all_quiet(t_tick)):
+                self._drop('frame_changed', t)
+                return False
+            restart = 'frame_changed'
+            self._reset_frames()      # in the old frame (all stale)
+        else:
+            restart = self._history_break(t, p, q, quiet) if valid else None
+        if restart is not None:
+            self._restart_head_history(restart)
+        reason = est.add_checked(checked)
+        if reason is not None:
+            self._drop(reason, t)
+            return False
+        if len(est) == 1:
+            self._head_start = est.last_stamp
+        self._last_accept_tick = t_tick
+        if self.frame_id is None or restart == 'frame_changed':
+            self.frame_id = frame
+        self._newest_stamp = est.last_stamp
+        return True
+
+    def _history_break(self, t, p, q, quiet):
+        """Why a valid head pose (stamp ``t``, position ``p``, unit quaternion ``q``, in the
+        runner's frame) breaks the head history: ``'teleport'``, ``'stream_restart'`` or None.
+        A pose resuming after a gap keeps the history; the gap is counted and said."""
+        est = self.estimator
+        if est.jumped(p, q, *self._teleport_thresholds(t)):
+            return 'teleport'
+        last = est.last_stamp
+        if last is None:
+            return None
+        if quiet and t < last:
+            # The stream restarted with an earlier time base (a publisher restarted, a bag
+            # replayed without sim time): adopt it, keep the chain.
+            return 'stream_restart'
+        if t - last > self.settings.max_gap:
+            self._gap(last, t)
+        return None
+
+    def _restart_head_history(self, restart):
+        """Forget the head's history for ``restart`` (a ``_history_break`` reason or
+        ``'frame_changed'``): a stream restart keeps the chain (counted in
+        ``history_restarts``), the others reset it at the next tick."""
+        self.estimator.reset()
+        if restart == 'stream_restart':
+            self.history_restarts += 1
+        else:
+            self._pending_reset = restart
 
     def _teleport_thresholds(self, t):
         """``(distance, angle)`` of the teleport test of a head pose at stamp ``t``."""
@@ -795,73 +821,124 @@ class ChainRunner:
         a start or after a teleport or frame change, while an input a chain hangs from has
         fewer than ``START_SAMPLES`` poses of its new history (and is not stale)."""
         t = float(t)
+        elapsed = self._clock_to(t)
+        accepted = self._drain(t)
+        starting = self.sim is None or self._pending_reset in HISTORY_RESETS
+        if not self._inputs_ready(t, starting):
+            return None
+        self.ticks += 1
+        t_head = t - self._slew_delay(elapsed)
+        scene, rebuild = self._take_pending_scene()
+        head = self._head_at(t_head, t)
+        if self.sim is None or rebuild or self._pending_reset is not None:
+            frames_reset = ()
+            report, reset_reason = self._start_chain(t_head, head, scene, rebuild, starting)
+        else:
+            reset_reason = None
+            report, frames_reset = self._carry_chain_on(t_head, head, scene)
+        reset_reason = self._count_reset(report, reset_reason)
+        origins, quats = self._output_poses(t, t_head, head)
+        return TickOutput(
+            t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
+            orientations=quats, report=report, reset_reason=reset_reason,
+            head_stale=self.head_stale(t),
+            newest_stamp=self._newest_stamp, accepted=accepted, t_state=self._t_frame,
+            frames_reset=frames_reset)
+
+    def _clock_to(self, t):
+        """Take the clock to ``t``; the clock time elapsed since the last tick, s (0 at the
+        first). A clock going back restarts everything (``'clock_backwards'``)."""
         if self._last_tick is not None and t < self._last_tick:
             self._restart('clock_backwards')
             self._delay = None
         elapsed = 0.0 if self._last_tick is None else t - self._last_tick
         self._last_tick = t
-        accepted = self._drain(t)
-        if self.missing_inputs(self._pending_scene or self.scene):
-            return None
-        starting = self.sim is None or self._pending_reset in HISTORY_RESETS
-        if starting and not self._ready(t, self._pending_scene or self.scene):
-            # A new history: wait for a velocity estimate (``START_SAMPLES``); nothing is
-            # published meanwhile, a pending reset or scene stays pending.
-            return None
-        self.ticks += 1
+        return elapsed
 
+    def _inputs_ready(self, t, starting):
+        """Whether the chain can be simulated at ``t``: every input the scene (the pending one,
+        if any) uses has a pose, and when ``starting`` a new history, every input a chain hangs
+        from holds ``START_SAMPLES`` poses of it (a velocity estimate) or is stale. While not,
+        nothing is published and a pending reset or scene stays pending."""
+        scene = self._pending_scene or self.scene
+        if self.missing_inputs(scene):
+            return False
+        return not starting or self._ready(t, scene)
+
+    def _slew_delay(self, elapsed):
+        """The delay for this tick, s: the target at a (re)start, else moved towards it by at
+        most ``DELAY_SLEW × elapsed`` (the simulated head time neither runs back nor jumps)."""
         target = self.target_delay()
         if self._delay is None or self.sim is None:
             self._delay = target
         else:
             step = DELAY_SLEW * elapsed
             self._delay += min(max(target - self._delay, -step), step)
-        t_head = t - self._delay
-        # A structural change takes effect before the head is evaluated (it may add the world
-        # body); a tunable one is applied to the running simulator below.
+        return self._delay
+
+    def _take_pending_scene(self):
+        """``(scene, rebuild)``: the scene set since the last tick (None if none) and whether it
+        needs the simulator rebuilt. A structural change takes effect here, before the head is
+        evaluated (it may add the world body); a tunable one is applied to the running
+        simulator later."""
         scene = self._pending_scene
         self._pending_scene = None
         rebuild = scene is not None and (self.sim is None or structural_change(self.scene, scene))
         if rebuild:
             self.scene = scene
+        return scene, rebuild
+
+    def _head_at(self, t_head, t):
+        """The anchor bodies at head time ``t_head`` (``bodies_at``); the head's fit at every
+        instant this tick asks for (the frame, its start, the clock's) made first in one
+        compiled call."""
         if self.has_head and not self._banked():
-            # The head at the instants this tick asks for (the frame, its start, the clock's),
-            # fitted in one compiled call.
             self.estimator.prefetch((t_head, t) if self.sim is None else
                                     (t_head, self._t_frame, t))
-        head = self.bodies_at(t_head)
+        return self.bodies_at(t_head)
 
-        report = StepReport()
+    def _start_chain(self, t_head, head, scene, rebuild, starting):
+        """(Re)start the chain at rest relative to the anchor bodies, moving with their
+        estimated velocity and angular velocity (after a new history, from its first pose),
+        and advance it to ``t_head``; ``(report, reset reason)`` (None at the first start).
+        Every chain is put at rest, so the frames' teleports pending are done with."""
+        self._pending_frame_resets.clear()
+        t0 = self._start_time(t_head) if starting else t_head
+        head0 = head if t0 == t_head else self.bodies_at(t0)
         reset_reason = None
-        frames_reset = ()
-        if self.sim is None or rebuild or self._pending_reset is not None:
-            self._pending_frame_resets.clear()  # (every chain is put at rest)
-            # (Re)start at rest relative to the anchor bodies, moving with their estimated
-            # velocity and angular velocity; after a new history, from its first pose.
-            t0 = self._start_time(t_head) if starting else t_head
-            head0 = head if t0 == t_head else self.bodies_at(t0)
-            if self.sim is None or rebuild:
-                if self.sim is not None:
-                    reset_reason = 'rebuild'
-                self.sim = Simulator(self.scene, head=head0, t0=t0)
-            else:
-                if scene is not None:
-                    self._apply_tunables(scene)     # not structural
-                reset_reason = self._pending_reset
-                self.sim.reset(head0, t0)
-            self._t_frame = t0
-            self._pending_reset = None
-            if t_head - t0 >= self.sim.dt:
-                report = self._advance(t_head, head, head0)
+        if self.sim is None or rebuild:
+            if self.sim is not None:
+                reset_reason = 'rebuild'
+            self.sim = Simulator(self.scene, head=head0, t0=t0)
         else:
             if scene is not None:
                 self._apply_tunables(scene)     # not structural
-            frames_reset = self._reset_teleported()
-            if t_head - self._t_frame >= self.sim.dt:
-                # Frames closer than one internal step are merged into the next: the core's
-                # anchor track between two frames extrapolates up to a step beyond them, which
-                # explodes for a vanishing frame interval.
-                report = self._advance(t_head, head, self.bodies_at(self._t_frame))
+            reset_reason = self._pending_reset
+            self.sim.reset(head0, t0)
+        self._t_frame = t0
+        self._pending_reset = None
+        if t_head - t0 >= self.sim.dt:
+            return self._advance(t_head, head, head0), reset_reason
+        return StepReport(), reset_reason
+
+    def _carry_chain_on(self, t_head, head, scene):
+        """The running chain, with a tunable ``scene`` change (or None) applied and the chains
+        of the frames that teleported put at rest, advanced to ``t_head``; ``(report, names of
+        those frames)``."""
+        if scene is not None:
+            self._apply_tunables(scene)     # not structural
+        frames_reset = self._reset_teleported()
+        if t_head - self._t_frame >= self.sim.dt:
+            # Frames closer than one internal step are merged into the next: the core's
+            # anchor track between two frames extrapolates up to a step beyond them, which
+            # explodes for a vanishing frame interval.
+            return self._advance(t_head, head, self.bodies_at(self._t_frame)), frames_reset
+        return StepReport(), frames_reset
+
+    def _count_reset(self, report, reset_reason):
+        """The tick's reset reason, counted: ``'guard'`` if the simulator's guard reset the
+        chain (the start or reset it ran after counted too); the report's ``max_gap`` and the
+        dropped time total completed."""
         if report.reset_reason is not None:
             if reset_reason is not None:
                 self.resets[reset_reason] += 1
@@ -871,10 +948,15 @@ class ChainRunner:
             self.resets[reset_reason] += 1
             self.last_reset = (reset_reason if reset_reason != 'guard'
                                else f'guard: {report.reset_reason}')
-        if report.max_gap == 0.0 and reset_reason is not None:
-            report.max_gap = float(np.max(self.sim.joint_gaps()))
+            if report.max_gap == 0.0:
+                report.max_gap = float(np.max(self.sim.joint_gaps()))
         self.dropped_time_total += report.dropped_time
-        # The chain at the frame time itself (not up to one internal step behind it).
+        return reset_reason
+
+    def _output_poses(self, t, t_head, head):
+        """``(origins, orientations)`` of the segments to publish: the chain at the frame time
+        itself (not up to one internal step behind it), latency compensated when on (a dense
+        stream, ``output_stamp: tick``)."""
         origins, quats = self.sim.segment_poses(self._t_frame)
         if (self.settings.latency_compensation and self.settings.output_stamp == 'tick'
                 and not self.head_sparse):
@@ -883,12 +965,7 @@ class ChainRunner:
             m = self.sim.model
             now = self.sim.anchors(head if t_head == t else self.bodies_at(t))
             origins += (now.position - origins[m.chain_start])[m.chain_of]
-        return TickOutput(
-            t=t, t_head=t_head, frame_id=self.frame_id or '', origins=origins,
-            orientations=quats, report=report, reset_reason=reset_reason,
-            head_stale=self.head_stale(t),
-            newest_stamp=self._newest_stamp, accepted=accepted, t_state=self._t_frame,
-            frames_reset=frames_reset)
+        return origins, quats
 
     def _reset_teleported(self):
         """The chains hanging from the frames that teleported put at rest on their new poses
