@@ -3,12 +3,13 @@ MuJoCo's ``mj_step``, measured in the same run on the same chain (RK4, head driv
 
 Ours is timed two ways: the kernel alone (the compiled step the ``Simulator`` dispatches to,
 over a precomputed anchor table: the physics; ``step.advance``, or for a crowd
-``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a
-node pays, Python included). MuJoCo: ``mj_step`` in a Python loop (its own cost plus ~1 µs of
-binding per call). Crowds: C chains of 16 segments in one scene, per chain-step (the lanes
-kernel: ``lanes.LANES`` chains per SIMD block), against one 16-segment chain in MuJoCo
-(MuJoCo is left out beyond 300 segments: its serial chain's dense mass matrix makes a step
-O(n³)). Prints a table; ``--json`` writes the rows.
+``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a node
+pays, Python included; ``sim/kernel`` their ratio, for single chains and crowds). MuJoCo:
+``mj_step`` in a Python loop (its own cost plus ~1 µs of binding per call). Crowds: C chains of
+16 segments in one scene, per chain-step (the lanes kernel: ``lanes.LANES`` chains per SIMD
+block), against one 16-segment chain in MuJoCo (MuJoCo is left out beyond 300 segments: its
+serial chain's dense mass matrix makes a step O(n³)). Prints a table; ``--json`` writes the
+rows.
 """
 import argparse
 import json
@@ -87,8 +88,8 @@ def main(argv=None):
     args = p.parse_args(argv)
     report_compile()
     rows = []
-    print(f'{"case":>22} {"ours kernel µs":>15} {"ours sim µs":>12} {"MuJoCo µs":>10} '
-          f'{"kernel/MuJoCo":>14}')
+    print(f'{"case":>22} {"ours kernel µs":>15} {"ours sim µs":>12} {"sim/kernel":>11} '
+          f'{"MuJoCo µs":>10} {"kernel/MuJoCo":>14}')
     for n in (int(s) for s in args.segments.split(',')):
         bench = make_scene('moving', n_segments=n,
                            solver=SolverSpec(integrator='rk4', dt=DT))
@@ -106,11 +107,14 @@ def main(argv=None):
         scene = Scene(chains=tuple(chain for _ in range(c)),
                       solver=SolverSpec(integrator='rk4', dt=DT))
         k = kernel_cost(scene, bench16.motion, n_steps=max(20, 20000 // c)) / c
+        # (a shorter run for a large crowd: at least 12 ticks)
+        s = simulator_cost(scene, bench16.motion, duration=max(0.1, min(1.0, 100 / c))) / c
         rows.append(dict(case=f'crowd {c} x 16', n_segments=16, chains=c, kernel_s=k,
-                         simulator_s=float('nan'), mujoco_s=mj16, ratio=k / mj16))
+                         simulator_s=s, mujoco_s=mj16, ratio=k / mj16))
     for r in rows:
         print(f'{r["case"]:>22} {r["kernel_s"] * 1e6:15.2f} {r["simulator_s"] * 1e6:12.2f} '
-              f'{r["mujoco_s"] * 1e6:10.2f} {r["ratio"]:14.4f}')
+              f'{r["simulator_s"] / r["kernel_s"]:11.2f} {r["mujoco_s"] * 1e6:10.2f} '
+              f'{r["ratio"]:14.4f}')
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(rows, f, indent=1)
