@@ -31,9 +31,12 @@ from pathlib import Path
 
 __all__ = ['KERNEL_MODULES', 'cache_location', 'choose_cache_dir', 'ensure_fresh']
 
-#: The sources whose edits invalidate the cache: every module of ``core`` (numba's own check
-#: sees only the file of the function it loads, not an edited callee in another file).
-KERNEL_MODULES = tuple(sorted(p.stem for p in Path(__file__).resolve().parent.glob('*.py')))
+#: The sources whose edits invalidate the cache: every module of ``core`` that defines
+#: compiled code (numba's own check sees only the file of the function it loads, not an edited
+#: callee in another file); the plain-Python modules beside them do not.
+KERNEL_MODULES = tuple(sorted(
+    p.stem for p in Path(__file__).resolve().parent.glob('*.py')
+    if any(mark in p.read_text(encoding='utf-8') for mark in ('njit', '@intrinsic'))))
 _STAMP = 'ponytail_kernels.sha256'
 _HERE = Path(__file__).resolve().parent
 _checked = False
