@@ -11,7 +11,12 @@ from .vec import qaxis_x_at, qmatrix
 
 __all__ = ['implicit_damping']
 
-_jit = nb.njit(cache=True, _nrt=True)
+# Kernels called from compiled code only are compiled without the wrappers that make a
+# function callable from Python (``_INTERNAL``): numba would generate them at every
+# specialisation's compile (for a ``StepModel`` argument, code unboxing its 27 fields), and
+# nothing would call them.
+_INTERNAL = dict(no_cpython_wrapper=True, no_cfunc_wrapper=True)
+_jit = nb.njit(cache=True, _nrt=True, **_INTERNAL)
 _inline = nb.njit(cache=True, inline='always')
 
 _KL = 8         # half-bandwidth of the reduced KKT matrix, unknowns (λ_i, ω_i) per segment

@@ -48,9 +48,14 @@ __all__ = ['StepModel', 'AnchorTable', 'Integrator', 'INTEGRATORS', 'advance', '
 # it (``_borrow``: ``_nrt=False``, which a callee inherits unless it sets its own). A function
 # that allocates sets ``_nrt=True`` (``_jit``): a borrowing caller may call it, since it
 # returns no array.
-_jit = nb.njit(cache=True, _nrt=True)
+# Kernels called from compiled code only are compiled without the wrappers that make a
+# function callable from Python (``_INTERNAL``): numba would generate them at every
+# specialisation's compile (for a ``StepModel`` argument, code unboxing its 27 fields), and
+# nothing would call them.
+_INTERNAL = dict(no_cpython_wrapper=True, no_cfunc_wrapper=True)
+_jit = nb.njit(cache=True, _nrt=True, **_INTERNAL)
 _inline = nb.njit(cache=True, inline='always')
-_borrow = nb.njit(cache=True, _nrt=False)
+_borrow = nb.njit(cache=True, _nrt=False, **_INTERNAL)
 
 
 @_jit

@@ -14,9 +14,14 @@ from .vec import cross_s, qaxis_x_at, qfrom_rotvec_s, qmul_s, qnormalize_at, qro
 
 __all__ = ['constrained_step']
 
-_jit = nb.njit(cache=True, _nrt=True)
+# Kernels called from compiled code only are compiled without the wrappers that make a
+# function callable from Python (``_INTERNAL``): numba would generate them at every
+# specialisation's compile (for a ``StepModel`` argument, code unboxing its 27 fields), and
+# nothing would call them.
+_INTERNAL = dict(no_cpython_wrapper=True, no_cfunc_wrapper=True)
+_jit = nb.njit(cache=True, _nrt=True, **_INTERNAL)
 _inline = nb.njit(cache=True, inline='always')
-_borrow = nb.njit(cache=True, _nrt=False)
+_borrow = nb.njit(cache=True, _nrt=False, **_INTERNAL)
 
 
 @_inline
