@@ -31,6 +31,7 @@ never produces (a blow-up does).
 from collections import namedtuple
 
 import numba as nb
+import numpy as np
 
 from .kernel_cache import ensure_fresh
 from .vec import qaxis_x_s, qmatrix_s
@@ -288,7 +289,7 @@ def blocks_ldl(D, L, is_first, Pinv, Lo):
 @nb.njit(cache=True, _nrt=False)
 def solve(Pinv, Lo, is_first, b):
     """Solve A x = b with the factors of ``factor``; ``b`` ``(n, 3)`` is overwritten by x."""
-    solve_from(Pinv, Lo, is_first, b, 1)
+    solve_from(Pinv, Lo, is_first, b, np.int64(1))      # (a literal would specialise it)
 
 
 @nb.njit(cache=True, _nrt=False)

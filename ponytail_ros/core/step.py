@@ -191,7 +191,7 @@ def chain_starts(M, n):
 @_jit
 def workspaces(starts, ends):
     """The joint system's and the integrators' workspaces, sized for the longest chain."""
-    longest = 0
+    longest = np.int64(0)       # (a literal 0 would compile the allocators once more)
     for c in range(starts.shape[0]):
         longest = max(longest, ends[c] - starts[c])
     return _workspace(longest), _rk4_workspace(longest)

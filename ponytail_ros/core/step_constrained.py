@@ -250,9 +250,10 @@ def constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh):
     n = x.shape[0]
     r0, r1 = 2 * k, 2 * k + 2
     rattle = M.integrator == RATTLE
+    s0 = np.int64(0)        # (a literal 0 would specialise ``factor`` on it)
     if fresh:
         _axes(q, e)
-        if not factor(M, q, 0, n, hv, Iinv, C, Lo):
+        if not factor(M, q, s0, n, hv, Iinv, C, Lo):
             return False
     applied_forces(M, A, r0, x, q, v, w, ext_F, ext_T, F, T)
     kick = 0.5 * h if rattle else h
@@ -289,7 +290,7 @@ def constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh):
         return True
     # A at the step's end (kept for the next step: the projection does not turn segments).
     _axes(q, e)
-    if not factor(M, q, 0, n, hv, Iinv, C, Lo):
+    if not factor(M, q, s0, n, hv, Iinv, C, Lo):
         return False
     if rattle:
         # Second half kick with the forces at the end; velocity-dependent terms at u½
