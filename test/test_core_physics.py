@@ -435,8 +435,14 @@ def test_stage_points_are_the_motions_states_bit_for_bit():
     zero alike, for the compiled motions (sway and yaw, sinusoids on every axis with phases,
     several bodies, a still axis, a negative time) and the NumPy ones."""
     from ponytail_ros.app.motions import ShakeNodHead, SinusoidHead, crowd_motion, shake_motion
-    from ponytail_ros.core.head import (HeadMotion, SinusoidMotion, StillMotion, SwayYawMotion,
-                                        point_table, stage_times)
+    from ponytail_ros.core.head import (
+        HeadMotion,
+        SinusoidMotion,
+        StillMotion,
+        SwayYawMotion,
+        point_table,
+        stage_times,
+    )
     fields = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
     rng = np.random.default_rng(5)
     motions = (SwayYawMotion(), SwayYawMotion(p0=(0.3, 0.0, 1.0), amplitude=0, frequency=2),

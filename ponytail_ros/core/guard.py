@@ -18,20 +18,20 @@ __all__ = ['Guard', 'GYROSCOPIC_REACH_RATIO']
 GYROSCOPIC_REACH_RATIO = 2.5
 
 
-_N_MEASURES = len(state_kernels.MEASURES)
-
-
 def _c(a):
     return np.ascontiguousarray(a, dtype=float)
 
 
 class Guard:
-    """The guard's checks of ``Simulator`` (a part of it)."""
+    """The guard's checks of ``Simulator`` (a part of it; its ``_measures_out``: an array of
+    ``len(state_kernels.MEASURES)``, the measures' output, read at once)."""
+
+    _measures_out: np.ndarray
 
     def _measures(self, anchor):
         """``state_kernels.guard_measures`` of the state with ``anchor`` (its ``MEASURES``)."""
         m, st = self.model, self.state
-        out = np.empty(_N_MEASURES)
+        out = self._measures_out
         swing_only = not self._explicit_gyroscopic and self.axisymmetric
         state_kernels.guard_measures(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
                                      _c(st.q), _c(st.v), _c(st.w), _c(anchor.position),

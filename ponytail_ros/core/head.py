@@ -132,7 +132,12 @@ class HeadMotion:
     (``stage_points``). The default stacks ``state_at``; a motion in closed form overrides it
     with array expressions that give the same values bit for bit (the same IEEE operations per
     element: NumPy's ``sin`` and ``cos`` of an array equal those of its elements one by one).
+
+    ``fixed``: the motion never changes after construction (``stage_points`` is a function of
+    its arguments alone), so a simulator may evaluate it ahead for its next calls.
     """
+
+    fixed = False
 
     def state_at(self, t):  # pragma: no cover - interface
         raise NotImplementedError
@@ -245,6 +250,8 @@ class WithStaticBodies(HeadMotion):
 class StillMotion(HeadMotion):
     """Kinematic bodies that never move (a ceiling anchor, a still head)."""
 
+    fixed = True
+
     def __init__(self, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)):
         self._state = KinematicState.still(position, orientation)
         self._points: tuple = (None, None)     # (key, AnchorKinematics) of the last points
@@ -295,6 +302,7 @@ class SinusoidMotion(HeadMotion):
     points at a call's stage times (``stage_points``) are then computed in one compiled call."""
 
     coefficients: np.ndarray
+    fixed = True
 
     def stage_points(self, t_base, k0, n_steps, dt, body, r_local):
         """``HeadMotion.stage_points`` in one compiled call (``sinusoid_table``)."""

@@ -124,6 +124,9 @@ class Simulator(ContactSteps, Guard):
         self.external = None
         self._step_model_cache = None
         self._last_kernel: tuple = (None, None)     # (StepModel, its compiled step)
+        # ``_points_ahead``'s table: ((motion, t_base, dt), first step, end step, table).
+        self._ahead: tuple = (None, 0, 0, None)
+        self._measures_out = np.empty(len(state_kernels.MEASURES))
         # The compiled calls of the current ``advance``: the free step's wall time and the
         # contact step's (s), and the cycles of the latter's stages (``stages.PROFILE_STAGES``,
         # then its calls' total).
@@ -278,6 +281,10 @@ class Simulator(ContactSteps, Guard):
         if not self._needs_bodies:
             anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
             self._anchor_at = anchor_at
+            if self.unilateral is None:
+                n_steps = self._steps_to(t_target)
+                if 0 < n_steps <= self.scene.solver.max_steps_per_call:
+                    return self._free_steps(n_steps, motion, anchor_at)
 
             def anchor_points(k0, n_steps):
                 return motion.stage_points(self._t_base, k0, n_steps, self.dt,
@@ -597,6 +604,60 @@ class Simulator(ContactSteps, Guard):
         self._split_timings(report)
         return report
 
+    def _free_steps(self, n_steps, motion, anchor_at):
+        """``_advance`` to the end of the next ``n_steps`` steps (``0 < n_steps <=
+        max_steps_per_call``) of a scene without colliders or limits, its anchors
+        ``motion.stage_points``: the same, bit for bit, in fewer Python steps (a call's
+        Python costs about what the compiled steps of a short chain do)."""
+        report = StepReport(steps=n_steps)
+        self._call_wall = self._uni_wall = 0.0
+        t_start = time.perf_counter()
+        table = self._points_ahead(motion, n_steps) if motion.fixed else self._table(
+            motion.stage_points(self._t_base, self._n_steps, n_steps, self.dt,
+                                self._anchor_body, self.model.attach))
+        st = self.state
+        x, q = np.array(st.x, dtype=float), np.array(st.q, dtype=float)
+        v, w = np.array(st.v, dtype=float), np.array(st.w, dtype=float)
+        failure = None
+        try:
+            self._run_compiled_table(n_steps, self.dt, table, x, q, v, w)
+            self._n_steps += n_steps
+        except np.linalg.LinAlgError as err:
+            failure = str(err)
+            report.steps = 0
+            x = np.full_like(x, np.nan)
+        t_steps = time.perf_counter()
+        self.t = self._t_base + self._n_steps * self.dt
+        self.state = ChainState(x, q, v, w)
+        # (the table's end row is the anchor at self.t bit for bit: the same evaluation)
+        self._end_call(report, AnchorKinematics(*(a[-1] for a in table)) if failure is None
+                       else anchor_at(self.t), failure, motion.state_at)
+        report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps,
+                          'integrate': self._call_wall, **_NO_CONTACTS}
+        return report
+
+    def _points_ahead(self, motion, n_steps):
+        """The compiled ``AnchorTable`` of ``motion.stage_points`` of the next ``n_steps``
+        steps for a ``fixed`` motion: rows of a table evaluated ahead for this call and the
+        next few (``AHEAD_ROWS`` rows of anchors in all; the same values bit for bit: each
+        row's time is computed from its step's index alike), evaluated again when the motion,
+        the step grid or the range changes."""
+        k0 = self._n_steps
+        key = (motion, self._t_base, self.dt)
+        last_key, first, stop, table = self._ahead
+        if last_key != key or not first <= k0 or k0 + n_steps > stop:
+            C = self._anchor_body.shape[0]
+            first, stop = k0, k0 + max(n_steps, AHEAD_ROWS // (2 * max(C, 1)))
+            table = self._table(motion.stage_points(self._t_base, first, stop - first, self.dt,
+                                                    self._anchor_body, self.model.attach))
+            self._ahead = (key, first, stop, table)
+        row = 2 * (k0 - first)
+        if row == 0 and k0 + n_steps == stop:
+            return table
+        rows = slice(row, row + 2 * n_steps + 1)
+        p, v, a, q, w = table
+        return compiled.AnchorTable(p[rows], v[rows], a[rows], q[rows], w[rows])
+
     def _split_timings(self, report):
         """``report.timings``' ``integrate`` and ``contacts`` (and the latter's parts): the
         contact step's calls' wall time split by the cycles it counted in each stage, plus the
@@ -763,6 +824,9 @@ def _memo_last(f, size=2):
     return g
 
 
+#: Rows of anchors (rows of the table times chains) a simulator evaluates ahead for a fixed
+#: motion (``HeadMotion.fixed``): a few calls' worth for a few chains, one call's for a crowd.
+AHEAD_ROWS = 128
 #: ``StepReport.timings``' contact entries of a call without the contact step.
 _NO_CONTACTS = {'contacts': 0.0, **{f'contact_{name}': 0.0 for name in stages.CONTACT_STAGES}}
 
