@@ -428,6 +428,52 @@ def test_vectorised_motions_equal_their_per_time_states_bit_for_bit():
                 assert np.array_equal(getattr(table, f)[k], getattr(point, f)), (motion, f, t)
 
 
+def test_stage_points_are_the_motions_states_bit_for_bit():
+    """``HeadMotion.stage_points`` (what ``advance_to`` evaluates once per call; for a
+    ``SinusoidMotion`` one compiled call) equals ``point_table`` of ``states_at`` at
+    ``stage_times`` and each row ``state_at(t).point_kinematics``, bit for bit and sign of
+    zero alike, for the compiled motions (sway and yaw, sinusoids on every axis with phases,
+    several bodies, a still axis, a negative time) and the NumPy ones."""
+    from ponytail_ros.app.motions import ShakeNodHead, SinusoidHead, crowd_motion, shake_motion
+    from ponytail_ros.core.head import (
+        HeadMotion,
+        SinusoidMotion,
+        StillMotion,
+        SwayYawMotion,
+        point_table,
+        stage_times,
+    )
+    fields = ('position', 'velocity', 'acceleration', 'orientation', 'angular_velocity')
+    rng = np.random.default_rng(5)
+    motions = (SwayYawMotion(), SwayYawMotion(p0=(0.3, 0.0, 1.0), amplitude=0, frequency=2),
+               shake_motion(), crowd_motion(4),
+               SinusoidHead(amplitude=(0.1, 0.02, 0.05), frequency=(1.0, 2.0, 3.0),
+                            phase=(0.1, 0.2, 0.3), yaw_phase=0.4),
+               StillMotion((1, 2, 3), (0.0, 0.0, np.sin(0.3), np.cos(0.3))), ShakeNodHead())
+    for motion in motions:
+        K = motion.state_at(0.0).position.shape[0]
+        for t_base, k0, n, dt in ((0.0, 0, 8, 1e-3), (0.25, 48, 9, 1 / 960),
+                                  (-0.3, 7, 3, 0.013), (12.5, 123456, 0, 1e-3)):
+            body = rng.integers(0, K, 3)
+            r_local = rng.normal(size=(3, 3)) * 0.1
+            times = stage_times(t_base, k0, n, dt)
+            got = motion.stage_points(t_base, k0, n, dt, body, r_local)
+            tables = (point_table(motion.states_at(times), body, r_local),
+                      HeadMotion.stage_points(motion, t_base, k0, n, dt, body, r_local))
+            for f in fields:
+                a = getattr(got, f)
+                assert a.shape[0] == 2 * n + 1 and a.flags.c_contiguous
+                for b in (getattr(t, f) for t in tables):
+                    assert np.array_equal(a, b) and np.array_equal(np.signbit(a),
+                                                                   np.signbit(b)), (motion, f)
+            for k, t in enumerate(times):
+                one = motion.state_at(t).point_kinematics(body, r_local)
+                for f in fields:
+                    assert np.array_equal(getattr(got, f)[k], getattr(one, f)), (motion, f, t)
+    assert isinstance(shake_motion(), SinusoidMotion) and isinstance(SwayYawMotion(),
+                                                                    SinusoidMotion)
+
+
 @pytest.mark.parametrize('scene, integrator, dt', [
     ('moving', 'rk4', 1 / 240), ('moving', 'rk4', 1 / 60), ('moving', 'symplectic_euler', 1 / 240),
     ('moving', 'rattle', 1 / 480), ('shake', 'rk4', 1 / 60), ('release', 'rk4', 1 / 1000)])

@@ -23,7 +23,12 @@ interface and its basic motions: still, sway and yaw).
 """
 import numpy as np
 
-from ponytail_ros.core.head import HeadMotion, KinematicState
+from ponytail_ros.core.head import (
+    HeadMotion,
+    KinematicState,
+    SinusoidMotion,
+    sinusoid_coefficients,
+)
 from ponytail_ros.core.rotations import quat_multiply
 
 __all__ = ['SinusoidHead', 'SpinHead', 'ShakeNodHead', 'reference_motion', 'shake_motion',
@@ -38,8 +43,9 @@ SHAKE = dict(amplitude=(0.1, 0.0, 0.0), frequency=(4.0, 0.0, 0.0), yaw_amplitude
              yaw_frequency=3.0)
 
 
-class SinusoidHead(HeadMotion):
-    """``K`` heads, each ``p(t) = p0 + A ∘ sin(2π f t + φ)`` and yaw ``Y sin(2π f_y t + φ_y)``.
+class SinusoidHead(SinusoidMotion):
+    """``K`` heads, each ``p(t) = p0 + A ∘ sin(2π f t + φ)`` and yaw ``Y sin(2π f_y t + φ_y)``
+    (a ``SinusoidMotion``: a call's stage times are evaluated in one compiled call).
 
     Args (broadcast to ``K`` bodies; per-axis arrays have a trailing axis of 3):
         p0: ``(K, 3)`` or ``(3,)`` centre position, m.
@@ -61,6 +67,10 @@ class SinusoidHead(HeadMotion):
         self.Y = np.broadcast_to(np.asarray(yaw_amplitude, dtype=float), (k,)).copy()
         self.wy = TWO_PI * np.broadcast_to(np.asarray(yaw_frequency, dtype=float), (k,))
         self.phy = np.broadcast_to(np.asarray(yaw_phase, dtype=float), (k,)).copy()
+        # (the products as ``states_at`` forms them)
+        self.coefficients = sinusoid_coefficients(
+            self.p0, self.A, self.A * self.w, -self.A * self.w ** 2, self.w, self.phi, self.Y,
+            self.Y * self.wy, -self.Y * self.wy ** 2, self.wy, self.phy)
 
     def yaw(self, t):
         """Yaw angle, rate and acceleration ``(K,)`` each."""

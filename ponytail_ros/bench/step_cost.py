@@ -3,13 +3,16 @@ MuJoCo's ``mj_step``, measured in the same run on the same chain (RK4, head driv
 
 Ours is timed two ways: the kernel alone (the compiled step the ``Simulator`` dispatches to,
 over a precomputed anchor table: the physics; ``step.advance``, or for a crowd
-``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a node
-pays, Python included; ``sim/kernel`` their ratio, for single chains and crowds). MuJoCo:
+``lanes.advance_lanes``) and through ``Simulator.advance_to`` in ticks of 1/120 s (what a caller
+pays per step, Python included: the motion evaluated, the anchor table, the guard; the
+simulator's construction, once per run, is not in it; ``sim/kernel`` their ratio, for single
+chains and crowds). MuJoCo:
 ``mj_step`` in a Python loop (its own cost plus ~1 µs of binding per call). Crowds: C chains of
 16 segments in one scene, per chain-step (the lanes kernel: ``lanes.LANES`` chains per SIMD
 block), against one 16-segment chain in MuJoCo (MuJoCo is left out beyond 300 segments: its
 serial chain's dense mass matrix makes a step O(n³)). Prints a table; ``--json`` writes the
-rows.
+rows; ``--no-mujoco`` leaves MuJoCo out (its column then nan). Compiles (or loads) only the
+kernels its scenes use.
 """
 import argparse
 import json
@@ -18,7 +21,7 @@ import time
 import numpy as np
 
 from ponytail_ros.core import step as compiled
-from ponytail_ros.core.compile import report_compile
+from ponytail_ros.core.compile import say_compiles
 from ponytail_ros.core.head import stack_anchors
 from ponytail_ros.core.scene import Scene, SolverSpec
 from ponytail_ros.core.simulator import Simulator
@@ -61,15 +64,19 @@ def kernel_cost(scene, motion, integrator='rk4', n_steps=1000, repeats=5):
 
 
 def simulator_cost(scene, motion, duration=1.0, tick=1 / 120, repeats=3):
-    """CPU seconds per internal step through ``Simulator.advance_to`` at ticks of ``tick``."""
+    """CPU seconds per internal step through ``Simulator.advance_to`` at ticks of ``tick``,
+    from rest at t = 0 over ``duration`` s (the simulator built before the clock starts)."""
+    ticks = [k * tick for k in range(1, int(round(duration / tick)) + 1)]
+
     def run():
         sim = Simulator(scene, motion, 0.0)
-        for k in range(1, int(round(duration / tick)) + 1):
-            sim.advance_to(k * tick, motion)
-        return sim
+        c0 = time.process_time()
+        for t in ticks:
+            sim.advance_to(t, motion)
+        return time.process_time() - c0
     run()
     n_steps = int(round(duration / scene.solver.dt))
-    return _best(run, repeats) / n_steps
+    return min(run() for _ in range(repeats)) / n_steps
 
 
 def mujoco_cost(bench, n_steps=2000, repeats=5):
@@ -85,8 +92,11 @@ def main(argv=None):
                    help='comma-separated chain lengths (default: %(default)s)')
     p.add_argument('--crowds', default='10,100,1000', help='chains of 16 segments per scene')
     p.add_argument('--json', help='write the rows to this file')
+    p.add_argument('--no-mujoco', action='store_true', help='leave MuJoCo out (slow beyond '
+                   '100 segments: its serial chain\'s step is O(n³))')
     args = p.parse_args(argv)
-    report_compile()
+    say_compiles()
+    mujoco = not args.no_mujoco
     rows = []
     print(f'{"case":>22} {"ours kernel µs":>15} {"ours sim µs":>12} {"sim/kernel":>11} '
           f'{"MuJoCo µs":>10} {"kernel/MuJoCo":>14}')
@@ -97,11 +107,11 @@ def main(argv=None):
         s = simulator_cost(bench.scene, bench.motion)
         # MuJoCo's serial chain has a dense mass matrix (O(n³) per step): beyond 300 segments
         # one run would take hours.
-        mj = mujoco_cost(bench) if n <= 300 else float('nan')
+        mj = mujoco_cost(bench) if mujoco and n <= 300 else float('nan')
         rows.append(dict(case=f'{n} segments', n_segments=n, chains=1, kernel_s=k,
                          simulator_s=s, mujoco_s=mj, ratio=k / mj))
     bench16 = make_scene('moving', n_segments=16, solver=SolverSpec(integrator='rk4', dt=DT))
-    mj16 = mujoco_cost(bench16)
+    mj16 = mujoco_cost(bench16) if mujoco else float('nan')
     for c in (int(s) for s in args.crowds.split(',')):
         chain = bench16.scene.chains[0]
         scene = Scene(chains=tuple(chain for _ in range(c)),

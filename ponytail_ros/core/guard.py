@@ -23,12 +23,15 @@ def _c(a):
 
 
 class Guard:
-    """The guard's checks of ``Simulator`` (a part of it)."""
+    """The guard's checks of ``Simulator`` (a part of it; its ``_measures_out``: an array of
+    ``len(state_kernels.MEASURES)``, the measures' output, read at once)."""
+
+    _measures_out: np.ndarray
 
     def _measures(self, anchor):
         """``state_kernels.guard_measures`` of the state with ``anchor`` (its ``MEASURES``)."""
         m, st = self.model, self.state
-        out = np.empty(len(state_kernels.MEASURES))
+        out = self._measures_out
         swing_only = not self._explicit_gyroscopic and self.axisymmetric
         state_kernels.guard_measures(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
                                      _c(st.q), _c(st.v), _c(st.w), _c(anchor.position),

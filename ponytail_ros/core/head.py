@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .head_kernels import SINUSOID_COLUMNS, point_kinematics, sinusoid_table, track_table
 from .head_kernels import frame_ends as _frame_ends
-from .head_kernels import point_kinematics, track_table
 
 __all__ = [
-    'KinematicState', 'AnchorKinematics', 'HeadMotion', 'StillMotion', 'SwayYawMotion',
-    'WithStaticBodies', 'stack_states', 'point_table', 'frame_ends',
-    'AnchorTrack',
+    'KinematicState', 'AnchorKinematics', 'HeadMotion', 'SinusoidMotion', 'StillMotion',
+    'SwayYawMotion', 'WithStaticBodies', 'stack_states', 'point_table', 'frame_ends',
+    'stage_times', 'sinusoid_coefficients', 'AnchorTrack', 'SINUSOID_COLUMNS',
 ]
 
 
@@ -128,17 +128,42 @@ class HeadMotion:
 
     ``states_at(times)`` returns the states at all ``times`` ``(T,)`` at once, as one
     ``KinematicState`` whose arrays have a leading time axis ``(T, K, 3|4)``: the simulator
-    evaluates an exact motion at every stage time of a call before the compiled step runs.
-    The default stacks ``state_at``; a motion in closed form overrides it with array
-    expressions that give the same values bit for bit (the same IEEE operations per element:
-    NumPy's ``sin`` and ``cos`` of an array equal those of its elements one by one).
+    evaluates an exact motion at every stage time of a call before the compiled step runs
+    (``stage_points``). The default stacks ``state_at``; a motion in closed form overrides it
+    with array expressions that give the same values bit for bit (the same IEEE operations per
+    element: NumPy's ``sin`` and ``cos`` of an array equal those of its elements one by one).
+
+    ``fixed``: the motion never changes after construction (``stage_points`` is a function of
+    its arguments alone), so a simulator may evaluate it ahead for its next calls.
     """
+
+    fixed = False
 
     def state_at(self, t):  # pragma: no cover - interface
         raise NotImplementedError
 
     def states_at(self, times):
         return stack_states([self.state_at(t) for t in np.asarray(times, dtype=float)])
+
+    def stage_points(self, t_base, k0, n_steps, dt, body, r_local):
+        """Eq. 1–3 for the points ``body`` / ``r_local`` (as ``point_table``) at the stage
+        times of steps ``k0 … k0 + n_steps - 1`` of ``dt`` s from ``t_base`` s
+        (``stage_times``): an ``AnchorKinematics`` of C-contiguous ``(2 n_steps + 1, C, 3|4)``
+        arrays, each row bit for bit ``state_at(t).point_kinematics(body, r_local)``. What
+        ``Simulator.advance_to`` evaluates once per call; the default is ``point_table`` of
+        ``states_at``, a motion may compute it in one compiled call (``SinusoidMotion``)."""
+        return point_table(self.states_at(stage_times(t_base, k0, n_steps, dt)), body, r_local)
+
+
+def stage_times(t_base, k0, n_steps, dt):
+    """The stage times ``(2 n_steps + 1,)`` (s) of steps ``k0 … k0 + n_steps - 1`` of ``dt``
+    from ``t_base``: row ``2k`` at step ``k0 + k``'s start, ``t_base + (k0 + k) dt``,
+    ``2k + 1`` at its midpoint (half a step later), ``2 n_steps`` at the last step's end."""
+    t = t_base + (k0 + np.arange(n_steps + 1)) * dt
+    times = np.empty(2 * n_steps + 1)
+    times[0::2] = t
+    times[1::2] = t[:-1] + 0.5 * dt
+    return times
 
 
 def stack_states(states):
@@ -169,19 +194,37 @@ def point_table(states, body, r_local):
     T, K = states.position.shape[:2]
     body = np.asarray(body, dtype=np.int64).reshape(-1)
     C = body.shape[0]
+    rows, points = _table_points(T, K, body, r_local)
     # The T instants as T·K bodies of one state: row t's bodies are t·K ... t·K + K - 1; the
     # outputs' (T·C, ·) views fill the (T, C, ·) tables.
     out = AnchorKinematics(np.empty((T, C, 3)), np.empty((T, C, 3)), np.empty((T, C, 3)),
                            np.empty((T, C, 4)), np.empty((T, C, 3)))
     point_kinematics(*(np.ascontiguousarray(getattr(states, f), dtype=float).reshape(T * K, -1)
                        for f in STATE_FIELDS),
-                     (np.arange(T)[:, None] * K + body).reshape(-1),
-                     np.broadcast_to(np.asarray(r_local, dtype=float).reshape(C, 3),
-                                     (T, C, 3)).reshape(T * C, 3),
-                     out.position.reshape(T * C, 3), out.velocity.reshape(T * C, 3),
-                     out.acceleration.reshape(T * C, 3), out.orientation.reshape(T * C, 4),
-                     out.angular_velocity.reshape(T * C, 3))
+                     rows, points, *(a.reshape(T * C, -1) for a in (
+                         out.position, out.velocity, out.acceleration, out.orientation,
+                         out.angular_velocity)))
     return out
+
+
+_POINTS_CACHE: dict = {}
+
+
+def _table_points(T, K, body, r_local):
+    """``point_table``'s bodies ``(T·C,)`` (row t's: ``t·K + body``, ``body`` ``(C,)``) and
+    points ``(T·C, 3)`` for ``T`` instants of ``K`` bodies, kept for the last few
+    ``(T, K, body, r_local)`` (a simulator asks for the same few every call)."""
+    r_local = np.asarray(r_local, dtype=float).reshape(-1, 3)
+    key = (T, K, body.tobytes(), r_local.tobytes())
+    hit = _POINTS_CACHE.get(key)
+    if hit is None:
+        C = body.shape[0]
+        hit = ((np.arange(T)[:, None] * K + body).reshape(-1),
+               np.ascontiguousarray(np.broadcast_to(r_local, (T, C, 3)).reshape(T * C, 3)))
+        if len(_POINTS_CACHE) >= 16:
+            _POINTS_CACHE.pop(next(iter(_POINTS_CACHE)))
+        _POINTS_CACHE[key] = hit
+    return hit
 
 
 class WithStaticBodies(HeadMotion):
@@ -207,8 +250,11 @@ class WithStaticBodies(HeadMotion):
 class StillMotion(HeadMotion):
     """Kinematic bodies that never move (a ceiling anchor, a still head)."""
 
+    fixed = True
+
     def __init__(self, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)):
         self._state = KinematicState.still(position, orientation)
+        self._points: tuple = (None, None)     # (key, AnchorKinematics) of the last points
 
     def state_at(self, t):
         return self._state
@@ -219,8 +265,59 @@ class StillMotion(HeadMotion):
                                                 (T,) + getattr(self._state, f).shape).copy()
                                 for f in STATE_FIELDS))
 
+    def stage_points(self, t_base, k0, n_steps, dt, body, r_local):
+        """The points' one pose repeated at every stage time (``HeadMotion.stage_points``)."""
+        body = np.asarray(body, dtype=np.int64).reshape(-1)
+        r_local = np.asarray(r_local, dtype=float).reshape(-1, 3)
+        key = (body.tobytes(), r_local.tobytes())
+        if self._points[0] != key:
+            self._points = (key, self._state.point_kinematics(body, r_local))
+        S = 2 * int(n_steps) + 1
+        return AnchorKinematics(*(np.repeat(getattr(self._points[1], f)[None], S, axis=0)
+                                  for f in ANCHOR_FIELDS))
 
-class SwayYawMotion(HeadMotion):
+
+def sinusoid_coefficients(p0, amplitude, amplitude_rate, amplitude_accel, omega, phase, yaw,
+                          yaw_rate, yaw_accel, yaw_omega, yaw_phase):
+    """The coefficients ``(K, SINUSOID_COLUMNS)`` of ``K`` sinusoidal bodies
+    (``head_kernels.sinusoid_table``): per axis ``(K, 3)`` or ``(3,)`` p0 (m), A (m),
+    A ω (m/s), -A ω² (m/s²), ω (rad/s), φ (rad); then ``(K,)`` or scalars Y (rad), Y ω_y
+    (rad/s), -Y ω_y² (rad/s²), ω_y (rad/s), φ_y (rad). The products are taken as given: each
+    as the motion's own NumPy form computes it, so that both give the same values bit for
+    bit."""
+    axes = [np.asarray(a, dtype=float).reshape(-1, 3) for a in (
+        p0, amplitude, amplitude_rate, amplitude_accel, omega, phase)]
+    turns = [np.asarray(a, dtype=float).reshape(-1, 1) for a in (
+        yaw, yaw_rate, yaw_accel, yaw_omega, yaw_phase)]
+    K = max(a.shape[0] for a in axes + turns)
+    return np.ascontiguousarray(np.concatenate(
+        [np.broadcast_to(a, (K, a.shape[1])) for a in axes + turns], axis=1))
+
+
+class SinusoidMotion(HeadMotion):
+    """A motion of ``K`` bodies whose every coordinate is a sinusoid of time (the form of
+    ``head_kernels.sinusoid_table``): sway per axis and yaw about world Z. A subclass sets
+    ``coefficients`` (``sinusoid_coefficients``, from its own parameters, fixed after
+    construction) and gives ``state_at`` and ``states_at`` in NumPy with the same values; the
+    points at a call's stage times (``stage_points``) are then computed in one compiled call."""
+
+    coefficients: np.ndarray
+    fixed = True
+
+    def stage_points(self, t_base, k0, n_steps, dt, body, r_local):
+        """``HeadMotion.stage_points`` in one compiled call (``sinusoid_table``)."""
+        body = np.ascontiguousarray(body, dtype=np.int64).reshape(-1)
+        S, C = 2 * int(n_steps) + 1, body.shape[0]
+        out = AnchorKinematics(np.empty((S, C, 3)), np.empty((S, C, 3)), np.empty((S, C, 3)),
+                               np.empty((S, C, 4)), np.empty((S, C, 3)))
+        sinusoid_table(self.coefficients, float(t_base), int(k0), int(n_steps), float(dt), body,
+                       np.ascontiguousarray(r_local, dtype=float).reshape(-1, 3),
+                       (out.position, out.velocity, out.acceleration, out.orientation,
+                        out.angular_velocity))
+        return out
+
+
+class SwayYawMotion(SinusoidMotion):
     """Side-to-side sway with a yaw oscillation, with exact derivatives.
 
     ``position = p0 + (A sin 2πft, 0, 0)``; orientation = rotation about world Z by
@@ -231,6 +328,12 @@ class SwayYawMotion(HeadMotion):
                  yaw_frequency=0.8):
         self.p0 = np.asarray(p0, dtype=float)
         self.A, self.f, self.Y, self.fy = amplitude, frequency, yaw_amplitude, yaw_frequency
+        w = 2.0 * np.pi * self.f
+        wy = 2.0 * np.pi * self.fy
+        # (the products as ``states_at`` forms them; the other axes' terms are +0)
+        self.coefficients = sinusoid_coefficients(
+            self.p0, (self.A, 0.0, 0.0), (self.A * w, 0.0, 0.0), (-self.A * w * w, 0.0, 0.0),
+            (w, 0.0, 0.0), (0.0, 0.0, 0.0), self.Y, self.Y * wy, -self.Y * wy * wy, wy, 0.0)
 
     def state_at(self, t):
         w = 2.0 * np.pi * self.f

@@ -14,7 +14,9 @@ costs microseconds instead of hundreds of NumPy calls:
 * ``point_kinematics``: the motion of points fixed in kinematic bodies (Eq. 1–3 of ``head``);
   ``frame_ends`` evaluates it at both ends of a frame in one call (the track's two ends);
   ``frame_tables`` does a tick's whole head side in one call: the ends of the anchors' and
-  the colliders' bodies' tracks and both tables at the stage times of the call's steps.
+  the colliders' bodies' tracks and both tables at the stage times of the call's steps;
+  ``sinusoid_table`` evaluates a motion of sinusoids in closed form (``head.SinusoidMotion``)
+  and its points at the stage times of a call's steps, in one call.
 * ``add_samples``: ``HeadEstimator.add`` of one pose of each of many bodies at one stamp (a
   crowd's poses, one message for all its frames), its checks and arithmetic; and
   ``longest_median_interval``, the input period of a crowd (``median_interval`` of each).
@@ -31,9 +33,12 @@ from .vec import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotat
                   scale)
 
 __all__ = ['loess_fit', 'states_fit', 'fits_at', 'fit_time', 'svd_lstsq', 'track_table',
-           'point_kinematics', 'frame_ends', 'frame_tables', 'median_interval', 'add_samples',
-           'longest_median_interval', 'FIT_SIZE', 'ACCEPTED']
+           'point_kinematics', 'frame_ends', 'frame_tables', 'sinusoid_table', 'median_interval',
+           'add_samples', 'longest_median_interval', 'FIT_SIZE', 'ACCEPTED', 'SINUSOID_COLUMNS']
 
+#: The columns of ``sinusoid_table``'s coefficients, per body: p0, A, A ω, -A ω², ω, φ
+#: (3 each, per axis), then Y, Y ω_y, -Y ω_y², ω_y, φ_y.
+SINUSOID_COLUMNS = 23
 #: Length of ``loess_fit``'s output: p (3), q (4), ṗ (3), ω (3), p̈ (3), α (3).
 FIT_SIZE = 19
 EPS = np.finfo(np.float64).eps
@@ -619,3 +624,51 @@ def frame_tables(p0, q0, v0, w0, a0, al0, p1, q1, v1, w1, a1, al1, body, r_local
     track_table(times, t0, h, ends_b[0], ends_b[1], ends_b[2], ends_b[3], ends_b[4],
                 table_b[0], table_b[1], table_b[2], table_b[3], table_b[4])
     return finite
+
+
+@njit(cache=True)
+def sinusoid_table(coef, t_base, k0, n_steps, dt, body, r_local, out):
+    """Points fixed in ``K`` bodies moving in closed form (``head.SinusoidMotion``) at the
+    stage times of steps ``k0 … k0 + n_steps - 1`` of ``dt`` from ``t_base`` (row ``2k`` at
+    ``t_base + (k0 + k) dt``, ``2k + 1`` half a step later, ``2 n_steps`` at the last step's
+    end: ``head.stage_times``). Body ``b`` (row ``b`` of ``coef``, ``SINUSOID_COLUMNS``):
+
+        p = p0 + A sin(ω t + φ),  ṗ = (A ω) cos(ω t + φ),  p̈ = (-A ω²) sin(ω t + φ)
+        (per axis), turned about world Z by yaw = Y sin(ω_y t + φ_y), its rate
+        (Y ω_y) cos(ω_y t + φ_y) and acceleration (-Y ω_y²) sin(ω_y t + φ_y)
+
+    (each product as its column holds it, so that a motion's NumPy form and this give the
+    same values bit for bit). Into ``out``, the points' table (``point_kinematics`` of
+    ``body`` / ``r_local`` at each time): p, ṗ, p̈ ``(2 n_steps + 1, C, 3)``, the bodies'
+    orientation ``(·, C, 4)`` and ω ``(·, C, 3)``."""
+    K = coef.shape[0]
+    out_p, out_v, out_a, out_q, out_w = out
+    p, v, acc = np.empty((K, 3)), np.empty((K, 3)), np.empty((K, 3))
+    q, om, al = np.zeros((K, 4)), np.zeros((K, 3)), np.zeros((K, 3))
+    half = 0.5 * dt
+    for row in range(2 * n_steps + 1):
+        t = t_base + float(k0 + row // 2) * dt
+        if row % 2 == 1:
+            t = t + half
+        for b in range(K):
+            for a in range(3):
+                arg = coef[b, 12 + a] * t + coef[b, 15 + a]
+                s, c = _sin_cos(arg)
+                p[b, a] = coef[b, a] + coef[b, 3 + a] * s
+                v[b, a] = coef[b, 6 + a] * c
+                acc[b, a] = coef[b, 9 + a] * s
+            s, c = _sin_cos(coef[b, 21] * t + coef[b, 22])
+            yaw = 0.5 * (coef[b, 18] * s)
+            q[b, 2], q[b, 3] = _sin_cos(yaw)
+            om[b, 2] = coef[b, 19] * c
+            al[b, 2] = coef[b, 20] * s
+        point_kinematics(p, q, v, om, acc, al, body, r_local, out_p[row], out_v[row],
+                         out_a[row], out_q[row], out_w[row])
+
+
+@njit(cache=True, inline='always')
+def _sin_cos(x):
+    """sin x, cos x; at ±0 (a still axis) exactly ±0 and 1 without the calls."""
+    if x == 0.0:
+        return x, 1.0
+    return math.sin(x), math.cos(x)

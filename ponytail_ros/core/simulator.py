@@ -37,7 +37,7 @@ from .chain_ops import carry_with_anchors
 from .contact_steps import MAX_SUBSTEPS, SUBSTEP_ANGLE, ContactSteps
 from .guard import GYROSCOPIC_REACH_RATIO, Guard
 from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
-                   KinematicState, point_table, stack_anchors)
+                   KinematicState, point_table, stack_anchors, stage_times)
 from .head_kernels import frame_tables
 from .model import Model
 from .rotations import quat_conjugate, quat_multiply
@@ -123,6 +123,10 @@ class Simulator(ContactSteps, Guard):
         self._zeros = np.zeros((self.model.n, 3))
         self.external = None
         self._step_model_cache = None
+        self._last_kernel: tuple = (None, None)     # (StepModel, its compiled step)
+        # ``_points_ahead``'s table: ((motion, t_base, dt), first step, end step, table).
+        self._ahead: tuple = (None, 0, 0, None)
+        self._measures_out = np.empty(len(state_kernels.MEASURES))
         # The compiled calls of the current ``advance``: the free step's wall time and the
         # contact step's (s), and the cycles of the latter's stages (``stages.PROFILE_STAGES``,
         # then its calls' total).
@@ -270,27 +274,37 @@ class Simulator(ContactSteps, Guard):
     def advance_to(self, t_target, motion):
         """Advance to ``t_target`` (s) with the head given exactly at every stage time.
 
-        ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``).
+        ``motion``: a ``HeadMotion`` (``state_at(t) -> KinematicState``); the anchors at the
+        call's stage times are its ``stage_points``, evaluated once per call.
         """
-        states_at = _memo_times(motion.states_at)       # the anchors' and bodies' tables share it
         m = self.model
-
-        def anchor_table(times):
-            return point_table(states_at(times), m.anchor_body, m.attach)
-
         if not self._needs_bodies:
             anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
             self._anchor_at = anchor_at
-            return self._advance(t_target, anchor_at, motion.state_at, anchor_table=anchor_table)
-        # Colliders fixed in moving bodies: one evaluation of the motion for both.
+            if self.unilateral is None:
+                n_steps = self._steps_to(t_target)
+                if 0 < n_steps <= self.scene.solver.max_steps_per_call:
+                    return self._free_steps(n_steps, motion, anchor_at)
+
+            def anchor_points(k0, n_steps):
+                return motion.stage_points(self._t_base, k0, n_steps, self.dt,
+                                           self._anchor_body, m.attach)
+            return self._advance(t_target, anchor_at, motion.state_at, anchor_table=anchor_points)
+        # Colliders fixed in moving bodies: one evaluation of the motion for both, at every
+        # time and for the anchors' and the bodies' tables.
         state_at = _memo_last(motion.state_at)
         anchor_at = _memo_last(lambda t: self.anchors(state_at(t)))
         bodies_at = _memo_last(lambda t: _body_kinematics(state_at(t)))
+        states = _memo_last(lambda steps: motion.states_at(
+            stage_times(self._t_base, steps[0], steps[1], self.dt)), 1)
 
-        def body_table(times):
-            states = states_at(times)
-            k = states.position.shape[1]
-            return point_table(states, np.arange(k), np.zeros((k, 3)))
+        def anchor_table(k0, n_steps):
+            return point_table(states((k0, n_steps)), m.anchor_body, m.attach)
+
+        def body_table(k0, n_steps):
+            at = states((k0, n_steps))
+            k = at.position.shape[1]
+            return point_table(at, np.arange(k), np.zeros((k, 3)))
 
         self._anchor_at = anchor_at
         report = self._advance(t_target, anchor_at, motion.state_at, bodies_at,
@@ -331,8 +345,8 @@ class Simulator(ContactSteps, Guard):
                 self._store(out, k0 + k)
             return times.size
         m = self.model
-        table = self._table(point_table(motion.states_at(self._stage_times(int(counts.sum()))),
-                                        m.anchor_body, m.attach))
+        table = self._table(motion.stage_points(self._t_base, self._n_steps, int(counts.sum()),
+                                                self.dt, self._anchor_body, m.attach))
         self._anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
         model = self._step_model()
         st = self.state                 # the working arrays, stepped in place
@@ -395,14 +409,15 @@ class Simulator(ContactSteps, Guard):
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         if not self._needs_bodies:
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   anchor_table=track.table)
+                                   anchor_table=self._track_table(track))
         else:
             # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
             b_new = _body_kinematics(head)
             body_track = AnchorTrack(t_prev, self._last_bodies[1], t_frame, b_new)
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   _memo_last(body_track.at), anchor_table=track.table,
-                                   body_table=body_track.table)
+                                   _memo_last(body_track.at),
+                                   anchor_table=self._track_table(track),
+                                   body_table=self._track_table(body_track))
             self._bodies_at = body_track.at
             self._last_bodies = (float(t_frame), b_new)
         self._anchor_at = track.at
@@ -441,13 +456,14 @@ class Simulator(ContactSteps, Guard):
         track = AnchorTrack.from_ends(t_prev, t_frame, ends)
         if not self._needs_bodies:
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   anchor_table=track.table, planned=planned)
+                                   anchor_table=self._track_table(track), planned=planned)
         else:
             body_ends = AnchorKinematics(*ends_b)
             body_track = AnchorTrack.from_ends(t_prev, t_frame, body_ends)
             report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   _memo_last(body_track.at), anchor_table=track.table,
-                                   body_table=body_track.table, planned=planned)
+                                   _memo_last(body_track.at),
+                                   anchor_table=self._track_table(track),
+                                   body_table=self._track_table(body_track), planned=planned)
             self._bodies_at = body_track.at
             self._last_bodies = (float(t_frame), body_ends.row(1))
         t_frame = float(t_frame)
@@ -468,12 +484,12 @@ class Simulator(ContactSteps, Guard):
     def _stage_times(self, n_steps):
         """Times ``(2 n_steps + 1,)`` of the anchor table of the next ``n_steps`` steps: row
         ``2k`` at step k's start, ``2k + 1`` at its midpoint, ``2k + 2`` at its end."""
-        k = self._n_steps + np.arange(n_steps + 1)
-        t = self._t_base + k * self.dt
-        times = np.empty(2 * n_steps + 1)
-        times[0::2] = t
-        times[1::2] = t[:-1] + 0.5 * self.dt
-        return times
+        return stage_times(self._t_base, self._n_steps, n_steps, self.dt)
+
+    def _track_table(self, track):
+        """An ``AnchorTrack``'s table function for ``_tables``: the track at the stage times
+        of ``n_steps`` steps from step ``k0``."""
+        return lambda k0, n_steps: track.table(stage_times(self._t_base, k0, n_steps, self.dt))
 
     def _step_model(self):
         """The compiled step's ``StepModel``: the model's current arrays and switches, built
@@ -512,8 +528,9 @@ class Simulator(ContactSteps, Guard):
         ext_F, ext_T = self._external_arrays()
         f_c = np.zeros((self.model.n, 3))
         model = self._step_model() if model is None else model
+        kernel = self._kernel(model)
         t0 = time.perf_counter()
-        status = self._kernel(model)(model, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
+        status = kernel(model, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c)
         self._call_wall += time.perf_counter() - t0
         self.f_c = f_c
         if status == compiled.JOINT_SOLVE_FAILED:
@@ -524,8 +541,12 @@ class Simulator(ContactSteps, Guard):
     def _kernel(self, model):
         """The compiled step for ``model`` (a ``StepModel``): ``lanes.advance_lanes`` for a
         crowd whose terms it covers, else ``step.advance_rk4`` or ``step.advance`` (the same
-        results bit for bit; ``lanes.kernel_for``)."""
-        return lanes.kernel_for(model, self._crowd)
+        results bit for bit; ``lanes.kernel_for``), kept for the last ``model``."""
+        last, kernel = self._last_kernel
+        if model is not last:
+            kernel = lanes.kernel_for(model, self._crowd)
+            self._last_kernel = (model, kernel)
+        return kernel
 
     def _advance(self, t_target, anchor_at, head_at, bodies_at=None, anchor_table=None,
                  body_table=None, planned=None):
@@ -551,17 +572,18 @@ class Simulator(ContactSteps, Guard):
         failure = None
         self._end_row = None            # the last anchor table's end row: the anchor at self.t
         self._call_wall = self._uni_wall = 0.0
-        self._profile[:] = 0
         t_start = time.perf_counter()
         try:
             if self.unilateral is not None:
+                self._profile[:] = 0
                 x, q, v, w = self._steps_unilateral(max(n_steps, 0), anchor_at, bodies_at,
                                                     x, q, v, w, anchor_table, body_table,
                                                     planned)
             elif n_steps > 0:
                 table, _ = self._tables(n_steps, anchor_at, anchor_table, planned)
-                x, q, v, w = (np.array(a, dtype=float) for a in (x, q, v, w))
-                self._run_compiled(n_steps, self.dt, table, x, q, v, w)
+                x, q = np.array(x, dtype=float), np.array(q, dtype=float)
+                v, w = np.array(v, dtype=float), np.array(w, dtype=float)
+                self._run_compiled_table(n_steps, self.dt, table, x, q, v, w)
                 self._n_steps += n_steps
                 self._end_row = table
             report.steps = max(n_steps, 0)
@@ -582,12 +604,70 @@ class Simulator(ContactSteps, Guard):
         self._split_timings(report)
         return report
 
+    def _free_steps(self, n_steps, motion, anchor_at):
+        """``_advance`` to the end of the next ``n_steps`` steps (``0 < n_steps <=
+        max_steps_per_call``) of a scene without colliders or limits, its anchors
+        ``motion.stage_points``: the same, bit for bit, in fewer Python steps (a call's
+        Python costs about what the compiled steps of a short chain do)."""
+        report = StepReport(steps=n_steps)
+        self._call_wall = self._uni_wall = 0.0
+        t_start = time.perf_counter()
+        table = self._points_ahead(motion, n_steps) if motion.fixed else self._table(
+            motion.stage_points(self._t_base, self._n_steps, n_steps, self.dt,
+                                self._anchor_body, self.model.attach))
+        st = self.state
+        x, q = np.array(st.x, dtype=float), np.array(st.q, dtype=float)
+        v, w = np.array(st.v, dtype=float), np.array(st.w, dtype=float)
+        failure = None
+        try:
+            self._run_compiled_table(n_steps, self.dt, table, x, q, v, w)
+            self._n_steps += n_steps
+        except np.linalg.LinAlgError as err:
+            failure = str(err)
+            report.steps = 0
+            x = np.full_like(x, np.nan)
+        t_steps = time.perf_counter()
+        self.t = self._t_base + self._n_steps * self.dt
+        self.state = ChainState(x, q, v, w)
+        # (the table's end row is the anchor at self.t bit for bit: the same evaluation)
+        self._end_call(report, AnchorKinematics(*(a[-1] for a in table)) if failure is None
+                       else anchor_at(self.t), failure, motion.state_at)
+        report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps,
+                          'integrate': self._call_wall, **_NO_CONTACTS}
+        return report
+
+    def _points_ahead(self, motion, n_steps):
+        """The compiled ``AnchorTable`` of ``motion.stage_points`` of the next ``n_steps``
+        steps for a ``fixed`` motion: rows of a table evaluated ahead for this call and the
+        next few (``AHEAD_ROWS`` rows of anchors in all; the same values bit for bit: each
+        row's time is computed from its step's index alike), evaluated again when the motion,
+        the step grid or the range changes."""
+        k0 = self._n_steps
+        key = (motion, self._t_base, self.dt)
+        last_key, first, stop, table = self._ahead
+        if last_key != key or not first <= k0 or k0 + n_steps > stop:
+            C = self._anchor_body.shape[0]
+            first, stop = k0, k0 + max(n_steps, AHEAD_ROWS // (2 * max(C, 1)))
+            table = self._table(motion.stage_points(self._t_base, first, stop - first, self.dt,
+                                                    self._anchor_body, self.model.attach))
+            self._ahead = (key, first, stop, table)
+        row = 2 * (k0 - first)
+        if row == 0 and k0 + n_steps == stop:
+            return table
+        rows = slice(row, row + 2 * n_steps + 1)
+        p, v, a, q, w = table
+        return compiled.AnchorTable(p[rows], v[rows], a[rows], q[rows], w[rows])
+
     def _split_timings(self, report):
         """``report.timings``' ``integrate`` and ``contacts`` (and the latter's parts): the
         contact step's calls' wall time split by the cycles it counted in each stage, plus the
         free step's (sub-steps after an impact) as ``integrate``."""
-        integrate, contacts, total, *parts = self._profile.tolist()
         free, uni = self._call_wall, self._uni_wall
+        if uni == 0.0:                  # (no contact step ran: no cycles to split)
+            report.timings['integrate'] = free
+            report.timings.update(_NO_CONTACTS)
+            return
+        integrate, contacts, total, *parts = self._profile.tolist()
         if total > 0:
             report.timings['integrate'] = free + uni * (integrate / total)
             report.timings['contacts'] = uni * (contacts / total)
@@ -617,7 +697,8 @@ class Simulator(ContactSteps, Guard):
         """The compiled ``AnchorTable``s of the anchors and of the bodies (the anchors' again
         unless the colliders are ``moving``) at the stage times of the next ``n_steps``
         steps: ``planned``'s (``_advance``) when they are its steps, else from the tables'
-        functions (or the anchors and bodies at each time).
+        functions (``anchor_table(k0, n_steps)``, ``body_table`` alike: the table of
+        ``n_steps`` steps from step ``k0``), or the anchors and bodies at each time.
 
         After a step taken in sub-steps the call goes on from a later step: the steps left
         are the end of ``planned``'s, whose rows from that step on are theirs, bit for bit
@@ -631,18 +712,20 @@ class Simulator(ContactSteps, Guard):
                 if skip:
                     A, B = _table_rows(A, 2 * skip), _table_rows(B, 2 * skip)
                 return A, B if moving else A
-        times = self._stage_times(n_steps)
-        A = self._table(anchor_table(times) if anchor_table else
-                        stack_anchors([anchor_at(t) for t in times]))
+        k0 = self._n_steps
+        A = self._table(anchor_table(k0, n_steps) if anchor_table else
+                        stack_anchors([anchor_at(t) for t in self._stage_times(n_steps)]))
         if not moving:
             return A, A
-        return A, self._table(body_table(times) if body_table else
-                              stack_anchors([bodies_at(t) for t in times]))
+        return A, self._table(body_table(k0, n_steps) if body_table else
+                              stack_anchors([bodies_at(t) for t in self._stage_times(n_steps)]))
 
     @staticmethod
     def _table(t):
-        return compiled.AnchorTable(*(np.ascontiguousarray(a, dtype=float) for a in (
-            t.position, t.velocity, t.acceleration, t.orientation, t.angular_velocity)))
+        """The compiled ``AnchorTable`` of an ``AnchorKinematics`` table (its arrays as they
+        are when C-contiguous floats, as the tables' functions give them)."""
+        return compiled.AnchorTable(_c(t.position), _c(t.velocity), _c(t.acceleration),
+                                    _c(t.orientation), _c(t.angular_velocity))
 
     def _external_arrays(self):
         if self.external is None:
@@ -741,16 +824,11 @@ def _memo_last(f, size=2):
     return g
 
 
-def _memo_times(f):
-    """Cache ``f(times)`` for the last ``times`` array (by identity): the anchor and body
-    tables of one call are evaluated from one evaluation of the motion."""
-    last = [None, None]
-
-    def g(times):
-        if last[0] is not times:
-            last[0], last[1] = times, f(times)
-        return last[1]
-    return g
+#: Rows of anchors (rows of the table times chains) a simulator evaluates ahead for a fixed
+#: motion (``HeadMotion.fixed``): a few calls' worth for a few chains, one call's for a crowd.
+AHEAD_ROWS = 128
+#: ``StepReport.timings``' contact entries of a call without the contact step.
+_NO_CONTACTS = {'contacts': 0.0, **{f'contact_{name}': 0.0 for name in stages.CONTACT_STAGES}}
 
 
 def _body_kinematics(head):
