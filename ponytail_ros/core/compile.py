@@ -195,7 +195,7 @@ def _unilateral_is(in_lanes, constrained):
 
 def _stage_kernels(stage):
     """``(kernel, signature test or None)`` of the kernels ``stage`` compiles."""
-    from . import (contact_kernels, head_kernels, lanes, limit_kernels, marker_kernels,
+    from . import (contact_model, head_kernels, lanes, limit_kernels, marker_kernels,
                    state_kernels, step, step_unilateral)
     uni = step_unilateral.advance_unilateral
     kernels = {
@@ -205,7 +205,7 @@ def _stage_kernels(stage):
         'other integrators': [step.advance],
         'crowd lanes': [lanes.advance_lanes],
         'contact step': [(uni, _unilateral_is('none', 'none')),
-                         contact_kernels.resolve_workspace, limit_kernels.joint_angles],
+                         contact_model.resolve_workspace, limit_kernels.joint_angles],
         'contact step (other integrators)': [(uni, _unilateral_is('none', 'bool'))],
         'crowd contacts': [(uni, _unilateral_is('bool', 'none'))],
         'head fit': [head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,
