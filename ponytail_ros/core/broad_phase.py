@@ -110,7 +110,7 @@ def collider_pose_into(body_position, body_orientation, body_velocity, body_omeg
             normal[j, a] = wn[a]
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def anchor_distance(p, aj, dj, nn, is_round, radius):
     """Distance (m) from a chain's anchor ``p`` to a collider's surface: to a round
     collider's core ``aj + t dj`` minus its ``radius``, a plane's (through ``aj``, normal
@@ -136,7 +136,7 @@ def outside_box(p, aj, dj, radius, reach):
     return False
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def surface_speed(v, w, det, fastest):
     """A bound (m/s) on how fast any colliding segment's surface nears any collider: the
     fastest centre's speed, plus the fastest spin times the longest half segment, plus the
@@ -168,7 +168,7 @@ def near(anchor_position, pose, v, w, det, dt, fastest):
     return False
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def test_pair(state, c, j, p, reach, box, a0, d2, normal, n_round, col_radius, pair_list,
               count):
     """``near_pairs``' test of the pair (chain slot c at anchor ``p``, collider j), unless
@@ -254,7 +254,7 @@ def broad_phase_setup(pose, det, ws):
     sweep[SW_FASTEST] = fastest
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: C901 (kernel loops)
     """Broad phase per (colliding chain, collider) pair, then detection (``detect_segments``) of
     every segment of the pairs kept; returns the position skin (``POSITION_SKIN`` plus 4×
@@ -343,7 +343,7 @@ def near_pairs(x, h, anchor_position, pose, v, w, model, det, dt, ws):  # noqa: 
     return skin
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def sort_ints(a):
     """``a`` sorted in place, ascending (insertion sort: a chain keeps a few pairs)."""
     for i in range(1, a.shape[0]):

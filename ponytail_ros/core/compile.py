@@ -62,7 +62,7 @@ _CHILD_STAGES = ('contact step', 'contact step (other integrators)', 'crowd cont
 #: Rough compile cost of each stage on one core of a small machine, s: for the estimate said
 #: before compiling only (``bench.compile_cost`` measures them).
 _ROUGH_SECONDS = {'free step': 35.0, 'other integrators': 25.0, 'crowd lanes': 35.0,
-                  'contact step': 130.0, 'contact step (other integrators)': 15.0,
+                  'contact step': 80.0, 'contact step (other integrators)': 15.0,
                   'crowd contacts': 35.0, 'head fit': 6.0, 'markers': 2.0}
 
 #: Wall time (s) of each stage of the last compile in this process, in its order: what a

@@ -115,7 +115,7 @@ def solve_rows_into(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam,
         solve_rows_alloc(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam)
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def _solve_one_row(R, I, b, bound, h, inv_I, C, Lo, model, sc, dv_out, dw_out):
     """``solve_rows_into`` for one row (``sc``'s response scratch holding its chain): its
     impulse λ, returned, and the velocity change added to ``dv_out``, ``dw_out``. The
@@ -236,7 +236,7 @@ def solve_rows(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out):
     return lam
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def velocity_impulses(R, I, b, h, inv_I, C, Lo, model, v, w, ws):
     """Inelastic impulses on the rows (``b``: separation rates plus the speculative allowance),
     then Coulomb friction on the contacts that push; ``v``, ``w`` updated in place. ``ws``:

@@ -23,6 +23,14 @@ Kernels marked ``_nrt=False`` (here and in the other contact modules) borrow eve
 touch (they allocate nothing and return no array; their callers own all of them): compiled
 without numba's reference counting, they skip the atomic increment and decrement each array
 bound, sliced or passed costs otherwise.
+
+Compile time (a cold cache compiles the contact stage at a node's first start): a kernel only
+other kernels call is compiled without the CPython and C wrappers (``no_cpython_wrapper``,
+``no_cfunc_wrapper``: each as large as its arguments' unboxing); ``inline='always'`` is kept
+for the workspace's view accessors and the small helpers of a hot loop, where a call costs
+speed, and never for a large function called from several places (numba copies and types an
+inlined callee again at each call site): ``contact_rows.build_rows_into`` is one call from
+three places. Every integer argument is an int64 (a literal makes another specialisation).
 """
 import numpy as np
 from numba import njit
@@ -101,7 +109,7 @@ SC_INT, SC_MOBILE, SC_RESP, SC_CDOT, SC_W, SC_LC, SC_DS = range(7)
 # The workspace is sized for the largest chain (``resolve_workspace``) and a call resolves one
 # chain: its per-segment arrays are taken at that chain's length (leading-axis views, the same
 # C-contiguous types), so that no loop over an array's length reads another chain's leftovers.
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def zero_pair(a, b):
     """``a[:] = 0; b[:] = 0`` for two ``(n, 3)`` arrays, as plain loops (a slice assignment
     of a 2-D view costs more than its few stores, and these are zeroed at every step)."""
@@ -259,7 +267,7 @@ def chain_args(model, det, split, c):
     return chain_model(model, split, c), chain_det(det, split, c)
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def chain_is_free(split, has_colliders, c):
     """Whether chain ``c`` has nothing to resolve (no colliding segment, no limit)."""
     collides = has_colliders and split[SP_SLOT][c] >= 0

@@ -92,7 +92,7 @@ def col3(R, r, c):
     return (R[r, c], R[r, c + 1], R[r, c + 2])
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def contact_rows(x, q, v, w, anchor_position, pose, model, det, dt, R, I, ws):
     """The contact rows into ``R``, ``I`` (segment-major, from row 0, with room left for the
     limit rows): returns their number, -1 if the tables could be too small.
@@ -300,7 +300,7 @@ def refresh_sep(R, I, v, w, anchor_omega, chain_of):
 
 
 # -- the rows' impulses and the chain's response ------------------------------------------------
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def joint_error(bv, bw, bv_prev, bw_prev, h, i, j, first_row):
     """Joint i's velocity error (``row_response``): parent's distal point minus child's
     proximal point, for centre and angular velocities ``bv``, ``bw`` of the child (segment
@@ -311,7 +311,7 @@ def joint_error(bv, bw, bv_prev, bw_prev, h, i, j, first_row):
     return d
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def free_joint_errors(vg, wg, wp, has_parent, gl, s, h, c_dot):
     """Ċ of a free response (``vg``, ``wg`` on local segment gl, ``wp`` on its parent if
     ``has_parent``) into ``c_dot``: zero but at joints gl - 1 (with a parent), gl, gl + 1."""

@@ -105,7 +105,7 @@ def rotate_segments(q, dth, length):
     return unclamped and small < 0.1 * POSITION_TOLERANCE
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, dt, ws, stats,  # noqa: C901, E501
                    profile):
     """Positions: passes of the linearised LCP ``W μ - depth ≥ 0, μ ≥ 0`` over the violated
@@ -172,7 +172,7 @@ def position_stage(x, q, v, w, anchor, q_rest, pose, model, det, has_colliders, 
     return OK, moved, R.shape[0]
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def limit_stage(x, q, anchor, q_rest, model, ws):
     """The limits' exact projection (``project_limits``) for what the linearisation of their
     cones left; ``x``, ``q`` in place. Returns whether anything moved."""
@@ -204,7 +204,7 @@ def unprojected_positions(x0, q0, q, anchor, model, x, h, p0, p1):
             x[i, a] = x0[i, a] + (p1[i, a] - p0[i, a])
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def velocity_stage(R, I, q, v, w, anchor, model, project, dt, have_factor, ws, stats):
     """Velocities: every row touching, or whose gap would close within ``SPECULATIVE_STEPS``
     steps at its current rate, gets the inelastic impulse of the LCP
