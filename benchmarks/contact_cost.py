@@ -1,5 +1,5 @@
 """``python benchmarks/contact_cost.py``: CPU time of the contact and limit stage alone
-(``contact_kernels.resolve``) per internal step, on states recorded from a moving-head run.
+(``contact_stage.resolve``) per internal step, on states recorded from a moving-head run.
 
 A params file's scene (``--segments`` of its chain, or ``--characters`` N copies as in
 ``tick_cost --characters``) is run for ``--ticks`` frames of ``SwayYawMotion`` through the
@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 from ponytail_ros.bench.tick_cost import crowd_scene
-from ponytail_ros.core import contact_kernels as K, scene as scene_module
+from ponytail_ros.core import contact_stage as K, scene as scene_module
 from ponytail_ros.core.head import SwayYawMotion
 from ponytail_ros.core.simulator import Simulator
 from ponytail_ros.testing import load_config

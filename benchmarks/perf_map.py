@@ -13,7 +13,7 @@ specialisation number). Run it under ``perf record``::
     perf report -i /tmp/k.data --no-children --sort sym
 
 Functions that numba or LLVM inlined count in their caller (``inline='always'`` kernels
-such as ``contact_kernels.position_stage`` show up inside ``_resolve_stages``); libm's
+such as ``contact_stage.limit_stage``'s callees show up inside it); libm's
 functions (``atan2``, ``sin``) are named by ``perf`` itself. The addresses come from numba's
 execution engine (``codegen()._engine``, not a public API: a numba that changes it makes
 this command say so, not mis-name samples).

@@ -1,5 +1,5 @@
 """Oracle (test only): the NumPy + SciPy implementation of ``ponytail_ros.core.collision``
-before it was compiled (``contact_kernels``), kept to check the compiled resolve against. The
+before it was compiled (``contact_stage``), kept to check the compiled resolve against. The
 chain's mass terms and banded storage are copied here (from ``solver``) so that it does not
 depend on the dynamics being rewritten.
 
@@ -401,7 +401,7 @@ def _rows_concat(parts):
 class Unilateral:
     """Contacts and joint limits of a model, resolved after every internal step chain by
     chain: each chain as if it were alone with all the colliders (``_ChainUnilateral`` of a
-    model of that chain alone), as ``contact_kernels.resolve_chains_into`` does: chains do
+    model of that chain alone), as ``contact_stage.resolve_chains_into`` does: chains do
     not touch one another. ``last``: contacts and limits summed, the most position passes."""
 
     def __init__(self, model, dt):

@@ -1,5 +1,5 @@
-"""The compiled contacts and limits (``contact_kernels``) against the NumPy implementation they
-replaced (``_oracle_collision``, ``_oracle_limits``), call by call.
+"""The compiled contacts and limits (``contact_stage`` and its modules) against the NumPy
+implementation they replaced (``_oracle_collision``, ``_oracle_limits``), call by call.
 
 Each scene is run with the compiled resolve; every call's inputs (the state after the
 integrator step, the anchors, the colliders' pose, the step) are replayed through the oracle,
@@ -19,8 +19,9 @@ from ponytail_ros.core import (
     Scene,
     Simulator,
     StillMotion,
+    broad_phase,
     collision,
-    contact_kernels,
+    contact_model,
     limits,
     step,
 )
@@ -121,7 +122,7 @@ def _caged():
     """A short chain hanging in a cage of twelve small spheres (on the head), 1 mm clear of them:
     every collider is within the chain's reach, so the candidate rows (4 segments × 12
     colliders) overflow the row tables' usual room (``ROW_COLLIDERS`` per segment) and the
-    step is resolved again with grown tables (``contact_kernels.grown``)."""
+    step is resolved again with grown tables (``contact_model.grown``)."""
     chain = ChainSpec(n_segments=4, length=0.4, mass=0.05, radius=0.01, attach=(0, 0, 0),
                       damping=2e-4, drag_linear=0.05)
     cage = tuple(ColliderSpec.sphere(center=(0.036 * np.cos(a), 0.036 * np.sin(a), z),
@@ -137,7 +138,7 @@ SCENES['caged: the row tables grow'] = (_caged, ShakeMotion, 0.6)
 def _swept():
     """The rooted ponytail among twenty world spheres in a row behind the head, one of them
     under the hanging chain: from ``SWEEP_COLLIDERS`` round colliders on, the broad phase
-    tests only those near each chain along the row (``contact_kernels.sweep_order``)."""
+    tests only those near each chain along the row (``broad_phase.sweep_order``)."""
     scene = _ponytail()
     row = tuple(ColliderSpec.sphere(center=(-0.2, y, -0.32), radius=0.06, body=None,
                                     friction=0.3)
@@ -151,20 +152,19 @@ SCENES['many spheres: the broad phase sweeps'] = (_swept, ShakeMotion, 0.6)
 def test_the_swept_scene_takes_the_sweep():
     """The premise of the swept scene: more round colliders than ``SWEEP_COLLIDERS``."""
     scene = _swept()
-    assert len(scene.colliders) >= contact_kernels.SWEEP_COLLIDERS
+    assert len(scene.colliders) >= broad_phase.SWEEP_COLLIDERS
 
 
 def test_the_caged_chain_overflows_the_usual_row_tables():
     """The premise of the caged scene: every collider is within the chain's reach of its
     anchor (so the broad phase keeps every pair), and the candidate rows, segments × colliders,
     exceed the usual tables (segments × ``ROW_COLLIDERS``): its steps take the grown path."""
-    from ponytail_ros.core import contact_kernels
     scene = _caged()
     chain = scene.chains[0]
     reach = chain.length + chain.radius
     for col in scene.colliders:
         assert np.linalg.norm(np.asarray(col.center)) - col.radius < reach
-    assert len(scene.colliders) > contact_kernels.ROW_COLLIDERS
+    assert len(scene.colliders) > contact_model.ROW_COLLIDERS
 
 
 def _per_step(sim):
@@ -309,13 +309,13 @@ def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
     (``solve_rows``, whose empty scratch always takes it) bit for bit: every candidate row of
     recorded states (contacts; limits, which also move the parent), as a normal row and as
     a friction row, with closing and separating rates, added onto non-zero velocities."""
-    from ponytail_ros.core import contact_kernels as K
+    from ponytail_ros.core import contact_impulses, contact_joints, contact_model
     make_scene, make_motion, seconds = SCENES[name]
     sim, calls = _recorded_calls(make_scene(), make_motion(), 0.5 * seconds)
     m, uni = sim.model, sim.unilateral
     n = m.n
     rng = np.random.default_rng(0)
-    sc = K.solve_scratch(1, 1, n, m.n_chains)
+    sc = contact_model.solve_scratch(1, 1, n, m.n_chains)
     compared = pushed = parents = 0
     for args, anchor, pose, _project, dt, _, _, q_rest in calls[::7]:
         m.q_rest[:] = q_rest
@@ -326,18 +326,19 @@ def test_one_row_solve_is_the_general_solve_bit_for_bit(name):
         R, I = collision._rows_arrays(rows)
         h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
         C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
-        assert K.factor_chain(np.ascontiguousarray(args[1]), uni.model_args, h, inv_I, C, Lo)
+        assert contact_joints.joint_factors(np.ascontiguousarray(args[1]), uni.model_args, h,
+                                           inv_I, C, Lo)
         v0, w0 = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
         for r in range(R.shape[0]):
             for friction in (False, True):
                 b = np.array([rng.normal() * 0.1])
                 bound = np.array([abs(rng.normal()) * 0.01]) if friction else np.zeros(0)
                 dv, dw = v0.copy(), w0.copy()
-                lam = K.solve_rows(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
-                                   uni.model_args, dv, dw)
+                lam = contact_impulses.solve_rows(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C,
+                                                  Lo, uni.model_args, dv, dw)
                 v, w, one = v0.copy(), w0.copy(), np.full(1, np.nan)
-                K.solve_rows_into(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
-                                  uni.model_args, v, w, one, sc)
+                contact_impulses.solve_rows_into(R[r:r + 1], I[r:r + 1], b, bound, h, inv_I, C, Lo,
+                                                 uni.model_args, v, w, one, sc)
                 assert np.array_equal(one, lam)
                 assert np.array_equal(v, dv) and np.array_equal(w, dw)
                 compared += 1
@@ -353,7 +354,7 @@ def test_small_lcp_is_exact_and_matches_the_oracle(k, seed):
     λ ≥ 0, slack ≥ 0 and λ·slack = 0 to rounding for the regularised W + REG·diag(W) it
     solves; λ agrees with the NumPy principal pivoting; the Lawson–Hanson fall-back gives the
     same λ."""
-    from ponytail_ros.core import contact_kernels as K
+    from ponytail_ros.core import small_solves as K
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(k, k + 2))
     W = A @ A.T / k

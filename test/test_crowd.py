@@ -196,7 +196,7 @@ def test_a_frames_teleport_resets_only_the_chains_hanging_from_it():
     tolerance of the run without the jump (its position passes are counted over the whole
     scene, so a chain put at rest changes how far the others' shallow contacts are pushed
     out, below that tolerance). The batched and the per-frame paths agree bit for bit."""
-    from ponytail_ros.core.contact_kernels import POSITION_TOLERANCE
+    from ponytail_ros.core.contact_model import POSITION_TOLERANCE
     from ponytail_ros.core.rotations import quat_rotate
     still, base, _ = _teleport_run(0.0)
     runner, outs, sent = _teleport_run(20.0)
@@ -275,13 +275,13 @@ def _crowd_heads(n):
 def test_a_character_in_a_crowd_moves_exactly_as_alone(characters):
     """Chains do not touch one another, so what one character's hair touches must not change
     another's step: the contact stage resolves each chain on its own
-    (``contact_kernels.resolve_chains_into``). The first of three characters (placed by
+    (``contact_stage.resolve_chains_into``). The first of three characters (placed by
     ``crowd_offsets``) moves bit for bit as the same character alone, over 2 s of touching
     its skull (a stage that pooled the chains' skin, passes and re-projection differed by
     0.025 mm here). Of twenty, too: their chains step in SIMD lanes (``lanes``) and the broad
     phase sweeps the colliders (``SWEEP_COLLIDERS``), keeping each chain's one skull of
     twenty."""
-    from ponytail_ros.core import contact_kernels, lanes
+    from ponytail_ros.core import broad_phase, lanes
     from ponytail_ros.core.simulator import Simulator
     base = values_from_params_file(config_path('ponytail.yaml'))
     (_, crowd, _), (_, alone, _) = (scene_and_settings(complete_values(crowd_values(base, n)))
@@ -289,7 +289,7 @@ def test_a_character_in_a_crowd_moves_exactly_as_alone(characters):
     h3, h1 = _crowd_heads(characters), _crowd_heads(1)
     a, b = Simulator(crowd, h3(0.0)), Simulator(alone, h1(0.0))
     if characters > 3:                  # (the premises: the sweep, the lanes)
-        assert len(crowd.colliders) >= contact_kernels.SWEEP_COLLIDERS
+        assert len(crowd.colliders) >= broad_phase.SWEEP_COLLIDERS
         assert a._kernel(a._step_model()) is lanes.advance_lanes
     contacts = 0
     for k in range(1, 241):

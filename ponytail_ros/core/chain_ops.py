@@ -2,14 +2,14 @@
 orientations, an impulse's response, the state carried rigidly by the anchors.
 
 The joints are closed by the compiled kernels the contact stage uses
-(``contact_kernels.project_positions``, ``project_velocities``, and ``factor_chain`` with
+(``contact_joints.project_positions``, ``project_velocities``, and ``joint_factors`` with
 ``joint_projection`` for the mass-weighted response), so these equations exist once. They take
-the model's constant tuple (``joint_args``, the layout of ``contact_kernels.LENGTH`` ...).
+the model's constant tuple (``joint_args``, the layout of ``contact_model.LENGTH`` ...).
 All arrays are world frame, SI (``state`` module).
 """
 import numpy as np
 
-from . import contact_kernels
+from . import contact_joints
 from .rotations import (cross, quat_conjugate, quat_from_two_vectors, quat_integrate,
                         quat_multiply, quat_normalize, quat_rotate, quat_to_matrix, skew)
 from .state import ChainState, half_vectors
@@ -32,7 +32,7 @@ def is_axisymmetric(model):
 
 def joint_args(model):
     """The model's constant tuple of the compiled joint and contact kernels
-    (``contact_kernels.LENGTH`` ... ``TWIST_LIMIT``)."""
+    (``contact_model.LENGTH`` ... ``TWIST_LIMIT``)."""
     i64 = np.int64
     lim = np.flatnonzero(np.isfinite(model.swing_limit)
                          | np.isfinite(model.twist_limit)).astype(i64)
@@ -52,8 +52,8 @@ def closed_state(model, args, anchor, q, w):
     h = _c(half_vectors(model.length, q))
     x, v = np.empty((n, 3)), np.empty((n, 3))
     w = _c(w)
-    contact_kernels.project_positions(_c(anchor.position), h, args, x)
-    contact_kernels.project_velocities(_c(anchor.velocity), w, h, args, v)
+    contact_joints.project_positions(_c(anchor.position), h, args, x)
+    contact_joints.project_velocities(_c(anchor.velocity), w, h, args, v)
     return ChainState(x, _c(q), v, w.copy())
 
 
@@ -90,12 +90,12 @@ def apply_impulse(model, args, state, anchor, segment, impulse, r):
     q = _c(state.q)
     h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
     C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
-    if not contact_kernels.factor_chain(q, args, h, inv_I, C, Lo):
+    if not contact_joints.joint_factors(q, args, h, inv_I, C, Lo):
         return False
     v, w = _c(state.v).copy(), _c(state.w).copy()
     v[segment] += impulse * model.inv_mass[segment]
     w[segment] += inv_I[segment] @ cross(r, impulse)
-    contact_kernels.joint_projection(v, w, _c(anchor.velocity), h, inv_I, C, Lo, args,
+    contact_joints.joint_projection(v, w, _c(anchor.velocity), h, inv_I, C, Lo, args,
                                      np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)))
     state.v[:], state.w[:] = v, w
     return True

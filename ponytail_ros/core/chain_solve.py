@@ -39,7 +39,7 @@ from .vec import qaxis_x_s, qmatrix_s
 ensure_fresh()          # before any kernel's cache is loaded (see ``kernel_cache``)
 
 __all__ = ['JointModel', 'factor', 'solve', 'solve_from', 'solve_many', 'invert_pivot', 'pivot',
-           'joint_row', 'store_factors', 'blocks_ldl', 'mass_properties', 'segment_G',
+           'joint_row', 'store_factors', 'mass_properties', 'segment_G',
            'G_axisymmetric', 'G_general', 'inv_inertia_axisymmetric', 'store_block', 'block',
            'mul9', 'ZERO6', 'ZERO9']
 
@@ -256,30 +256,6 @@ def factor(J, q, s, e, hv, Iinv, Pinv, Lo):
         first = J.is_first[i]
         imp = 0.0 if first else J.inv_mass[i - 1]
         ok, lo, pinv = joint_row(first, pinv, J.inv_mass[i], imp, g, gp)
-        if not ok:
-            return False
-        store_factors(Pinv, Lo, i, pinv, lo)
-    return True
-
-
-@nb.njit(cache=True, _nrt=False)
-def blocks_ldl(D, L, is_first, Pinv, Lo):
-    """Factorise A given as its blocks (``D``, ``L`` ``(n, 3, 3)``; D's upper triangle is
-    read) into ``Pinv`` and ``Lo`` (in place): the pivots of ``factor`` without forming A.
-
-    Returns True on success, False if A is not positive definite.
-    """
-    n = D.shape[0]
-    pinv = ZERO6
-    for i in range(n):
-        d = (D[i, 0, 0], D[i, 0, 1], D[i, 0, 2], D[i, 1, 1], D[i, 1, 2], D[i, 2, 2])
-        if is_first[i]:
-            lo = ZERO9
-            ok, pinv = invert_pivot(d)
-        else:
-            l = (L[i, 0, 0], L[i, 0, 1], L[i, 0, 2], L[i, 1, 0], L[i, 1, 1], L[i, 1, 2],
-                 L[i, 2, 0], L[i, 2, 1], L[i, 2, 2])
-            ok, lo, pinv = pivot(d, l, pinv)
         if not ok:
             return False
         store_factors(Pinv, Lo, i, pinv, lo)

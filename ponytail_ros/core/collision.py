@@ -7,7 +7,7 @@ Geometry. Every segment is a capsule (radius ``ChainSpec.radius``) around its wh
 from its proximal to its distal joint. Colliders are spheres, capsules (a core segment inflated
 by a radius) and planes, each fixed in a kinematic body (it moves with it) or in the world.
 Depths are computed for all colliding segments × all colliders (compiled loops,
-``contact_kernels.detect``): clamped point–segment distance for spheres, clamped segment–segment closest points
+``narrow_phase.detect``): clamped point–segment distance for spheres, clamped segment–segment closest points
 (Ericson, *Real-Time Collision Detection* 5.1.9) for capsules, the distal end for planes (every
 joint but the anchor is some segment's distal end). A chain's first segment whose anchor is
 inside or next to a round collider (hair rooted on a scalp) is tested on its outer half: a
@@ -46,7 +46,7 @@ The simulator splits a step into sub-steps when a joint turns by more than
 1/240 s cannot follow the crack), each resolved as above.
 
 Implementation. Everything after the step is one compiled call per ``resolve``
-(``contact_kernels.resolve``, numba, no fastmath): broad phase, detection, rows, position
+(``contact_stage.resolve``, numba, no fastmath): broad phase, detection, rows, position
 passes, the limits' projection, the velocity projection, impulses and friction. This module
 is the Python layer: it compiles the model's constant arrays once (``Unilateral``) and turns
 the result back into arrays and ``last``.
@@ -56,18 +56,23 @@ solve, so a chain with k rows costs O(n_chain · k), and its k×k LCP is solved 
 (principal pivoting on the unit-diagonal W with dense exact solves; Lawson–Hanson as the
 fall-back). Per step: nothing without colliders or limits; one broad phase per chain and
 collider, then detection only of the segments of the (chain, collider) pairs within reach
-(``contact_kernels.near_pairs``: a crowd's detection is O(n), not O(n × colliders)); with
+(``broad_phase.near_pairs``: a crowd's detection is O(n), not O(n × colliders)); with
 contacts about two detections, two factorisations and one response per row. The scratch of
-a call is one workspace (``contact_kernels.workspace``), a few allocations per call.
+a call is one workspace (``contact_model.workspace``), a few allocations per call.
 """
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import contact_kernels as K
-from .contact_kernels import (  # noqa: F401 (the tolerances, re-exported)
+from . import broad_phase, contact_stage, narrow_phase
+from . import contact_model as K
+from .contact_impulses import solve_rows
+from .contact_joints import joint_factors
+from .contact_model import (  # noqa: F401 (the tolerances, re-exported)
     ANGLE_SKIN, MAX_ROTATION, MOBILITY, POSITION_ITERATIONS, POSITION_SKIN, POSITION_TOLERANCE,
-    ROOT_LEVER, SPECULATIVE_STEPS, VELOCITY_SKIN)
+    SPECULATIVE_STEPS, VELOCITY_SKIN)
+from .contact_rows import build_rows
+from .narrow_phase import ROOT_LEVER  # noqa: F401 (re-exported)
 from .rotations import cross
 from .state import half_vectors
 
@@ -146,14 +151,14 @@ class Colliders:
         """``ColliderPose`` given the kinematic bodies' origins (``AnchorKinematics``)."""
         if self.moving.size == 0:
             return self._static
-        return ColliderPose(*K.collider_pose(_c(bodies.position), _c(bodies.orientation),
+        return ColliderPose(*broad_phase.collider_pose(_c(bodies.position), _c(bodies.orientation),
                                              _c(bodies.velocity), _c(bodies.angular_velocity),
                                              self.args))
 
 
 class _Detector:
     """Depths of the colliding segments (capsules) in every collider, ``(m, K)`` at once
-    (``contact_kernels.detect``), and the constant arrays it needs, built once.
+    (``narrow_phase.detect``), and the constant arrays it needs, built once.
 
     Spheres: closest point of the segment to the centre (clamped); capsules: clamped
     segment–segment closest points; planes: the segment's distal end (every joint but the
@@ -201,7 +206,7 @@ class _Detector:
         rooted_fixed = np.zeros_like(root_fixed)
         for f, c in enumerate(first_chain):
             for j in np.flatnonzero(root_fixed[f]):
-                rooted_fixed[f, j] = K.rooted(
+                rooted_fixed[f, j] = narrow_phase.rooted(
                     tuple(model.attach[c]), tuple(colliders.local_a0[j]),
                     tuple(colliders.local_d2[j]), float(sum_radius[first_rows[f], j]),
                     float(self.length[first_rows[f]]))
@@ -223,7 +228,7 @@ class _Detector:
         shape = (self.seg.size, self.c.cols.size)
         depth, s, t = np.empty(shape), np.empty(shape), np.empty(shape)
         own = np.empty(shape, dtype=bool)
-        K.detect(_c(x), _c(h), _c(anchor_position), pose.arrays(), self.args,
+        narrow_phase.detect(_c(x), _c(h), _c(anchor_position), pose.arrays(), self.args,
                  bool(report), depth, s, t, own)
         return depth, s, t, own
 
@@ -244,7 +249,7 @@ def segment_depths(model, x, q, anchor_position, bodies):
 
 def _split_args(model, detector):
     """``Unilateral.split_args``: what each chain's own model and detector tuples take besides
-    views of the whole model's (``contact_kernels.chain_model``, ``chain_det``)."""
+    views of the whole model's (``contact_model.chain_model``, ``chain_det``)."""
     i64 = np.int64
     start, end = model.chain_start.astype(i64), model.chain_end.astype(i64)
     seg_start = start[model.chain_of]                    # each segment's chain's first
@@ -285,13 +290,13 @@ class Unilateral:
     """Contacts and joint limits of one model, resolved after every internal step.
 
     For a compiled step loop: ``model_args`` and ``detector_args`` are the constant tuples
-    that ``contact_kernels.resolve`` takes (``model_args``: length, 1/m, principal 1/I
+    that ``contact_stage.resolve`` takes (``model_args``: length, 1/m, principal 1/I
     ``(n, 3)``, the largest 1/I, is_first, has_child, parent, chain_of, chain_start,
     chain_end, axisymmetric, the limited joints, swing and twist limits; ``detector_args``:
-    see ``_Detector``), ``colliders.args`` the one of ``contact_kernels.collider_pose``;
+    see ``_Detector``), ``colliders.args`` the one of ``broad_phase.collider_pose``;
     ``resolve`` is callable from other njit code with them. ``split_args``: their split by
-    chain (``contact_kernels.SP_*``): the kernels resolve each chain on its own, as if it
-    were alone with all the colliders (``contact_kernels.resolve_chains_into``).
+    chain (``contact_model.SP_*``): the kernels resolve each chain on its own, as if it
+    were alone with all the colliders (``contact_stage.resolve_chains_into``).
     """
 
     def __init__(self, model, dt):
@@ -339,7 +344,7 @@ class Unilateral:
         A pair is a candidate if it is inside, within the position skin, or could close within
         ``SPECULATIVE_STEPS`` steps at a bound of the two surfaces' speeds.
         """
-        R, I = K.build_rows(*self._state(x, q, v, w), _anchor_arrays(anchor),
+        R, I = build_rows(*self._state(x, q, v, w), _anchor_arrays(anchor),
                             _c(self.model.q_rest),
                             self._pose_arrays(pose), self.model_args, self.detector_args,
                             self.split_args, self.detector is not None, float(self.dt))
@@ -354,13 +359,13 @@ class Unilateral:
         n = self.model.n
         h, inv_I = np.empty((n, 3)), np.empty((n, 3, 3))
         C, Lo = np.empty((n, 3, 3)), np.empty((n, 3, 3))
-        if not K.factor_chain(_c(q), self.model_args, h, inv_I, C, Lo):
+        if not joint_factors(_c(q), self.model_args, h, inv_I, C, Lo):
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
         R, I = _rows_arrays(rows)
         b = _c(b)
         bound = np.zeros(0) if friction_bound is None else _c(friction_bound)
         dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
-        lam = K.solve_rows(R, I, b, bound, h, inv_I, C, Lo, self.model_args, dv, dw)
+        lam = solve_rows(R, I, b, bound, h, inv_I, C, Lo, self.model_args, dv, dw)
         return lam, dv, dw
 
     def _state(self, x, q, v, w):
@@ -378,11 +383,11 @@ class Unilateral:
         exact projection (``limits.project_limits``) for what the linearisation of their
         cones left (second order). Then the unchanged velocities are projected onto the moved
         joints (M-orthogonally: no kinetic energy is added) before the velocity stage. One
-        compiled call (``contact_kernels.resolve``).
+        compiled call (``contact_stage.resolve``).
         """
         self.dt = self.step if dt is None else dt
         stats = self._stats
-        status, x, q, v, w = K.resolve(
+        status, x, q, v, w = contact_stage.resolve(
             *self._state(x, q, v, w), _anchor_arrays(anchor), self._pose_arrays(pose),
             self.model_args, self.detector_args, self.split_args, _c(self.model.q_rest),
             self.detector is not None, bool(project), float(self.dt), stats)

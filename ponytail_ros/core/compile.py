@@ -62,7 +62,7 @@ _CHILD_STAGES = ('contact step', 'contact step (other integrators)', 'crowd cont
 #: Rough compile cost of each stage on one core of a small machine, s: for the estimate said
 #: before compiling only (``bench.compile_cost`` measures them).
 _ROUGH_SECONDS = {'free step': 35.0, 'other integrators': 25.0, 'crowd lanes': 35.0,
-                  'contact step': 130.0, 'contact step (other integrators)': 15.0,
+                  'contact step': 80.0, 'contact step (other integrators)': 15.0,
                   'crowd contacts': 35.0, 'head fit': 6.0, 'markers': 2.0}
 
 #: Wall time (s) of each stage of the last compile in this process, in its order: what a
@@ -86,7 +86,7 @@ _compiled = False           # whether any of them compiled rather than loaded
 
 # -- the stages' warm-up scenes ---------------------------------------------------------
 def _warm_free():
-    from .head import KinematicState
+    from .head import KinematicState, SwayYawMotion
     from .scene import ChainSpec, Scene, SolverSpec
     from .simulator import Simulator
     free = Simulator(Scene(chains=[ChainSpec(n_segments=2)],
@@ -95,6 +95,7 @@ def _warm_free():
     free.advance_frame(0.02, still)
     free.advance_frame(0.04, still, head_prev=still)    # (a node's frames: frame_tables)
     free.segment_poses(free.t + 0.001)
+    free.advance_to(free.t + 0.02, SwayYawMotion())     # (a motion's table: ``advance_to``)
 
 
 def _crowd_scene(**kwargs):
@@ -195,17 +196,18 @@ def _unilateral_is(in_lanes, constrained):
 
 def _stage_kernels(stage):
     """``(kernel, signature test or None)`` of the kernels ``stage`` compiles."""
-    from . import (contact_kernels, head_kernels, lanes, limit_kernels, marker_kernels,
+    from . import (contact_model, head_kernels, lanes, limit_kernels, marker_kernels,
                    state_kernels, step, step_unilateral)
     uni = step_unilateral.advance_unilateral
     kernels = {
         'free step': [step.advance_rk4, state_kernels.guard_measures,
                       state_kernels.segment_poses, head_kernels.track_table,
-                      head_kernels.point_kinematics, head_kernels.frame_tables],
+                      head_kernels.point_kinematics, head_kernels.frame_tables,
+                      head_kernels.sinusoid_table],
         'other integrators': [step.advance],
         'crowd lanes': [lanes.advance_lanes],
         'contact step': [(uni, _unilateral_is('none', 'none')),
-                         contact_kernels.resolve_workspace, limit_kernels.joint_angles],
+                         contact_model.resolve_workspace, limit_kernels.joint_angles],
         'contact step (other integrators)': [(uni, _unilateral_is('none', 'bool'))],
         'crowd contacts': [(uni, _unilateral_is('bool', 'none'))],
         'head fit': [head_kernels.loess_fit, head_kernels.states_fit, head_kernels.fit_time,

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from . import contact_kernels, lanes, step_unilateral
+from . import contact_model, lanes, step_unilateral
 from . import step as compiled
 from .head import stack_anchors
 
@@ -77,10 +77,10 @@ class ContactSteps:
         status, k, tables, ids = step_unilateral.advance_unilateral(*args)
         self._uni_wall += time.perf_counter() - t0
         ws = uni.workspace
-        if tables.shape != ws[contact_kernels.WS_TABLES].shape:
+        if tables.shape != ws[contact_model.WS_TABLES].shape:
             # A step's rows overflowed the tables: the grown ones are kept (``grown``).
-            uni.workspace = (ws[:contact_kernels.WS_TABLES] + (tables, ids)
-                             + ws[contact_kernels.WS_IDS + 1:])
+            uni.workspace = (ws[:contact_model.WS_TABLES] + (tables, ids)
+                             + ws[contact_model.WS_IDS + 1:])
         self.f_c = f_c
         uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
                     'position_passes': int(stats[2])}
@@ -95,7 +95,7 @@ class ContactSteps:
         ``static_pose``: the colliders' pose arrays (their count sizes it)."""
         uni = self.unilateral
         if uni.workspace is None:
-            uni.workspace = contact_kernels.resolve_workspace(
+            uni.workspace = contact_model.resolve_workspace(
                 uni.model_args, uni.detector_args, uni.split_args, static_pose,
                 uni.detector is not None)
         return uni.workspace

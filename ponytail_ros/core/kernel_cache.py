@@ -37,6 +37,9 @@ __all__ = ['KERNEL_MODULES', 'cache_location', 'choose_cache_dir', 'ensure_fresh
 KERNEL_MODULES = tuple(sorted(
     p.stem for p in Path(__file__).resolve().parent.glob('*.py')
     if any(mark in p.read_text(encoding='utf-8') for mark in ('njit', '@intrinsic'))))
+#: Whose cache files a stale cache loses: every module of ``core`` (a kernel's callee may be
+#: in any of them), not another package's files in a shared ``NUMBA_CACHE_DIR``.
+_SOURCE_MODULES = tuple(sorted(p.stem for p in Path(__file__).resolve().parent.glob('*.py')))
 _STAMP = 'ponytail_kernels.sha256'
 _HERE = Path(__file__).resolve().parent
 _checked = False
@@ -177,8 +180,9 @@ def ensure_fresh():
             if d != used and not d.is_dir():
                 continue                        # not used, nothing cached there
             d.mkdir(parents=True, exist_ok=True)
-            for f in list(d.glob('*.nbi')) + list(d.glob('*.nbc')):
-                f.unlink(missing_ok=True)
+            for name in _SOURCE_MODULES:
+                for f in list(d.glob(f'{name}.*.nbi')) + list(d.glob(f'{name}.*.nbc')):
+                    f.unlink(missing_ok=True)
             stamp.write_text(digest + '\n')
         except OSError:
             pass                    # not ours to write (a read-only directory): not used

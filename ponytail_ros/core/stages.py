@@ -19,7 +19,7 @@ __all__ = ['PROFILE_STAGES', 'CONTACT_STAGES', 'PROFILE_SIZE', 'PROFILE_ROWS',
 #: (forces, joint solves, integration, projection) and the contact and limit stage
 #: (``resolve``).
 PROFILE_STAGES = ('integrate', 'contacts')
-#: The parts of ``contacts`` that ``contact_kernels`` times, after the whole call's cycles in
+#: The parts of ``contacts`` that ``contact_stage`` times, after the whole call's cycles in
 #: the same array (``PROFILE_SIZE`` entries in all): the rows (broad phase, detection, the
 #: contact and limit rows, at the step's end and again after a position pass), the positions
 #: (the position passes, the limits' projection and, after a move, the chain refactorised and

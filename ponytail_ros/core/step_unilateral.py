@@ -1,6 +1,6 @@
 """The compiled step loop of scenes with colliders or joint limits: per step, the chains' own
 step (``step``, or for a crowd the SIMD lanes of ``lanes``), then the contacts and limits at
-its end, chain by chain (``contact_kernels.resolve_chains_into``), all the steps of a call in
+its end, chain by chain (``contact_stage.resolve_chains_into``), all the steps of a call in
 one compiled call.
 
 Stages of a step, in order: the sub-step test (``step.substeps``: a joint turning faster than
@@ -17,7 +17,8 @@ Frames and units: world frame (REP 103), SI; the arrays are ``step.advance``'s.
 import numba as nb
 import numpy as np
 
-from . import contact_kernels, lanes
+from . import contact_model, contact_stage, lanes
+from .broad_phase import collider_pose_into
 from .kernel_cache import ensure_fresh
 from .stages import cycles
 from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, chain_starts, chains_steps, substeps,
@@ -38,16 +39,16 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
     and ``lanes.supports`` allow it) in the SIMD lanes of ``lanes.step_blocks``, the same bits
     (None, not False: numba prunes the lanes' branches from a version compiled for None, so a
     scene without a crowd does not compile them); then its contacts and
-    limits are resolved chain by chain (``contact_kernels.resolve_chains_into``; ``split``:
+    limits are resolved chain by chain (``contact_stage.resolve_chains_into``; ``split``:
     ``collision.Unilateral.split_args``) at the step's end, the colliders
     posed from the kinematic bodies' table ``B`` (rows as ``A``) if ``moving``, else
     ``static_pose``. ``cws``: the contact stage's workspace
-    (``contact_kernels.resolve_workspace`` of this model, detector and colliders), kept by the
+    (``contact_model.resolve_workspace`` of this model, detector and colliders), kept by the
     caller across calls like MuJoCo's ``mjData`` arena: a crowd's is megabytes (detection
     tables of every colliding segment by every collider), which allocated per call were
     mapped and page-faulted in at every tick. Returns ``(status, steps taken, row tables,
     row ids)``: the workspace's ``WS_TABLES`` and ``WS_IDS``, the only arrays
-    ``contact_kernels.grown`` replaces when a step's rows overflow them (the caller keeps
+    ``contact_model.grown`` replaces when a step's rows overflow them (the caller keeps
     them in its workspace; handing back the whole workspace cost a boxed array each of its
     twenty at every call): status ``SUBSTEPS`` when the next step needs sub-steps
     (``step.substeps`` > 1; it is not taken: the simulator takes it), else as
@@ -89,27 +90,27 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
         r = 2 * k + 2
         anchor = (A.position[r], A.velocity[r], A.orientation[r], A.angular_velocity[r])
         if moving:
-            contact_kernels.collider_pose_into(B.position[r], B.orientation[r], B.velocity[r],
-                                               B.angular_velocity[r], cols, mpose)
+            collider_pose_into(B.position[r], B.orientation[r], B.velocity[r],
+                               B.angular_velocity[r], cols, mpose)
             pose = mpose
         else:
             pose = static_pose
         _copy_positions(x, q, x0, q0)
-        resolved, c = contact_kernels.resolve_chains_into(
+        resolved, c = contact_stage.resolve_chains_into(
             x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
-            M.projection, h, stats, own, cws, 0, profile)
-        while resolved == contact_kernels.NO_ROOM:
+            M.projection, h, stats, own, cws, np.int64(0), profile)
+        while resolved == contact_model.NO_ROOM:
             # (a workspace grown for one step's rows is kept for the rest of the call)
-            cws = contact_kernels.grown(cws)
-            resolved, c = contact_kernels.resolve_chains_into(
+            cws = contact_model.grown(cws)
+            resolved, c = contact_stage.resolve_chains_into(
                 x0, q0, x, q, v, w, anchor, pose, umodel, det, split, q_rest, has_colliders,
                 M.projection, h, stats, own, cws, c, profile)
         profile[1] += cycles() - t1
-        if resolved != contact_kernels.OK:
+        if resolved != contact_model.OK:
             status, done = JOINT_SOLVE_FAILED, k
             break
     profile[2] += cycles() - t_call
-    return status, done, cws[contact_kernels.WS_TABLES], cws[contact_kernels.WS_IDS]
+    return status, done, cws[contact_model.WS_TABLES], cws[contact_model.WS_IDS]
 
 
 @nb.njit(cache=True, _nrt=False, inline='always')
