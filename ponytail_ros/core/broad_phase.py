@@ -49,8 +49,8 @@ from .contact_model import (
     WS_STATE,
     WS_SWEEP,
 )
-from .vec import add, dot, norm, q4, qrotate, scale, sub, v3
 from .narrow_phase import clip01, detect_segments
+from .vec import add, dot, norm, q4, qrotate, scale, sub, v3
 
 SWEEP_COLLIDERS = 16         # from this many round colliders on, the broad phase sweeps them
                              # sorted along one axis (``sweep_order``) instead of testing all

@@ -10,8 +10,17 @@ All arrays are world frame, SI (``state`` module).
 import numpy as np
 
 from . import contact_joints
-from .rotations import (cross, quat_conjugate, quat_from_two_vectors, quat_integrate,
-                        quat_multiply, quat_normalize, quat_rotate, quat_to_matrix, skew)
+from .rotations import (
+    cross,
+    quat_conjugate,
+    quat_from_two_vectors,
+    quat_integrate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+    skew,
+)
 from .state import ChainState, half_vectors
 
 __all__ = ['joint_args', 'is_axisymmetric', 'closed_state', 'rest_state', 'state_ahead',

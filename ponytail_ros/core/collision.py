@@ -64,13 +64,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import broad_phase, contact_stage, narrow_phase
-from . import contact_model as K
+from . import broad_phase, contact_model as K, contact_stage, narrow_phase
 from .contact_impulses import solve_rows
 from .contact_joints import joint_factors
 from .contact_model import (  # noqa: F401 (the tolerances, re-exported)
-    ANGLE_SKIN, MAX_ROTATION, MOBILITY, POSITION_ITERATIONS, POSITION_SKIN, POSITION_TOLERANCE,
-    SPECULATIVE_STEPS, VELOCITY_SKIN)
+    ANGLE_SKIN,
+    MAX_ROTATION,
+    MOBILITY,
+    POSITION_ITERATIONS,
+    POSITION_SKIN,
+    POSITION_TOLERANCE,
+    SPECULATIVE_STEPS,
+    VELOCITY_SKIN,
+)
 from .contact_rows import build_rows
 from .narrow_phase import ROOT_LEVER  # noqa: F401 (re-exported)
 from .rotations import cross
@@ -283,7 +289,8 @@ def _anchor_arrays(anchor):
             _c(anchor.angular_velocity))
 
 
-_NO_POSE = ColliderPose(*(np.zeros((0, 3)) for _ in range(6)), np.zeros(0))
+_NO_POSE = ColliderPose(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                        np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
 
 
 class Unilateral:

@@ -167,6 +167,7 @@ def _warm_head():
 
 def _warm_markers():
     import numpy as np
+
     from . import marker_kernels
     i0, none = np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64)
     k, unit = np.zeros(4), np.array([[0.0, 0.0, 0.0, 1.0]])
@@ -196,8 +197,16 @@ def _unilateral_is(in_lanes, constrained):
 
 def _stage_kernels(stage):
     """``(kernel, signature test or None)`` of the kernels ``stage`` compiles."""
-    from . import (contact_model, head_kernels, lanes, limit_kernels, marker_kernels,
-                   state_kernels, step, step_unilateral)
+    from . import (
+        contact_model,
+        head_kernels,
+        lanes,
+        limit_kernels,
+        marker_kernels,
+        state_kernels,
+        step,
+        step_unilateral,
+    )
     uni = step_unilateral.advance_unilateral
     kernels = {
         'free step': [step.advance_rk4, state_kernels.guard_measures,

@@ -47,8 +47,8 @@ from .contact_model import (
 )
 from .contact_rows import col3, delassus, group_rows_into, row_response
 from .friction import friction_step_into
-from .vec import add, cross, dot, norm, scale, sub, v3
 from .small_solves import DS_IDX, DS_SQ, DS_VEC, REG, dense_scratch, lcp_into, square
+from .vec import add, cross, dot, norm, scale, sub, v3
 
 
 @njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)

@@ -6,8 +6,7 @@ projected). numba, nopython, ``cache=True``; world frame, SI units.
 import numpy as np
 from numba import njit
 
-from .chain_solve import JointModel, factor
-from .chain_solve import solve as chain_solve
+from .chain_solve import JointModel, factor, solve as chain_solve
 from .contact_model import (
     AXISYMMETRIC,
     CHAIN_END,

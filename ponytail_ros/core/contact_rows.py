@@ -83,8 +83,8 @@ from .contact_model import (
     vec,
 )
 from .limit_kernels import limit_terms
-from .vec import add, cross, dot, norm, sub, v3
 from .narrow_phase import contact_frame
+from .vec import add, cross, dot, norm, sub, v3
 
 
 @njit(cache=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)

@@ -21,12 +21,12 @@ from numba import njit
 from .broad_phase import broad_phase_setup
 from .contact_impulses import solve_rows_into, velocity_impulses
 from .contact_joints import (
-    touched_joint_factors_ws,
-    joint_factors_ws,
     half_vectors,
+    joint_factors_ws,
     joint_projection,
     project_positions,
     project_velocities,
+    touched_joint_factors_ws,
 )
 from .contact_model import (
     ANGLE_SKIN,
@@ -71,8 +71,8 @@ from .contact_model import (
     chain_det,
     chain_is_free,
     chain_model,
-    joint_factor_views,
     grown,
+    joint_factor_views,
     resolve_workspace,
     rows_of,
     vec,
@@ -80,8 +80,8 @@ from .contact_model import (
 )
 from .contact_rows import build_rows_into, deepest, moved_rows, refresh_sep, take
 from .limit_kernels import project_limits
-from .vec import dot, q4, qfrom_rotvec, qmul, qnormalize, scale, v3
 from .stages import PROFILE_POSITIONS, PROFILE_ROWS, PROFILE_VELOCITIES, cycles
+from .vec import dot, q4, qfrom_rotvec, qmul, qnormalize, scale, v3
 
 
 @njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)

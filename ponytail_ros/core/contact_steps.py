@@ -11,8 +11,7 @@ import time
 
 import numpy as np
 
-from . import contact_model, lanes, step_unilateral
-from . import step as compiled
+from . import contact_model, lanes, step as compiled, step_unilateral
 from .head import stack_anchors
 
 __all__ = ['ContactSteps', 'SUBSTEP_ANGLE', 'MAX_SUBSTEPS']

@@ -18,8 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .head_kernels import SINUSOID_COLUMNS, point_kinematics, sinusoid_table, track_table
-from .head_kernels import frame_ends as _frame_ends
+from .head_kernels import (
+    SINUSOID_COLUMNS,
+    frame_ends as _frame_ends,
+    point_kinematics,
+    sinusoid_table,
+    track_table,
+)
 
 __all__ = [
     'KinematicState', 'AnchorKinematics', 'HeadMotion', 'SinusoidMotion', 'StillMotion',

@@ -82,9 +82,17 @@ import math
 import numpy as np
 
 from .head import KinematicState
-from .head_kernels import (ACCEPTED, FIT_SIZE, add_samples, fits_at, loess_fit,
-                           longest_median_interval, median_interval, states_fit)
-from .head_kernels import fit_time as kernel_fit_time
+from .head_kernels import (
+    ACCEPTED,
+    FIT_SIZE,
+    add_samples,
+    fit_time as kernel_fit_time,
+    fits_at,
+    loess_fit,
+    longest_median_interval,
+    median_interval,
+    states_fit,
+)
 
 __all__ = ['HeadEstimator', 'HeadEstimatorBank', 'REJECT_REASONS', 'ACCEPTED', 'RESTARTED',
            'fit_state', 'MEMO_SIZE']
@@ -433,7 +441,7 @@ class HeadEstimatorBank:
     def holds(self, estimators):
         """Whether ``estimators`` are this bank's, in order (a replay may swap some out)."""
         return len(estimators) == len(self.estimators) and all(
-            a is b for a, b in zip(estimators, self.estimators))
+            a is b for a, b in zip(estimators, self.estimators, strict=True))
 
     def add_poses(self, first, t, poses, restart):
         """``add`` of ``poses[k]`` at the one stamp ``t`` (s) to estimator ``first + k``, for
@@ -454,7 +462,7 @@ class HeadEstimatorBank:
                     np.ascontiguousarray(poses, dtype=float), np.asarray(restart, dtype=bool),
                     e0.min_interval, e0.max_gap, e0.quat_tolerance, outcome)
         out = outcome.tolist()
-        for e, n, o in zip(ests, ns.tolist(), out):
+        for e, n, o in zip(ests, ns.tolist(), out, strict=True):
             if o < 0:
                 e._n = n
                 e._version += 1

@@ -29,8 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .vec import (add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, qto_rotvec,
-                  scale)
+from .vec import add, cross, dot, qconj, qfrom_rotvec, qmul, qnormalize, qrotate, qto_rotvec, scale
 
 __all__ = ['loess_fit', 'states_fit', 'fits_at', 'fit_time', 'svd_lstsq', 'track_table',
            'point_kinematics', 'frame_ends', 'frame_tables', 'sinusoid_table', 'median_interval',

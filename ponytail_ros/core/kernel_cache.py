@@ -121,7 +121,7 @@ def _uncached_when_no_locator():
             if 'no locator available' not in str(err):
                 raise
             self._cache = caching.NullCache()
-    enable_caching._ponytail_ros = True     # type: ignore[attr-defined]
+    enable_caching._ponytail_ros = True
     dispatcher.Dispatcher.enable_caching = enable_caching
 
 

@@ -11,8 +11,21 @@ import math
 import numpy as np
 from numba import njit
 
-from .vec import (cross, dot, norm, q4, qaxis_x, qconj, qfrom_rotvec, qmul, qnormalize, qrotate,
-                  scale, sub, v3)
+from .vec import (
+    cross,
+    dot,
+    norm,
+    q4,
+    qaxis_x,
+    qconj,
+    qfrom_rotvec,
+    qmul,
+    qnormalize,
+    qrotate,
+    scale,
+    sub,
+    v3,
+)
 
 __all__ = ['joint_angles', 'limit_terms', 'project_limits']
 

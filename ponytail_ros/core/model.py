@@ -63,7 +63,7 @@ class Model:
         self.stiffness = np.zeros(self.n)
         self.drag_linear = np.zeros(self.n)
         self.drag_quadratic = np.zeros(self.n)
-        for c, s, e in zip(chains, self.chain_start, self.chain_end):
+        for c, s, e in zip(chains, self.chain_start, self.chain_end, strict=True):
             self.damping[s:e] = c.damping
             self.stiffness[s:e] = c.stiffness
             self.drag_linear[s:e] = c.drag_linear

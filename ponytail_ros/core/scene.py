@@ -17,10 +17,10 @@ Types: a vector field (``attach``, ``center``, ``gravity``, ...) takes any three
 tuple keeps the spec hashable; a list or an array is accepted and checked); a per-segment or
 per-joint field takes N numbers, a joint limit one angle or N of them.
 """
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-import math
-from typing import Any, Optional, Self, Union
+from typing import Any, Self, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -51,7 +51,7 @@ Vector3 = Sequence[float]
 #: One number per segment (or per joint), root first.
 PerSegment = Sequence[float]
 #: A joint limit, rad: one angle for every joint, or one per joint, root first.
-Limit = Union[float, Sequence[float]]
+Limit: TypeAlias = float | Sequence[float]
 #: A float array (``np.ndarray`` of ``float64``).
 FloatArray = npt.NDArray[np.float64]
 
@@ -102,7 +102,7 @@ def _check_vector(name: str, value: Any, n: int = 3, max_abs: float = 1e6) -> Fl
 MAX_LIMIT = 3.1
 
 
-def _check_limit(name: str, value: Optional[Limit], n: int) -> None:
+def _check_limit(name: str, value: Limit | None, n: int) -> None:
     """A joint limit: ``None``, one angle or ``n`` angles, each in (0, MAX_LIMIT] rad."""
     if value is None:
         return
@@ -155,18 +155,18 @@ class ChainSpec:
     length: float = 0.4
     mass: float = 0.1
     radius: float = 0.01
-    segment_lengths: Optional[PerSegment] = None
-    segment_masses: Optional[PerSegment] = None
-    inertia: Optional[Sequence[Sequence[float]]] = None
+    segment_lengths: PerSegment | None = None
+    segment_masses: PerSegment | None = None
+    inertia: Sequence[Sequence[float]] | None = None
     anchor_body: int = 0
     attach: Vector3 = (-0.10, 0.0, 0.05)
-    rest_direction: Optional[Vector3] = None
+    rest_direction: Vector3 | None = None
     damping: float = 1e-3
     stiffness: float = 0.0
     drag_linear: float = 0.0
     drag_quadratic: float = 0.0
-    swing_limit: Optional[Limit] = None
-    twist_limit: Optional[Limit] = None
+    swing_limit: Limit | None = None
+    twist_limit: Limit | None = None
     collide: bool = True
 
     def validate(self, prefix: str = 'chain', n_kinematic_bodies: int = 1) -> Self:  # noqa: C901
@@ -259,7 +259,7 @@ class ColliderSpec:
     """
 
     kind: str = 'sphere'
-    body: Optional[int] = 0
+    body: int | None = 0
     center: Vector3 = (0.0, 0.0, 0.0)
     axis: Vector3 = (0.0, 0.0, 1.0)
     radius: float = 0.1
@@ -268,20 +268,20 @@ class ColliderSpec:
 
     @classmethod
     def sphere(cls, center: Vector3 = (0.0, 0.0, 0.0), radius: float = 0.1,
-               body: Optional[int] = 0, friction: float = 0.0) -> Self:
+               body: int | None = 0, friction: float = 0.0) -> Self:
         """A sphere of ``radius`` about ``center``."""
         return cls('sphere', body, tuple(center), (0.0, 0.0, 1.0), radius, 0.0, friction)
 
     @classmethod
     def capsule(cls, center: Vector3 = (0.0, 0.0, 0.0), axis: Vector3 = (0.0, 0.0, 1.0),
-                half_length: float = 0.1, radius: float = 0.05, body: Optional[int] = 0,
+                half_length: float = 0.1, radius: float = 0.05, body: int | None = 0,
                 friction: float = 0.0) -> Self:
         """A capsule: the points within ``radius`` of ``center ± half_length · axis``."""
         return cls('capsule', body, tuple(center), tuple(axis), radius, half_length, friction)
 
     @classmethod
     def plane(cls, point: Vector3 = (0.0, 0.0, 0.0), normal: Vector3 = (0.0, 0.0, 1.0),
-              body: Optional[int] = None, friction: float = 0.0) -> Self:
+              body: int | None = None, friction: float = 0.0) -> Self:
         """A plane through ``point``; ``normal`` points to the free side."""
         return cls('plane', body, tuple(point), tuple(normal), 0.1, 0.0, friction)
 

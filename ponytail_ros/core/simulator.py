@@ -27,17 +27,25 @@ blow-up resets the chains to rest at the current head pose and is reported, neve
 import math
 import time
 from dataclasses import dataclass, field
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
-from . import chain_ops, collision, lanes, stages, state_kernels
-from . import step as compiled
+from . import chain_ops, collision, lanes, stages, state_kernels, step as compiled
 from .chain_ops import carry_with_anchors
 from .contact_steps import MAX_SUBSTEPS, SUBSTEP_ANGLE, ContactSteps
 from .guard import GYROSCOPIC_REACH_RATIO, Guard
-from .head import (ANCHOR_FIELDS, STATE_FIELDS, AnchorKinematics, AnchorTrack, HeadMotion,
-                   KinematicState, point_table, stack_anchors, stage_times)
+from .head import (
+    ANCHOR_FIELDS,
+    STATE_FIELDS,
+    AnchorKinematics,
+    AnchorTrack,
+    HeadMotion,
+    KinematicState,
+    point_table,
+    stack_anchors,
+    stage_times,
+)
 from .head_kernels import frame_tables
 from .model import Model
 from .rotations import quat_conjugate, quat_multiply
@@ -76,7 +84,7 @@ class StepReport:
 
     steps: int = 0
     dropped_time: float = 0.0
-    reset_reason: Optional[str] = None
+    reset_reason: str | None = None
     max_gap: float = 0.0
     timings: dict = field(default_factory=dict)
 
@@ -203,7 +211,7 @@ class Simulator(ContactSteps, Guard):
         anchor = self.anchors(head)
         rest, st = self._rest_state(head, anchor), self.state
         self.state = ChainState(*(np.where(rows[:, None], a, b) for a, b in zip(
-            (rest.x, rest.q, rest.v, rest.w), (st.x, st.q, st.v, st.w))))
+            (rest.x, rest.q, rest.v, rest.w), (st.x, st.q, st.v, st.w), strict=True)))
         first = m.is_first & rows
         m.q_rest[first] = quat_multiply(quat_conjugate(anchor.orientation[m.chain_of[first]]),
                                         self.state.q[first])
@@ -674,7 +682,7 @@ class Simulator(ContactSteps, Guard):
         else:
             report.timings['integrate'] = free + uni
             report.timings['contacts'] = 0.0
-        for name, cycles in zip(stages.CONTACT_STAGES, parts):
+        for name, cycles in zip(stages.CONTACT_STAGES, parts, strict=True):
             report.timings[f'contact_{name}'] = uni * (cycles / total) if total > 0 else 0.0
 
     def _end_call(self, report, anchor, failure, head_at):

@@ -31,8 +31,19 @@ import numpy as np
 
 from .implicit_damping import implicit_damping
 from .step_constrained import constrained_step
-from .step_model import (DAMPING_SOLVE_FAILED, INTEGRATORS, JOINT_SOLVE_FAILED, OK, RATTLE, RK4,
-                         SUBSTEPS, SYMPLECTIC_EULER, AnchorTable, Integrator, StepModel)
+from .step_model import (
+    DAMPING_SOLVE_FAILED,
+    INTEGRATORS,
+    JOINT_SOLVE_FAILED,
+    OK,
+    RATTLE,
+    RK4,
+    SUBSTEPS,
+    SYMPLECTIC_EULER,
+    AnchorTable,
+    Integrator,
+    StepModel,
+)
 from .step_rk4 import rk4
 from .vec import cross_s, qaxis_x_at
 

@@ -7,8 +7,16 @@ Frames and units: world frame (REP 103), SI; the state arrays are ``step``'s.
 import numba as nb
 
 from .applied_forces import applied_terms
-from .chain_solve import (ZERO6, block, joint_row, mass_properties, mul9, segment_G, store_block,
-                          store_factors)
+from .chain_solve import (
+    ZERO6,
+    block,
+    joint_row,
+    mass_properties,
+    mul9,
+    segment_G,
+    store_block,
+    store_factors,
+)
 from .vec import cross_s, qmul_s, qnormalize_at, qrot_s
 
 __all__ = ['rk4']

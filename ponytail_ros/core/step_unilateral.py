@@ -21,8 +21,15 @@ from . import contact_model, contact_stage, lanes
 from .broad_phase import collider_pose_into
 from .kernel_cache import ensure_fresh
 from .stages import cycles
-from .step import (JOINT_SOLVE_FAILED, OK, SUBSTEPS, chain_starts, chains_steps, substeps,
-                   workspaces)
+from .step import (
+    JOINT_SOLVE_FAILED,
+    OK,
+    SUBSTEPS,
+    chain_starts,
+    chains_steps,
+    substeps,
+    workspaces,
+)
 
 ensure_fresh()
 
