@@ -69,7 +69,7 @@ def apply_joint_impulses(lam, h, inv_I, inv_mass, has_child, s, e, dv, dw):
             dw[i - s, a] += dwi[a]
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, _nrt=False)             # (called from Python too: ``chain_ops``)
 def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, dw):
     """The velocities closest to ``(v, w)`` in the mass metric that close every joint (in
     place): joint impulses from A λ = Ċ (Ċ = parent's point velocity minus the child's).
@@ -94,7 +94,7 @@ def joint_projection(v, w, anchor_velocity, h, inv_I, C, Lo, model, c_dot, dv, d
             w[i, a] += dw[i, a]
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, _nrt=False)             # (called from Python too: ``chain_ops``)
 def project_positions(anchor_position, h, model, x):
     """Centres that close every joint exactly: x_i = p_anchor + Σ_{j<i} 2 h_j + h_i."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
@@ -108,7 +108,7 @@ def project_positions(anchor_position, h, model, x):
             p = add(p, scale(2.0, hi))
 
 
-@njit(cache=True, _nrt=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, _nrt=False)             # (called from Python too: ``chain_ops``)
 def project_velocities(anchor_velocity, w, h, model, v):
     """Centre velocities of the rigid chain: v_i = v_anchor + Σ_{j<i} 2 ω_j × h_j + ω_i × h_i."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
