@@ -1,5 +1,6 @@
-"""Applied forces and torques of the compiled step (``forces``' terms, per segment): gravity,
-explicit joint damping, bending stiffness, drag with wind, external forces.
+"""Applied forces and torques of the compiled step (the terms of ``test/oracle/forces.py``,
+per segment): gravity, explicit joint damping, bending stiffness, drag with wind, external
+forces.
 
 Frames and units: world frame (REP 103), SI: forces N, torques N·m; the state arrays are
 ``step``'s.
@@ -32,7 +33,7 @@ def applied_terms(  # noqa: C901 (one switch per term, per-segment loops)
         stiffness, q_rest, drag_linear, drag_quadratic, gravity, wind, gravity_on,
         explicit_damping, stiffness_on, drag_on, external_on, anchor_orientation,
         anchor_angular_velocity):
-    """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``forces``);
+    """Applied forces ``F`` and torques ``T`` (N, N·m, world) on every segment (``oracle.forces``);
     the model's arrays and switches are ``StepModel``'s, the anchors' ``AnchorTable``'s."""
     n = x.shape[0]
     for i in range(n):

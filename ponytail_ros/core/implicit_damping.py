@@ -1,6 +1,6 @@
 """Implicit joint damping of the compiled step, for damping too stiff for the explicit step:
 implicit Euler on the constrained system, a banded KKT solve in O(n)
-(``solver.Dynamics.implicit_damping``).
+(``oracle.solver.Dynamics.implicit_damping``).
 
 Frames and units: world frame (REP 103), SI; the state arrays are ``step``'s.
 """
@@ -30,7 +30,7 @@ def _band_add(ab, r, c, val):
 @_jit
 def implicit_damping(M, A, row, q, v, w, h):  # noqa: C901 (the banded KKT rows, per segment)
     """Velocities after ``h`` of joint damping, implicit Euler on the constrained system
-    (``solver.Dynamics.implicit_damping``), in place; False if singular:
+    (``oracle.solver.Dynamics.implicit_damping``), in place; False if singular:
 
         (M + h C) u⁺ - Jᵀ λ = M u + h c₀ ω_anchor,     J u⁺ = anchor terms.
 

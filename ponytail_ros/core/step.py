@@ -18,10 +18,10 @@ This module drives them (chain by chain, step by step) and holds the stabilisati
 is constant during a call (``StepModel``, like MuJoCo's ``const mjModel*``); the
 anchors at every stage time of the call come in one table (``AnchorTable``, row ``2k + j``
 for step ``k`` at ``t_k + j h/2``), so no Python runs between stages. The equations are those
-of the NumPy modules they replace, written per segment and per joint (``solver`` for A f_c = b,
-``integrators`` for the three steps, ``forces``, ``stabilization``); their docstrings derive
-them. Compiled with numba: ``nopython``, ``cache=True``, no ``fastmath`` (results are
-reproducible bit for bit on one machine).
+of the NumPy reference step in the tests, written per segment and per joint (``test/oracle``:
+``solver`` for A f_c = b, ``integrators`` for the three steps, ``forces``, ``stabilization``);
+their docstrings derive them. Compiled with numba: ``nopython``, ``cache=True``, no
+``fastmath`` (results are reproducible bit for bit on one machine).
 
 Frames and units: world frame (REP 103), SI. State arrays: ``x`` ``(n, 3)`` centres, ``q``
 ``(n, 4)`` (x, y, z, w) body to world, ``v`` ``(n, 3)``, ``w`` ``(n, 3)`` ω in the world frame.
@@ -90,7 +90,7 @@ def _rk4_workspace(n):
 def _project(M, A, row, x, q, v, w, velocities):
     """Centres rebuilt so every joint closes exactly from the anchor outward, and for RK4
     (``velocities``) the centre velocities from the anchor point's velocity and the ω above
-    (``stabilization``)."""
+    (``oracle.stabilization``)."""
     n = x.shape[0]
     p0 = p1 = p2 = u0 = u1 = u2 = 0.0
     for i in range(n):

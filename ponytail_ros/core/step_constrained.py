@@ -1,6 +1,7 @@
-"""Symplectic Euler and RATTLE steps of the compiled step (``integrators.symplectic_euler``,
-``integrators.rattle``): kicks, drifts and joint impulses, one factorisation of A = J M⁻¹ Jᵀ per
-step (``chain_solve.factor``, reused by the next step) and two solves.
+"""Symplectic Euler and RATTLE steps of the compiled step
+(``oracle.integrators.symplectic_euler``, ``oracle.integrators.rattle``): kicks, drifts and
+joint impulses, one factorisation of A = J M⁻¹ Jᵀ per step (``chain_solve.factor``, reused
+by the next step) and two solves.
 
 Frames and units: world frame (REP 103), SI; the state arrays are ``step``'s.
 """
@@ -52,7 +53,7 @@ def _apply_joint_impulses(M, lam, hv, Iinv, dv, dw):
 @_jit
 def _rotation_kick(M, q, e, Iinv, w, T, h, out):
     """ω after ``h`` of I ω̇ + ω × Iω = T, the gyroscopic term implicit
-    (``integrators.rotation_kick``: exact axial transport + implicit midpoint precession for
+    (``oracle.integrators.rotation_kick``: exact axial transport + implicit midpoint precession for
     axisymmetric segments, Catto's implicit Euler Newton step otherwise)."""
     n = w.shape[0]
     J = np.empty((3, 3)) if not M.axisymmetric else np.empty((0, 0))
@@ -114,7 +115,8 @@ def _solve3(J, r0, r1, r2):
 
 @_borrow
 def _torque_kick(M, q, e, Iinv, w, T, h, out):
-    """ω + h I⁻¹ T at fixed orientations, no gyroscopic term (``integrators.torque_kick``)."""
+    """ω + h I⁻¹ T at fixed orientations, no gyroscopic term
+    (``oracle.integrators.torque_kick``)."""
     n = w.shape[0]
     for i in range(n):
         if M.axisymmetric:
@@ -243,8 +245,8 @@ def _drift(M, x, q, v, w, e, h, precession):
 
 @_jit
 def constrained_step(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c, fresh):  # noqa: C901 (the stages of the two integrators)
-    """One symplectic Euler or RATTLE step (``integrators.symplectic_euler`` /
-    ``integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
+    """One symplectic Euler or RATTLE step (``oracle.integrators.symplectic_euler`` /
+    ``oracle.integrators.rattle``). ``fresh``: A must be factorised at q first (else the factors in
     ``ws`` are those of q, left by the previous step's projection). False if a solve fails."""
     F, T, e, hv, Iinv, C, Lo = ws
     n = x.shape[0]

@@ -1,4 +1,4 @@
-"""The classical RK4 step of the compiled step (``integrators.rk4``): four stages, each with
+"""The classical RK4 step of the compiled step (``oracle.integrators.rk4``): four stages, each with
 the joint forces solved (A f_c = b, ``chain_solve``'s factorisation fused with the stage's
 sweep over the segments).
 
@@ -50,7 +50,7 @@ def _accelerations(row, x, q, v, w, F, T, hv, Iinv, C, Lo, acc, alpha, f_c, half
                    baumgarte_stiffness, baumgarte_damping, anchor_position, anchor_velocity,
                    anchor_acceleration):
     """Linear and angular accelerations (m/s², rad/s²) with every joint enforced
-    (``solver.Dynamics.accelerations``) under the applied forces ``F``, ``T``, ``f_c`` the
+    (``oracle.solver.Dynamics.accelerations``) under the applied forces ``F``, ``T``, ``f_c`` the
     joint forces (N); False if A is not positive definite.
 
     Two sweeps, the factorisation's own (``chain_solve``):
@@ -185,7 +185,7 @@ def _rk4_sum(s, weight, total, d):
 
 @_inline
 def rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):  # noqa: C901 (the stages' per-segment loops)
-    """One classical RK4 step (``integrators.rk4``), ω carried in the body frame inside.
+    """One classical RK4 step (``oracle.integrators.rk4``), ω carried in the body frame inside.
 
     The right-hand side is (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α), with a, α from
     ``accelerations`` at the stage's world ω = R ω_b (``w_s``). The stage derivatives are
