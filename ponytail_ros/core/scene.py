@@ -83,7 +83,7 @@ def cylinder_inertia(mass: npt.ArrayLike, length: npt.ArrayLike,
     return np.stack([axial, perp, perp], axis=-1)
 
 
-def _check_range(name: str, value: float, lo: float, hi: float, lo_open: bool = False,
+def check_range(name: str, value: float, lo: float, hi: float, lo_open: bool = False,
                  hi_open: bool = False) -> None:
     ok = (math.isfinite(value) and (value > lo if lo_open else value >= lo)
           and (value < hi if hi_open else value <= hi))
@@ -92,7 +92,7 @@ def _check_range(name: str, value: float, lo: float, hi: float, lo_open: bool = 
                          f'in {"(" if lo_open else "["}{lo}, {hi}{")" if hi_open else "]"}')
 
 
-def _check_vector(name: str, value: Any, n: int = 3, max_abs: float = 1e6) -> FloatArray:
+def check_vector(name: str, value: Any, n: int = 3, max_abs: float = 1e6) -> FloatArray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (n,) or not np.all(np.isfinite(arr)) or np.any(np.abs(arr) > max_abs):
         raise SceneError(name, value, f'{n} finite numbers, each within ±{max_abs:g}')
@@ -176,9 +176,9 @@ class ChainSpec:
                 or isinstance(self.n_segments, bool) or not 1 <= self.n_segments <= MAX_SEGMENTS:
             raise SceneError(p + 'n_segments', self.n_segments,
                              f'an integer in [1, {MAX_SEGMENTS}]')
-        _check_range(p + 'length', self.length, 1e-4, 1e3)
-        _check_range(p + 'mass', self.mass, 1e-7, 1e4)
-        _check_range(p + 'radius', self.radius, 1e-6, 10.0)
+        check_range(p + 'length', self.length, 1e-4, 1e3)
+        check_range(p + 'mass', self.mass, 1e-7, 1e4)
+        check_range(p + 'radius', self.radius, 1e-6, 10.0)
         n = self.n_segments
         for name in ('segment_lengths', 'segment_masses'):
             val = getattr(self, name)
@@ -196,15 +196,15 @@ class ChainSpec:
                 0 <= self.anchor_body < n_kinematic_bodies:
             raise SceneError(p + 'anchor_body', self.anchor_body,
                              f'an integer in [0, {n_kinematic_bodies - 1}]')
-        _check_vector(p + 'attach', self.attach, max_abs=1e3)
+        check_vector(p + 'attach', self.attach, max_abs=1e3)
         if self.rest_direction is not None:
-            d = _check_vector(p + 'rest_direction', self.rest_direction)
+            d = check_vector(p + 'rest_direction', self.rest_direction)
             if np.linalg.norm(d) < 1e-9:
                 raise SceneError(p + 'rest_direction', self.rest_direction, 'a non-zero vector')
-        _check_range(p + 'damping', self.damping, 0.0, 1e3)
-        _check_range(p + 'stiffness', self.stiffness, 0.0, 1e4)
-        _check_range(p + 'drag_linear', self.drag_linear, 0.0, 1e3)
-        _check_range(p + 'drag_quadratic', self.drag_quadratic, 0.0, 1e3)
+        check_range(p + 'damping', self.damping, 0.0, 1e3)
+        check_range(p + 'stiffness', self.stiffness, 0.0, 1e4)
+        check_range(p + 'drag_linear', self.drag_linear, 0.0, 1e3)
+        check_range(p + 'drag_quadratic', self.drag_quadratic, 0.0, 1e3)
         for name in ('swing_limit', 'twist_limit'):
             _check_limit(p + name, getattr(self, name), n)
         if not isinstance(self.collide, (bool, np.bool_)):
@@ -295,15 +295,15 @@ class ColliderSpec:
                 or not 0 <= self.body < n_kinematic_bodies):
             raise SceneError(p + 'body', self.body,
                              f'None (world) or an integer in [0, {n_kinematic_bodies - 1}]')
-        _check_vector(p + 'center', self.center, max_abs=1e3)
-        axis = _check_vector(p + 'axis', self.axis)
+        check_vector(p + 'center', self.center, max_abs=1e3)
+        axis = check_vector(p + 'axis', self.axis)
         if self.kind != 'sphere' and np.linalg.norm(axis) < 1e-9:
             raise SceneError(p + 'axis', self.axis, 'a non-zero vector')
         if self.kind != 'plane':
-            _check_range(p + 'radius', self.radius, 0.0, 100.0, lo_open=True)
+            check_range(p + 'radius', self.radius, 0.0, 100.0, lo_open=True)
         if self.kind == 'capsule':
-            _check_range(p + 'half_length', self.half_length, 0.0, 100.0)
-        _check_range(p + 'friction', self.friction, 0.0, 10.0)
+            check_range(p + 'half_length', self.half_length, 0.0, 100.0)
+        check_range(p + 'friction', self.friction, 0.0, 10.0)
         return self
 
 
@@ -377,7 +377,7 @@ class SolverSpec:
         if self.integrator == 'rattle' and not self.projection:
             raise SceneError(p + 'projection', self.projection, "true with integrator 'rattle' "
                              '(its velocity projection is part of the step)')
-        _check_range(p + 'dt', self.dt, 1e-6, 0.1)
+        check_range(p + 'dt', self.dt, 1e-6, 0.1)
         if not isinstance(self.max_steps_per_call, (int, np.integer)) or \
                 not 1 <= self.max_steps_per_call <= 1_000_000:
             raise SceneError(p + 'max_steps_per_call', self.max_steps_per_call,
@@ -385,11 +385,11 @@ class SolverSpec:
         if self.damping_method not in DAMPING_METHODS:
             raise SceneError(p + 'damping_method', self.damping_method,
                              f'one of {DAMPING_METHODS}')
-        _check_range(p + 'baumgarte_stiffness', self.baumgarte_stiffness, 0.0, 1e8)
-        _check_range(p + 'baumgarte_damping', self.baumgarte_damping, 0.0, 1e4)
-        _check_range(p + 'guard_max_speed', self.guard_max_speed, 1e-3, 1e6, lo_open=True)
-        _check_range(p + 'guard_max_gap', self.guard_max_gap, 1e-9, 10.0)
-        _check_range(p + 'guard_max_step_angle', self.guard_max_step_angle, 0.0, 100.0,
+        check_range(p + 'baumgarte_stiffness', self.baumgarte_stiffness, 0.0, 1e8)
+        check_range(p + 'baumgarte_damping', self.baumgarte_damping, 0.0, 1e4)
+        check_range(p + 'guard_max_speed', self.guard_max_speed, 1e-3, 1e6, lo_open=True)
+        check_range(p + 'guard_max_gap', self.guard_max_gap, 1e-9, 10.0)
+        check_range(p + 'guard_max_step_angle', self.guard_max_step_angle, 0.0, 100.0,
                      lo_open=True)
         return self
 
@@ -432,8 +432,8 @@ class Scene:
             if not isinstance(c, ChainSpec):
                 raise SceneError(f'chains[{i}]', c, 'a ChainSpec')
             c.validate(f'chains[{i}]', self.n_kinematic_bodies)
-        _check_vector('gravity', self.gravity, max_abs=1e4)
-        _check_vector('wind', self.wind, max_abs=1e3)
+        check_vector('gravity', self.gravity, max_abs=1e4)
+        check_vector('wind', self.wind, max_abs=1e3)
         if not isinstance(self.solver, SolverSpec):
             raise SceneError('solver', self.solver, 'a SolverSpec')
         self.solver.validate()

@@ -26,8 +26,6 @@ blow-up resets the chains to rest at the current head pose and is reported, neve
 """
 import math
 import time
-from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 
@@ -48,8 +46,10 @@ from .head import (
 )
 from .head_kernels import frame_tables
 from .model import Model
+from .report import Rollout, StepReport
+from .rollout import RolloutSteps, memo_last
 from .rotations import quat_conjugate, quat_multiply
-from .scene import SceneError, _check_range, _check_vector
+from .scene import SceneError, check_range, check_vector
 from .state import ChainState, joint_points
 
 __all__ = ['Simulator', 'StepReport', 'Rollout', 'TUNABLE_PARAMETERS', 'SUBSTEP_ANGLE',
@@ -66,42 +66,7 @@ TUNABLE_PARAMETERS = {
 }
 
 
-@dataclass
-class StepReport:
-    """What one ``advance`` call did.
-
-    ``timings``: wall seconds of the call's stages, like Box2D's ``b2Profile``: ``steps``
-    (the anchor table and the compiled steps, contacts and limits included) and ``guard``
-    (the checks of the state after the call, and a reset if one was needed); when the
-    compiled step ran, also the split of its calls' time into ``integrate`` (the chains' own
-    steps: forces, joint solves, integration, projection) and ``contacts`` (the contact and
-    limit stage; 0 without colliders and limits), by the CPU's cycle counter
-    (``stages.PROFILE_STAGES``; where there is none, ``integrate`` holds the calls' whole time),
-    and of ``contacts`` into ``contact_rows``, ``contact_positions`` and
-    ``contact_velocities`` (``stages.CONTACT_STAGES``; the rest of ``contacts``: the
-    colliders posed, the positions kept, the call into each chain's stages).
-    """
-
-    steps: int = 0
-    dropped_time: float = 0.0
-    reset_reason: str | None = None
-    max_gap: float = 0.0
-    timings: dict = field(default_factory=dict)
-
-
-class Rollout(NamedTuple):
-    """What ``Simulator.rollout`` did: one ``StepReport`` per sample and the chain's state
-    after it (``(T, n, 3|4)`` arrays, as ``ChainState``: centres m, unit quaternions
-    ``(x, y, z, w)`` body to world, velocities m/s, angular velocities rad/s; world frame)."""
-
-    reports: list
-    x: np.ndarray
-    q: np.ndarray
-    v: np.ndarray
-    w: np.ndarray
-
-
-class Simulator(ContactSteps, Guard):
+class Simulator(RolloutSteps, ContactSteps, Guard):
     """Chains of rigid segments on ball joints, hung from kinematic bodies.
 
     Args:
@@ -237,10 +202,10 @@ class Simulator(ContactSteps, Guard):
                 raise SceneError(name, value, f'one of {sorted(TUNABLE_PARAMETERS)}')
             (lo, hi), per_chain = TUNABLE_PARAMETERS[name]
             if per_chain:
-                _check_range(name, float(value), lo, hi)
+                check_range(name, float(value), lo, hi)
                 checked[name] = float(value)
             else:
-                checked[name] = _check_vector(name, value, max_abs=hi)
+                checked[name] = check_vector(name, value, max_abs=hi)
         if chain is not None and not 0 <= chain < m.n_chains:
             raise SceneError('chain', chain, f'an integer in [0, {m.n_chains - 1}]')
         sl = slice(None) if chain is None else m.chain_slice(chain)
@@ -270,10 +235,10 @@ class Simulator(ContactSteps, Guard):
         (J M⁻¹ Jᵀ λ = -J u) with the same O(n) factorisation, so the joints stay closed.
         """
         m, st = self.model, self.state
-        impulse = _check_vector('impulse', impulse, max_abs=1e6)
+        impulse = check_vector('impulse', impulse, max_abs=1e6)
         if not 0 <= segment < m.n:
             raise SceneError('segment', segment, f'an integer in [0, {m.n - 1}]')
-        r = np.zeros(3) if point is None else _check_vector('point', point) - st.x[segment]
+        r = np.zeros(3) if point is None else check_vector('point', point) - st.x[segment]
         if not chain_ops.apply_impulse(m, self._joint_args, st, self._last_anchor[1], segment,
                                        impulse, r):
             raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
@@ -287,7 +252,7 @@ class Simulator(ContactSteps, Guard):
         """
         m = self.model
         if not self._needs_bodies:
-            anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
+            anchor_at = memo_last(lambda t: self.anchors(motion.state_at(t)))
             self._anchor_at = anchor_at
             if self.unilateral is None:
                 n_steps = self._steps_to(t_target)
@@ -300,10 +265,10 @@ class Simulator(ContactSteps, Guard):
             return self._advance(t_target, anchor_at, motion.state_at, anchor_table=anchor_points)
         # Colliders fixed in moving bodies: one evaluation of the motion for both, at every
         # time and for the anchors' and the bodies' tables.
-        state_at = _memo_last(motion.state_at)
-        anchor_at = _memo_last(lambda t: self.anchors(state_at(t)))
-        bodies_at = _memo_last(lambda t: _body_kinematics(state_at(t)))
-        states = _memo_last(lambda steps: motion.states_at(
+        state_at = memo_last(motion.state_at)
+        anchor_at = memo_last(lambda t: self.anchors(state_at(t)))
+        bodies_at = memo_last(lambda t: _body_kinematics(state_at(t)))
+        states = memo_last(lambda steps: motion.states_at(
             stage_times(self._t_base, steps[0], steps[1], self.dt)), 1)
 
         def anchor_table(k0, n_steps):
@@ -320,80 +285,6 @@ class Simulator(ContactSteps, Guard):
         self._bodies_at = bodies_at
         self._last_bodies = (self.t, bodies_at(self.t))
         return report
-
-    def rollout(self, times, motion):
-        """``advance_to(t, motion)`` for every ``t`` of ``times`` in turn, bit for bit, with the
-        motion and the anchor table evaluated once for all the calls' stage times (one
-        vectorised ``states_at``), then one compiled call per sample: the way to run a known
-        motion offline (a reference, a benchmark), like MuJoCo's ``rollout``.
-
-        ``times``: ``(T,)`` increasing sample times (s). Returns a ``Rollout``: the ``T``
-        calls' ``StepReport`` and the state after each, ``(T, n, 3|4)`` arrays. Scenes with
-        colliders or joint limits and a sample interval beyond
-        ``max_steps_per_call`` go through ``advance_to`` itself.
-        """
-        times = np.asarray(times, dtype=float).reshape(-1)
-        n = self.model.n
-        out = Rollout([], np.empty((times.size, n, 3)), np.empty((times.size, n, 4)),
-                      np.empty((times.size, n, 3)), np.empty((times.size, n, 3)))
-        done = 0
-        while done < times.size:        # a guard reset ends a stretch; the next starts there
-            done += self._rollout_stretch(times[done:], motion, out, done)
-        return out
-
-    def _rollout_stretch(self, times, motion, out, k0):
-        """Samples ``times`` into ``out`` from row ``k0`` until the first guard reset; how
-        many were taken."""
-        n_targets = np.floor((times - self._t_base) / self.dt + 1e-9).astype(np.int64)
-        counts = np.diff(n_targets, prepend=self._n_steps)
-        if (self.unilateral is not None or np.any(counts < 0)
-                or np.any(counts > self.scene.solver.max_steps_per_call)):
-            for k, t in enumerate(times):
-                out.reports.append(self.advance_to(t, motion))
-                self._store(out, k0 + k)
-            return times.size
-        m = self.model
-        table = self._table(motion.stage_points(self._t_base, self._n_steps, int(counts.sum()),
-                                                self.dt, self._anchor_body, m.attach))
-        self._anchor_at = _memo_last(lambda t: self.anchors(motion.state_at(t)))
-        model = self._step_model()
-        st = self.state                 # the working arrays, stepped in place
-        x, q, v, w = (np.array(a, dtype=float) for a in (st.x, st.q, st.v, st.w))
-        self.state = ChainState(x, q, v, w)
-        row = 0                         # the table row of the next step's start
-        for k, n_steps in enumerate(counts):
-            report = StepReport(steps=int(n_steps))
-            t_start = time.perf_counter()
-            failure = None
-            self._call_wall = self._uni_wall = 0.0
-            if n_steps > 0:
-                A = compiled.AnchorTable(*(a[row:row + 2 * n_steps + 1] for a in table))
-                try:
-                    self._run_compiled_table(n_steps, self.dt, A, x, q, v, w, model)
-                    self._n_steps += int(n_steps)
-                    row += 2 * int(n_steps)
-                except np.linalg.LinAlgError as err:      # (the time does not advance)
-                    failure = str(err)
-                    report.steps = 0
-                    x[:] = np.nan
-            self.t = self._t_base + self._n_steps * self.dt
-            t_steps = time.perf_counter()
-            # The anchor at self.t: the table's row there (advance_to's end row, or for a call
-            # without steps its own evaluation at the same time: equal bit for bit).
-            anchor = AnchorKinematics(*(a[row] for a in table))
-            reason = self._end_call(report, anchor, failure, motion.state_at)
-            report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps}
-            self._profile[:] = 0            # (the free step: its whole call is integrate)
-            self._split_timings(report)
-            out.reports.append(report)
-            self._store(out, k0 + k)
-            if reason is not None:
-                return k + 1
-        return times.size
-
-    def _store(self, out, k):
-        st = self.state
-        out.x[k], out.q[k], out.v[k], out.w[k] = st.x, st.q, st.v, st.w
 
     def advance_frame(self, t_frame, head, head_prev=None):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
@@ -416,14 +307,14 @@ class Simulator(ContactSteps, Guard):
         a_new = self.anchors(head)
         track = AnchorTrack(t_prev, a_prev, t_frame, a_new)
         if not self._needs_bodies:
-            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+            report = self._advance(t_frame, memo_last(track.at), lambda t: head,
                                    anchor_table=self._track_table(track))
         else:
             # Colliders fixed in kinematic bodies follow the same interpolation as anchors.
             b_new = _body_kinematics(head)
             body_track = AnchorTrack(t_prev, self._last_bodies[1], t_frame, b_new)
-            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   _memo_last(body_track.at),
+            report = self._advance(t_frame, memo_last(track.at), lambda t: head,
+                                   memo_last(body_track.at),
                                    anchor_table=self._track_table(track),
                                    body_table=self._track_table(body_track))
             self._bodies_at = body_track.at
@@ -463,13 +354,13 @@ class Simulator(ContactSteps, Guard):
         ends = AnchorKinematics(*ends_a)
         track = AnchorTrack.from_ends(t_prev, t_frame, ends)
         if not self._needs_bodies:
-            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
+            report = self._advance(t_frame, memo_last(track.at), lambda t: head,
                                    anchor_table=self._track_table(track), planned=planned)
         else:
             body_ends = AnchorKinematics(*ends_b)
             body_track = AnchorTrack.from_ends(t_prev, t_frame, body_ends)
-            report = self._advance(t_frame, _memo_last(track.at), lambda t: head,
-                                   _memo_last(body_track.at),
+            report = self._advance(t_frame, memo_last(track.at), lambda t: head,
+                                   memo_last(body_track.at),
                                    anchor_table=self._track_table(track),
                                    body_table=self._track_table(body_track), planned=planned)
             self._bodies_at = body_track.at
@@ -815,21 +706,6 @@ class Simulator(ContactSteps, Guard):
     def constraint_forces(self):
         """Joint forces f_c ``(n, 3)`` on each child at the last stage solved, N."""
         return self.f_c
-
-
-def _memo_last(f, size=2):
-    """Cache ``f(t)`` for the last few ``t``: RK4 evaluates the anchor twice at t + h/2, and the
-    step's end again for the projection and the next step's start."""
-    cache = {}
-
-    def g(t):
-        v = cache.get(t)
-        if v is None:
-            if len(cache) >= size:
-                cache.pop(next(iter(cache)))
-            v = cache[t] = f(t)
-        return v
-    return g
 
 
 #: Rows of anchors (rows of the table times chains) a simulator evaluates ahead for a fixed
