@@ -76,15 +76,14 @@ OK, NOT_POSITIVE_DEFINITE, NO_ROOM = 0, 1, 2
 # n segments, m colliding segments, K colliders, n_l limited joints, k_max = m K + 2 n_l
 # candidate rows, cap the row tables' rows (``ROW_COLLIDERS``). Indices into the tuple, and
 # into the first axis of its stacked arrays:
-(WS_VEC, WS_MAT, WS_R3, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
+(WS_VEC, WS_MAT, WS_TABLES, WS_IDS, WS_DET, WS_OWN, WS_Q, WS_AXIS, WS_LIM, WS_ROWVEC,
  WS_KEEP, WS_PAIRS, WS_SLOTS, WS_CHAIN_SLOT, WS_STATE, WS_BOX, WS_TOUCHED, WS_SOLVE,
- WS_ORDER, WS_SWEEP) = range(21)
+ WS_ORDER, WS_SWEEP) = range(20)
 # WS_VEC (7, n, 3): the half-vectors of the factorisation, four scratch vectors, then the
 # step's velocities on entry (kept to resolve it again if the row tables overflow).
 V_H, V_N0, V_N1, V_N2, V_N3, V_V0, V_W0 = range(7)
-# WS_MAT (4, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``contact_joints.joint_factors``),
-# and a spare block table.
-M_INV_I, M_PIVOTS, M_LO, M_G = range(4)
+# WS_MAT (3, n, 3, 3): the factorisation (I⁻¹, pivots, Lo: ``contact_joints.joint_factors``).
+M_INV_I, M_PIVOTS, M_LO = range(3)
 # WS_TABLES (3, cap, NCOL) floats and WS_IDS (3, cap, 3) integers: the row tables.
 T_ROWS, T_SEL, T_FRIC = range(3)
 # WS_DET (3, m, K): detection (``detect``); WS_LIM (2, 2 n_l): the limits' gaps and rates.
@@ -155,9 +154,9 @@ def solve_scratch(k, kg, nc, n_chains):
 @njit(cache=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def workspace(n, m, K, nl, nd, n_chains, nc_max):
     """The workspace of ``resolve`` (indices ``WS_*`` and, within the stacked arrays, the
-    names above): half-vectors and scratch vectors, the factorisation and its blocks, two 3×3,
-    the row tables (all rows, a selection, friction rows; ``grown`` gives larger ones when
-    needed), detection tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
+    names above): half-vectors and scratch vectors, the factorisation, the row tables (all
+    rows, a selection, friction rows; ``grown`` gives larger ones when needed), detection
+    tables ``(m, K)``, one ``(n, 4)``, the limits' axes ``(2 n_l, 3)``,
     gaps and rates, per-row vectors and a mask ``(k_max)``, the per-pair broad phase's
     tables (nd colliding chains of n_chains), the touched chains' marks and the row solve's
     scratch (chains of up to ``nc_max`` segments)."""
@@ -165,9 +164,9 @@ def workspace(n, m, K, nl, nd, n_chains, nc_max):
     # The row tables' capacity: a crowd's segments each near a few colliders of many (a
     # workspace this small is reused by malloc, not mapped and faulted in at every call).
     cap = m * min(K, ROW_COLLIDERS) + 2 * nl
-    return (np.empty((7, n, 3)), np.empty((4, n, 3, 3)), np.empty((2, 3, 3)),
-            np.empty((3, cap, NCOL)), np.empty((3, cap, 3), dtype=np.int64),
-            np.empty((3, m, K)), np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
+    return (np.empty((7, n, 3)), np.empty((3, n, 3, 3)), np.empty((3, cap, NCOL)),
+            np.empty((3, cap, 3), dtype=np.int64), np.empty((3, m, K)),
+            np.empty((m, K), dtype=np.bool_), np.empty((n, 4)),
             np.empty((2 * nl, 3)), np.empty((2, 2 * nl)), np.empty((4, k_max)),
             np.empty(k_max, dtype=np.bool_), np.empty((nd, K), dtype=np.int64),
             np.empty((3, nd), dtype=np.int64), np.empty(n_chains, dtype=np.int64),
@@ -183,7 +182,7 @@ def grown(ws):
     in each collider, and each limit twice), for the rare call whose rows overflow the usual
     ones (a segment near more than ``ROW_COLLIDERS`` colliders)."""
     k_max = ws[WS_ROWVEC].shape[1]
-    return (ws[WS_VEC], ws[WS_MAT], ws[WS_R3], np.empty((3, k_max, NCOL)),
+    return (ws[WS_VEC], ws[WS_MAT], np.empty((3, k_max, NCOL)),
             np.empty((3, k_max, 3), dtype=np.int64), ws[WS_DET], ws[WS_OWN], ws[WS_Q],
             ws[WS_AXIS], ws[WS_LIM], ws[WS_ROWVEC], ws[WS_KEEP], ws[WS_PAIRS], ws[WS_SLOTS],
             ws[WS_CHAIN_SLOT], ws[WS_STATE], ws[WS_BOX], ws[WS_TOUCHED], ws[WS_SOLVE],
