@@ -56,7 +56,7 @@ import time
 from . import kernel_cache
 
 __all__ = ['STAGES', 'compile_kernels', 'prepare', 'report_compile', 'say_compiles',
-           'stages_for']
+           'say_if_cold', 'stages_for']
 
 STAGES = ('free step', 'other integrators', 'crowd lanes', 'contact step',
           'contact step (other integrators)', 'crowd contacts', 'head fit', 'markers')
@@ -494,6 +494,23 @@ def compile_kernels(stages=STAGES, log=None, progress=True):
     _seconds += seconds
     _compiled = _compiled or compiled
     return _seconds, _compiled
+
+
+def say_if_cold(log=None):
+    """Say at once, through ``log`` (default stderr), that the kernels will compile before
+    the first step when the cache is cold (``kernel_cache.is_cold``), with an estimate for a
+    scene with colliders: what a command says first, before the seconds its imports take
+    (this module and ``kernel_cache`` import neither numba nor the kernels). The stages,
+    the estimate for the scene and the progress follow once the scene is known. Returns
+    whether it said so."""
+    if not kernel_cache.is_cold():
+        return False
+    where = kernel_cache.cache_location()
+    estimate = _estimate(['free step', 'contact step', 'head fit', 'markers'], _jobs())
+    (log or _say)(f'ponytail_ros: the simulation kernels compile before the first step, about '
+                  f'{estimate:.0f} s' + (f', once after install (cache: {where})' if where
+                                         else ', at every start (no cache)'))
+    return True
 
 
 def say_compiles(log=None, progress=True):
