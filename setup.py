@@ -60,10 +60,10 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'ponytail_demo = ponytail_ros.demo:main',
-            'ponytail_node = ponytail_ros.node:main',
+            'ponytail_demo = ponytail_ros.entry_points:demo',
+            'ponytail_node = ponytail_ros.entry_points:node',
             'ponytail_head_demo = ponytail_ros.ros.head_demo:main',
-            'ponytail_replay = ponytail_ros.recording.cli:main',
+            'ponytail_replay = ponytail_ros.entry_points:replay',
             'ponytail_bench = ponytail_ros.bench.cli:main',
         ],
         # pytest plugin: the ponytail / ponytail_offline fixtures (ponytail_ros.testing). Named

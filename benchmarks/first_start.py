@@ -86,7 +86,7 @@ def _start(site, tmp, home, params, timeout):
     assert listener.stdout.readline().strip() == 'READY'
     t0 = time.monotonic()
     node = subprocess.Popen([*_prefix(), sys.executable, '-c',
-                             'from ponytail_ros.node import main; main()', '--ros-args',
+                             'from ponytail_ros.entry_points import node; node()', '--ros-args',
                              '-r', '__ns:=/alice', '--params-file', str(params)],
                             env=run_env, cwd=tmp, text=True, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT)

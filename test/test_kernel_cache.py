@@ -151,3 +151,38 @@ def test_with_nowhere_to_cache_it_runs_uncached_saying_so_once(read_only_install
     assert r.stderr.count(kernel_cache.CACHE_WARNING) == 1
     assert r.stdout.split() == ['none', 'False']
     assert 'no cache: at every start' in r.stderr
+
+
+# -- the first line: a cold cache said at once ---------------------------------------------
+_SAY = ('import sys; from ponytail_ros.core import compile as c; said = c.say_if_cold(); '
+        'print(said, "numba" in sys.modules)')
+
+
+def _say_if_cold(cache_dir):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
+    return subprocess.run([sys.executable, '-c', _SAY], env=env, capture_output=True,
+                          text=True, timeout=60, check=True)
+
+
+def test_a_cold_cache_is_said_before_numba_is_imported(tmp_path):
+    """The commands' first line (``entry_points``): with no cache written by these sources,
+    it says the kernels will compile, with the cache's directory, without importing numba
+    (whose import takes a good part of a second)."""
+    run = _say_if_cold(tmp_path)
+    assert run.stdout.split() == ['True', 'False']
+    assert 'compile before the first step' in run.stderr
+    assert str(tmp_path) in run.stderr
+
+
+def test_a_warm_cache_is_not_said(tmp_path):
+    """Once the kernels are cached by these sources (the stamp of their digest and a step
+    kernel's index), nothing is said; a stamp of other sources is cold again."""
+    here = Path(kernel_cache.__file__).resolve().parent
+    d = tmp_path / _CacheLocator.get_suitable_cache_subpath(step.__file__)
+    d.mkdir(parents=True)
+    (d / 'step.advance_rk4-1.py311.nbi').write_bytes(b'index')
+    (d / kernel_cache._STAMP).write_text(kernel_cache._digest(here) + '\n')
+    run = _say_if_cold(tmp_path)
+    assert run.stdout.split() == ['False', 'False'] and run.stderr == ''
+    (d / kernel_cache._STAMP).write_text('other sources\n')
+    assert _say_if_cold(tmp_path).stdout.split() == ['True', 'False']

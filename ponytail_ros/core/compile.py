@@ -34,11 +34,14 @@ through ``log``: a live change that adds colliders compiles the contact stage th
 ``python -m ponytail_ros.core.compile``: a deploy-time step that fills the cache). A process
 that calls neither compiles lazily, as numba does.
 
-A cold cache is compiled on two cores when there are two: the contact stages (the largest
-kernels) in a child process, the rest here at the same time; then the contact stages are run
-here, loading what the child wrote to the cache (numba writes cache files atomically, so two
-processes may compile the same callee: the later write wins, and both are the same code). A
-child that fails changes nothing but the time: what it did not cache is compiled here.
+A cold cache is compiled on two cores when there are two: a child process compiles the
+contact stage alone (``step_unilateral.compile_contact_stage``: the largest kernels, for the
+types the contact step calls them with) while this one compiles the free step, the head fit,
+the markers and the contact queries; then this one compiles the contact step's loop
+(``advance_unilateral``), loading the contact stage from what the child wrote to the cache
+(numba writes cache files atomically, so two processes may compile the same callee: the
+later write wins, and both are the same code). A child that fails changes nothing but the
+time: what it did not cache is compiled here.
 ``PONYTAIL_COMPILE_JOBS=1`` compiles in this process only (a shared or single-core machine);
 the default is 2 where two cores are free. ``python -m ponytail_ros.bench.compile_cost``
 measures cold and warm starts, per stage.
@@ -53,7 +56,7 @@ import time
 from . import kernel_cache
 
 __all__ = ['STAGES', 'compile_kernels', 'prepare', 'report_compile', 'say_compiles',
-           'stages_for']
+           'say_if_cold', 'stages_for']
 
 STAGES = ('free step', 'other integrators', 'crowd lanes', 'contact step',
           'contact step (other integrators)', 'crowd contacts', 'head fit', 'markers')
@@ -61,8 +64,8 @@ STAGES = ('free step', 'other integrators', 'crowd lanes', 'contact step',
 _CHILD_STAGES = ('contact step', 'contact step (other integrators)', 'crowd contacts')
 #: Rough compile cost of each stage on one core of a small machine, s: for the estimate said
 #: before compiling only (``bench.compile_cost`` measures them).
-_ROUGH_SECONDS = {'free step': 35.0, 'other integrators': 25.0, 'crowd lanes': 35.0,
-                  'contact step': 80.0, 'contact step (other integrators)': 15.0,
+_ROUGH_SECONDS = {'free step': 20.0, 'other integrators': 25.0, 'crowd lanes': 35.0,
+                  'contact step': 55.0, 'contact step (other integrators)': 15.0,
                   'crowd contacts': 35.0, 'head fit': 6.0, 'markers': 2.0}
 
 #: Wall time (s) of each stage of the last compile in this process, in its order: what a
@@ -127,14 +130,18 @@ def _warm_crowd():
     Simulator(_crowd_scene()).advance_frame(0.02, KinematicState.still())
 
 
-def _warm_contacts(integrator='rk4'):
-    from .head import KinematicState
+def _bounded(integrator='rk4'):
     from .scene import ChainSpec, Scene, SolverSpec
     from .simulator import Simulator
     # A far floor (never touched) and a cone limit: the contacts-and-limits loop runs.
-    bounded = Simulator(Scene(chains=[ChainSpec(n_segments=2, swing_limit=1.0)],
-                              colliders=[_far_floor()],
-                              solver=SolverSpec(integrator=integrator, dt=0.01)))
+    return Simulator(Scene(chains=[ChainSpec(n_segments=2, swing_limit=1.0)],
+                           colliders=[_far_floor()],
+                           solver=SolverSpec(integrator=integrator, dt=0.01)))
+
+
+def _warm_contacts(integrator='rk4'):
+    from .head import KinematicState
+    bounded = _bounded(integrator)
     bounded.advance_frame(0.02, KinematicState.still())
     bounded.contact_depths()
     bounded.joint_angles()
@@ -142,6 +149,24 @@ def _warm_contacts(integrator='rk4'):
 
 def _warm_contacts_other_integrators():
     _warm_contacts('symplectic_euler')
+
+
+def _warm_contact_queries():
+    # The contact stages' kernels outside the step: here while the child compiles the step's.
+    bounded = _bounded()
+    bounded.contact_depths()
+    bounded.joint_angles()
+    bounded._contact_workspace(bounded.unilateral.static_pose)
+
+
+def _warm_contact_stage():
+    # The contact stage alone (the child's part: ``step_unilateral.compile_contact_stage``).
+    _bounded()._compile_contact_stage()
+
+
+def _warm_crowd_contact_stage():
+    from .simulator import Simulator
+    Simulator(_crowd_scene(colliders=[_far_floor()]))._compile_contact_stage()
 
 
 def _warm_crowd_contacts():
@@ -180,6 +205,15 @@ def _warm_markers():
                                     np.empty((1, 7)), np.empty((0, 3)),
                                     np.empty(1, dtype=np.bool_))
 
+
+#: A child stage's part in the child (the rest is run here when the child is done) and the
+#: part run here while waiting for it.
+_CHILD_WARM = {'contact step': _warm_contact_stage,
+               'contact step (other integrators)': _warm_contact_stage,
+               'crowd contacts': _warm_crowd_contact_stage}
+_WHILE_WAITING = {'contact step': _warm_contact_queries,
+                  'contact step (other integrators)': _warm_contact_queries,
+                  'crowd contacts': _warm_contact_queries}
 
 _WARM = {'free step': _warm_free, 'other integrators': _warm_other_integrators,
          'crowd lanes': _warm_crowd, 'contact step': _warm_contacts,
@@ -314,9 +348,10 @@ def _jobs():
 def _child():
     """The child's part of a cold compile (the stages named in its arguments); prints its
     cache misses."""
+    from .contact_stage import resolve_chains_into
     for stage in sys.argv[1:]:
-        _WARM[stage]()
-    print(_misses(), flush=True)
+        _CHILD_WARM[stage]()
+    print(_misses() + sum(resolve_chains_into.stats.cache_misses.values()), flush=True)
 
 
 class _Progress:
@@ -423,6 +458,7 @@ def _run(stages, log, progress):
             if said:
                 bar.start(stage + (' (second process)' if stage in to_child else ''))
             if stage in to_child and child.returncode is None:
+                _WHILE_WAITING[stage]()
                 child_misses = _wait_child(child)
             _WARM[stage]()
             _done.add(stage)
@@ -458,6 +494,23 @@ def compile_kernels(stages=STAGES, log=None, progress=True):
     _seconds += seconds
     _compiled = _compiled or compiled
     return _seconds, _compiled
+
+
+def say_if_cold(log=None):
+    """Say at once, through ``log`` (default stderr), that the kernels will compile before
+    the first step when the cache is cold (``kernel_cache.is_cold``), with an estimate for a
+    scene with colliders: what a command says first, before the seconds its imports take
+    (this module and ``kernel_cache`` import neither numba nor the kernels). The stages,
+    the estimate for the scene and the progress follow once the scene is known. Returns
+    whether it said so."""
+    if not kernel_cache.is_cold():
+        return False
+    where = kernel_cache.cache_location()
+    estimate = _estimate(['free step', 'contact step', 'head fit', 'markers'], _jobs())
+    (log or _say)(f'ponytail_ros: the simulation kernels compile before the first step, about '
+                  f'{estimate:.0f} s' + (f', once after install (cache: {where})' if where
+                                         else ', at every start (no cache)'))
+    return True
 
 
 def say_compiles(log=None, progress=True):

@@ -205,8 +205,10 @@ def _solve_groups(R, I, b, bound, h, inv_I, C, Lo, model, dv_out, dw_out, lam, m
         c_dot, W, lc = c_dot_all[:nc], W_all[:kg, :kg], lc_all[:kg]
         Cg, Log, first = C[s:e], Lo[s:e], is_first[s:e]
         for a in range(kg):
+            # (the response rows as ``_solve_one_row`` takes them, C-contiguous: one
+            # specialisation of ``row_response``)
             row_response(R, I, mem[a], h, inv_I, Cg, Log, first, inv_mass, has_child, s, e,
-                         rv[a], rw[a], c_dot)
+                         rv_all[a, :nc], rw_all[a, :nc], c_dot)
         delassus(R, I, mem, s, rv, rw, model, W, mobile[:kg])
         chain_impulses(W, mobile[:kg], b, bound, mem, lc, ds)
         for a in range(kg):

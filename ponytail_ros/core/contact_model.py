@@ -196,15 +196,16 @@ def resolve_workspace(model, det, split, pose, has_colliders):
     the colliders."""
     chain_start, chain_end = model[CHAIN_START], model[CHAIN_END]
     lim, rows = split[SP_LIM_RANGE], split[SP_DET_RANGE]
-    n = m = nl = 0
+    # (every size an int64 from the start: a literal 0 would be typed, and its callees
+    # compiled, once more as a constant while numba unifies the loop)
+    n = m = nl = np.int64(0)
     for c in range(chain_start.shape[0]):
         n = max(n, chain_end[c] - chain_start[c])
         m = max(m, rows[1, c] - rows[0, c])
         nl = max(nl, lim[1, c] - lim[0, c])
-    # (one call, every size an int64 variable: literal sizes compiled one version each)
     K, nd, one = pose[P_A0].shape[0], np.int64(1), np.int64(1)
     if not has_colliders:
-        m, K, nd = 0, 0, 0
+        m, K, nd = np.int64(0), np.int64(0), np.int64(0)
     return workspace(n, m, K, nl, nd, one, n)
 
 

@@ -87,9 +87,10 @@ from .narrow_phase import contact_frame
 from .vec import add, cross, dot, norm, sub, v3
 
 
-@njit(cache=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, inline='always')
 def col3(R, r, c):
-    """Row r's 3-vector at columns c:c+3 (e.g. ``col3(R, r, LIN)``)."""
+    """Row r's 3-vector at columns c:c+3 (e.g. ``col3(R, r, LIN)``; inlined: a call would
+    compile once per literal column and row)."""
     return (R[r, c], R[r, c + 1], R[r, c + 2])
 
 

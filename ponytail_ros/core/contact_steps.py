@@ -57,9 +57,44 @@ class ContactSteps:
         return x, q, v, w
 
     def _call_unilateral(self, n_steps, A, B, moving, x, q, v, w):
+        f_c = np.zeros((self.model.n, 3))
+        args = self._unilateral_args(n_steps, A, B, moving, x, q, v, w, f_c)
+        t0 = time.perf_counter()
+        status, k, tables, ids = step_unilateral.advance_unilateral(*args)
+        self._uni_wall += time.perf_counter() - t0
+        self._keep_tables(tables, ids)
+        self.f_c = f_c
+        stats = self.unilateral._stats
+        self.unilateral.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
+                                'position_passes': int(stats[2])}
+        if status == compiled.JOINT_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
+        if status == compiled.DAMPING_SOLVE_FAILED:
+            raise np.linalg.LinAlgError('implicit damping KKT system is singular')
+        return status, k
+
+    def _compile_contact_stage(self):
+        """Compile (or load) the contact stage for this scene's types alone
+        (``step_unilateral.compile_contact_stage``), the anchors where they are: what a cold
+        compile's second process runs (``compile``)."""
+        _, at = self._last_anchor
+        A, B = self._tables(1, lambda _t: at, None, None)
+        st = self.state
+        x, q, v, w = (np.array(a, dtype=float) for a in (st.x, st.q, st.v, st.w))
+        step_unilateral.compile_contact_stage(
+            self._unilateral_args(1, A, B, False, x, q, v, w, np.zeros((self.model.n, 3))))
+
+    def _keep_tables(self, tables, ids):
+        ws = self.unilateral.workspace
+        if tables.shape != ws[contact_model.WS_TABLES].shape:
+            # A step's rows overflowed the tables: the grown ones are kept (``grown``).
+            self.unilateral.workspace = (ws[:contact_model.WS_TABLES] + (tables, ids)
+                                         + ws[contact_model.WS_IDS + 1:])
+
+    def _unilateral_args(self, n_steps, A, B, moving, x, q, v, w, f_c):
+        """``advance_unilateral``'s arguments."""
         uni = self.unilateral
         ext_F, ext_T = self._external_arrays()
-        f_c = np.zeros((self.model.n, 3))
         stats = uni._stats
         cols = uni.colliders
         M = self._step_model()
@@ -72,22 +107,7 @@ class ContactSteps:
                 True if self._kernel(M) is lanes.advance_lanes else None,
                 self._contact_workspace(static_pose),
                 None if M.integrator == compiled.RK4 else True)
-        t0 = time.perf_counter()
-        status, k, tables, ids = step_unilateral.advance_unilateral(*args)
-        self._uni_wall += time.perf_counter() - t0
-        ws = uni.workspace
-        if tables.shape != ws[contact_model.WS_TABLES].shape:
-            # A step's rows overflowed the tables: the grown ones are kept (``grown``).
-            uni.workspace = (ws[:contact_model.WS_TABLES] + (tables, ids)
-                             + ws[contact_model.WS_IDS + 1:])
-        self.f_c = f_c
-        uni.last = {'contacts': int(stats[0]), 'limits': int(stats[1]),
-                    'position_passes': int(stats[2])}
-        if status == compiled.JOINT_SOLVE_FAILED:
-            raise np.linalg.LinAlgError('J M⁻¹ Jᵀ is not positive definite')
-        if status == compiled.DAMPING_SOLVE_FAILED:
-            raise np.linalg.LinAlgError('implicit damping KKT system is singular')
-        return status, k
+        return args
 
     def _contact_workspace(self, static_pose):
         """The contact stage's workspace of this structure, built once (``Unilateral``);

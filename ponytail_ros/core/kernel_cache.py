@@ -29,14 +29,16 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ['KERNEL_MODULES', 'cache_location', 'choose_cache_dir', 'ensure_fresh']
+__all__ = ['KERNEL_MODULES', 'cache_location', 'choose_cache_dir', 'ensure_fresh',
+           'is_cold']
 
 #: The sources whose edits invalidate the cache: every module of ``core`` that defines
 #: compiled code (numba's own check sees only the file of the function it loads, not an edited
 #: callee in another file); the plain-Python modules beside them do not.
 KERNEL_MODULES = tuple(sorted(
     p.stem for p in Path(__file__).resolve().parent.glob('*.py')
-    if any(mark in p.read_text(encoding='utf-8') for mark in ('njit', '@intrinsic'))))
+    if p.stem != 'kernel_cache'                 # (it names the marks, and defines no kernel)
+    and any(mark in p.read_text(encoding='utf-8') for mark in ('njit', '@intrinsic'))))
 #: Whose cache files a stale cache loses: every module of ``core`` (a kernel's callee may be
 #: in any of them), not another package's files in a shared ``NUMBA_CACHE_DIR``.
 _SOURCE_MODULES = tuple(sorted(p.stem for p in Path(__file__).resolve().parent.glob('*.py')))
@@ -83,6 +85,8 @@ def choose_cache_dir():
     user = os.environ.get('NUMBA_CACHE_DIR', '').strip()
     if user:
         _location = ('user', user)
+        if not _writable(user):
+            _uncached_when_no_locator()
     elif _writable(_HERE / '__pycache__'):
         _location = ('package', str(_HERE / '__pycache__'))
     else:
@@ -96,7 +100,7 @@ def choose_cache_dir():
         else:
             _location = ('none', None)
             print(CACHE_WARNING, file=sys.stderr, flush=True)
-    _uncached_when_no_locator()
+            _uncached_when_no_locator()
     return _location
 
 
@@ -108,7 +112,9 @@ def cache_location():
 def _uncached_when_no_locator():
     """numba raises ``RuntimeError('cannot cache function ...: no locator available')`` when
     defining a ``cache=True`` function with nowhere to cache it: the function is left
-    uncached instead (numba's ``NullCache``), the case said by ``CACHE_WARNING``."""
+    uncached instead (numba's ``NullCache``), the case said by ``CACHE_WARNING``. Installed
+    only then (a writable directory always has a locator): the cache's choice stays free of
+    numba's import, which ``compile.say_if_cold`` relies on."""
     from numba.core import caching, dispatcher
     enable = dispatcher.Dispatcher.enable_caching
     if getattr(enable, '_ponytail_ros', False):
@@ -161,6 +167,19 @@ def _used_dir(here):
     if kind == 'package':
         return here / '__pycache__'
     return None if root is None else Path(root) / _subpath(here)
+
+
+def is_cold():
+    """Whether the kernels will compile: no cache, or none written by these sources (the
+    first start after an install or an upgrade). Reads files only: no numba."""
+    used = _used_dir(_HERE)
+    if used is None:
+        return True
+    try:
+        return not ((used / _STAMP).read_text().strip() == _digest(_HERE)
+                    and any(used.glob('step.*.nbi')))
+    except OSError:
+        return True
 
 
 def ensure_fresh():

@@ -183,9 +183,12 @@ def _rk4_sum(s, weight, total, d):
     return d if s == 0 else total + weight * d
 
 
-@_inline
+@_borrow
 def rk4(M, A, k, h, x, q, v, w, ext_F, ext_T, ws, rws, f_c):  # noqa: C901 (the stages' per-segment loops)
     """One classical RK4 step (``oracle.integrators.rk4``), ω carried in the body frame inside.
+    A call, not inlined into the step loop: numba's inliner copies a callee's IR block by
+    block, each copy with all the callee's variables, quadratic in a body this large (its
+    stages' helpers inlined): a third of the free step's compile, for one call per step.
 
     The right-hand side is (ẋ = v, q̇ = ½ q ⊗ ω_b, v̇ = a, ω̇_b = Rᵀ α), with a, α from
     ``accelerations`` at the stage's world ω = R ω_b (``w_s``). The stage derivatives are

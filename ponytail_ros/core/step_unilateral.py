@@ -33,7 +33,7 @@ from .step import (
 
 ensure_fresh()
 
-__all__ = ['advance_unilateral']
+__all__ = ['advance_unilateral', 'compile_contact_stage']
 
 
 # error_model='numpy': the lanes' loops inlined here divide as plain ``fdiv`` (see ``lanes``).
@@ -118,6 +118,22 @@ def advance_unilateral(M, A, n_steps, h, x, q, v, w, ext_F, ext_T, f_c, B, movin
             break
     profile[2] += cycles() - t_call
     return status, done, cws[contact_model.WS_TABLES], cws[contact_model.WS_IDS]
+
+
+def compile_contact_stage(args):
+    """Compile (or load) the contact stage (``contact_stage.resolve_chains_into``) for the
+    types ``advance_unilateral`` calls it with, given ``advance_unilateral``'s arguments
+    ``args``, without compiling ``advance_unilateral``: a cold compile does this in a second
+    process while the first compiles the chains' step (``compile``). The arguments are
+    those of the loop below, built alike (C-contiguous arrays: ``np.empty_like`` of C arrays,
+    a C table's rows)."""
+    (M, A, _, h, x, q, v, w, _, _, _, _, _, _, static_pose, umodel, det, split, q_rest,
+     has_colliders, stats, _, _, profile, _, cws, _) = args
+    anchor = (A.position[2], A.velocity[2], A.orientation[2], A.angular_velocity[2])
+    like = (np.empty_like(x), np.empty_like(q), x, q, v, w, anchor, static_pose, umodel, det,
+            split, q_rest, has_colliders, M.projection, h, stats,
+            np.empty(3, dtype=np.int64), cws, np.int64(0), profile)
+    contact_stage.resolve_chains_into.compile(tuple(nb.typeof(a) for a in like))
 
 
 @nb.njit(cache=True, _nrt=False, inline='always')

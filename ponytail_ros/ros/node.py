@@ -832,6 +832,6 @@ def node_help() -> str:
 
 def main(args=None, node_class=PonytailNode):
     """Run ``node_class`` as ``ponytail_node`` does; returns the exit code (``ponytail_node``
-    itself is ``ponytail_ros.node:main``, which passes the node with recording)."""
+    itself runs ``ponytail_ros.node:main``, which passes the node with recording)."""
     return run_node('ponytail_node', node_class, args,
                     bad_input=(ParameterError, ParameterException), help_text=node_help())
