@@ -143,7 +143,7 @@ def _assert_simulations_identical(scene):
     the same state, rollout, joint forces, steps and contact counts, bit for bit, no reset.
     Returns the lanes' simulator."""
     sim = Simulator(scene, crowd_motion(len(scene.chains)), 0.0)
-    assert sim._kernel(sim._step_model()) is lanes.advance_lanes
+    assert sim._kernel(sim._step_model()).kernel is lanes.advance_lanes
     a, reports_a, roll_a = _simulate(scene, False)
     b, reports_b, roll_b = _simulate(scene, True)
     for name in ('x', 'q', 'v', 'w'):
@@ -202,7 +202,7 @@ def test_unsupported_scenes_fall_back(kind):
         scene = Scene(chains=tuple(chains), n_kinematic_bodies=len(chains),
                       solver=scene.solver)
     sim = Simulator(scene, crowd_motion(n_chains), 0.0)
-    assert sim._kernel(sim._step_model()) is (
+    assert sim._kernel(sim._step_model()).kernel is (
         compiled.advance_rk4 if scene.solver.integrator == 'rk4' else compiled.advance)
     a, _, roll_a = _simulate(scene, False, t_end=0.03)
     b, _, roll_b = _simulate(scene, True, t_end=0.03)

@@ -50,7 +50,7 @@ def kernel_cost(scene, motion, integrator='rk4', n_steps=1000, repeats=5):
     tab = stack_anchors([sim.anchors(motion.state_at(t)) for t in times])
     A = compiled.AnchorTable(*(np.ascontiguousarray(a) for a in tab.__dict__.values()))
     M = sim._step_model()
-    kernel = sim._kernel(M)
+    kernel = sim._kernel(M).kernel
     st = sim.state
     zeros = np.zeros((sim.model.n, 3))
     f_c = np.zeros((sim.model.n, 3))

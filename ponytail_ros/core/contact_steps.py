@@ -104,7 +104,7 @@ class ContactSteps:
                 static_pose, uni.model_args, uni.detector_args, uni.split_args,
                 np.ascontiguousarray(self.model.q_rest), uni.detector is not None, stats,
                 SUBSTEP_ANGLE, MAX_SUBSTEPS, self._profile,
-                True if self._kernel(M) is lanes.advance_lanes else None,
+                True if self._kernel(M).kernel is lanes.advance_lanes else None,
                 self._contact_workspace(static_pose),
                 None if M.integrator == compiled.RK4 else True)
         return args

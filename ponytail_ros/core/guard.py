@@ -9,8 +9,13 @@ below ``guard_max_gap``; the measures in one compiled call (``state_kernels.guar
 import numpy as np
 
 from . import chain_ops, state_kernels
+from .direct_call import DirectCall
 
 __all__ = ['Guard', 'GYROSCOPIC_REACH_RATIO']
+
+# The measures' kernel called directly after its first call (``DirectCall``): its arguments
+# are always a ``Model``'s arrays, C float64 state arrays (``_c``), a bool and a float64 row.
+_GUARD_MEASURES = DirectCall(state_kernels.guard_measures)
 
 # RK4 follows a thin segment's gyroscopic precession (its body-frame ω turning at ~ its axial
 # spin Ω) only to dt·Ω ≈ 1 (1.04 gains energy slowly, 1.25 blows up), a swing to ~2.5 (the
@@ -33,7 +38,7 @@ class Guard:
         m, st = self.model, self.state
         out = self._measures_out
         swing_only = not self._explicit_gyroscopic and self.axisymmetric
-        state_kernels.guard_measures(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
+        _GUARD_MEASURES(m.length, m.is_first, m.chain_of, m.inertia, _c(st.x),
                                      _c(st.q), _c(st.v), _c(st.w), _c(anchor.position),
                                      _c(anchor.angular_velocity), swing_only, out)
         return out

@@ -32,6 +32,7 @@ import numpy as np
 from . import chain_ops, collision, lanes, stages, state_kernels, step as compiled
 from .chain_ops import carry_with_anchors
 from .contact_steps import MAX_SUBSTEPS, SUBSTEP_ANGLE, ContactSteps
+from .direct_call import DirectCall
 from .guard import GYROSCOPIC_REACH_RATIO, Guard
 from .head import (
     ANCHOR_FIELDS,
@@ -97,6 +98,7 @@ class Simulator(RolloutSteps, ContactSteps, Guard):
         self.external = None
         self._step_model_cache = None
         self._last_kernel: tuple = (None, None)     # (StepModel, its compiled step)
+        self._motion_anchors: tuple = (None, None)  # (motion, its anchors: _anchors_of)
         # ``_points_ahead``'s table: ((motion, t_base, dt), first step, end step, table).
         self._ahead: tuple = (None, 0, 0, None)
         self._measures_out = np.empty(len(state_kernels.MEASURES))
@@ -252,7 +254,7 @@ class Simulator(RolloutSteps, ContactSteps, Guard):
         """
         m = self.model
         if not self._needs_bodies:
-            anchor_at = memo_last(lambda t: self.anchors(motion.state_at(t)))
+            anchor_at = self._anchors_of(motion)
             self._anchor_at = anchor_at
             if self.unilateral is None:
                 n_steps = self._steps_to(t_target)
@@ -285,6 +287,15 @@ class Simulator(RolloutSteps, ContactSteps, Guard):
         self._bodies_at = bodies_at
         self._last_bodies = (self.t, bodies_at(self.t))
         return report
+
+    def _anchors_of(self, motion):
+        """The anchors of ``motion`` at a time (the last few memoised), kept across calls
+        while it is the same ``fixed`` motion (one that never changes)."""
+        last, anchor_at = self._motion_anchors
+        if last is not motion or not motion.fixed:
+            anchor_at = memo_last(lambda t: self.anchors(motion.state_at(t)))
+            self._motion_anchors = (motion, anchor_at)
+        return anchor_at
 
     def advance_frame(self, t_frame, head, head_prev=None):
         """Advance to ``t_frame`` (s) given the head only at frames (``KinematicState``).
@@ -443,7 +454,9 @@ class Simulator(RolloutSteps, ContactSteps, Guard):
         results bit for bit; ``lanes.kernel_for``), kept for the last ``model``."""
         last, kernel = self._last_kernel
         if model is not last:
-            kernel = lanes.kernel_for(model, self._crowd)
+            # Called directly after the first call (``DirectCall``): the arguments' types are
+            # this model's and the simulator's own C float arrays' at every call.
+            kernel = DirectCall(lanes.kernel_for(model, self._crowd))
             self._last_kernel = (model, kernel)
         return kernel
 
@@ -529,8 +542,9 @@ class Simulator(RolloutSteps, ContactSteps, Guard):
         self.t = self._t_base + self._n_steps * self.dt
         self.state = ChainState(x, q, v, w)
         # (the table's end row is the anchor at self.t bit for bit: the same evaluation)
-        self._end_call(report, AnchorKinematics(*(a[-1] for a in table)) if failure is None
-                       else anchor_at(self.t), failure, motion.state_at)
+        ap, av, aa, ao, aw = table
+        self._end_call(report, AnchorKinematics(ap[-1], av[-1], aa[-1], ao[-1], aw[-1])
+                       if failure is None else anchor_at(self.t), failure, motion.state_at)
         report.timings = {'steps': t_steps - t_start, 'guard': time.perf_counter() - t_steps,
                           'integrate': self._call_wall, **_NO_CONTACTS}
         return report

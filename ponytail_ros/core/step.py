@@ -69,21 +69,21 @@ _inline = nb.njit(cache=True, inline='always')
 _borrow = nb.njit(cache=True, _nrt=False, **_INTERNAL)
 
 
+# The workspaces are views of a few blocks, not an allocation each: a call of a few steps
+# (a tick of a short chain) paid more for twenty allocations than for a step.
 @_jit
 def _workspace(n):
     """F, T, e, hv ``(n, 3)``; Iinv, C = P⁻¹, Lo = 𝓛 ``(n, 3, 3)``."""
-    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
-            np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3)))
+    v, m = np.empty((4, n, 3)), np.empty((3, n, 3, 3))
+    return v[0], v[1], v[2], v[3], m[0], m[1], m[2]
 
 
 @_jit
 def _rk4_workspace(n):
     """The integrators' scratch: RK4's wb, w_s, xs, qs, vs, wbs, acc, (7: the constrained
     steps' only), sx, sv, sq, swb, α; ``(n, 3)``, the quaternions ``(n, 4)``."""
-    return (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)),
-            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
-            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3)),
-            np.empty((n, 3)))
+    v, q = np.empty((11, n, 3)), np.empty((2, n, 4))
+    return (v[0], v[1], v[2], q[0], v[3], v[4], v[5], v[6], v[7], v[8], q[1], v[9], v[10])
 
 
 @_inline
