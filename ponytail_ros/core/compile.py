@@ -283,6 +283,13 @@ def _cached(kernel, signature=None):
     return any(signature is None or signature(key[0]) for key in index)
 
 
+def _stage_misses_here():
+    """Whether this process compiled the contact stage itself (after the child compiled
+    it: the child's types were not the contact step's)."""
+    from .contact_stage import resolve_chains_into
+    return sum(resolve_chains_into.stats.cache_misses.values()) > 0
+
+
 def _missing(stage):
     """Whether some kernel of ``stage`` is not in the cache (it will compile)."""
     return not all(_cached(k, s) for k, s in _stage_kernels(stage))
@@ -461,6 +468,10 @@ def _run(stages, log, progress):
                 _WHILE_WAITING[stage]()
                 child_misses = _wait_child(child)
             _WARM[stage]()
+            if stage in to_child and child_misses and _stage_misses_here() and log is not None:
+                log('ponytail_ros: warning: the contact stage compiled in both processes '
+                    '(step_unilateral.compile_contact_stage no longer builds the types '
+                    'advance_unilateral calls it with): the cold compile took longer')
             _done.add(stage)
             STAGE_SECONDS[stage] = time.perf_counter() - t0
             STAGE_CPU[stage] = time.process_time() - c0
