@@ -206,14 +206,11 @@ def _warm_markers():
                                     np.empty(1, dtype=np.bool_))
 
 
-#: A child stage's part in the child (the rest is run here when the child is done) and the
-#: part run here while waiting for it.
+#: A child stage's part in the child (the rest is run here when the child is done; here,
+#: while waiting for it, the contact queries: ``_warm_contact_queries``).
 _CHILD_WARM = {'contact step': _warm_contact_stage,
                'contact step (other integrators)': _warm_contact_stage,
                'crowd contacts': _warm_crowd_contact_stage}
-_WHILE_WAITING = {'contact step': _warm_contact_queries,
-                  'contact step (other integrators)': _warm_contact_queries,
-                  'crowd contacts': _warm_contact_queries}
 
 _WARM = {'free step': _warm_free, 'other integrators': _warm_other_integrators,
          'crowd lanes': _warm_crowd, 'contact step': _warm_contacts,
@@ -465,7 +462,7 @@ def _run(stages, log, progress):
             if said:
                 bar.start(stage + (' (second process)' if stage in to_child else ''))
             if stage in to_child and child.returncode is None:
-                _WHILE_WAITING[stage]()
+                _warm_contact_queries()
                 child_misses = _wait_child(child)
             _WARM[stage]()
             if stage in to_child and child_misses and _stage_misses_here() and log is not None:
